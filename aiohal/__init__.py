@@ -1,0 +1,45 @@
+"""aiohal: a robot hardware abstraction layer on asyncio.
+
+One HAL protocol between controllers and hardware (drivers chosen by configuration), a
+control loop that ticks at 1-2 kHz on absolute deadlines, and simulated drivers for CI.
+"""
+
+from .config import Config, load_config, parse_config
+from .errors import (
+    AiohalError,
+    ConfigError,
+    ConfigIssue,
+    DriverError,
+    LifecycleError,
+    MissingDependencyError,
+    PluginError,
+    TickTimeoutError,
+)
+from .hal import Controller, Driver, Options
+from .loop import ControlLoop
+from .robot import Mode, Robot
+from .safety import SafetyLevel
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AiohalError",
+    "Config",
+    "ConfigError",
+    "ConfigIssue",
+    "ControlLoop",
+    "Controller",
+    "Driver",
+    "DriverError",
+    "LifecycleError",
+    "MissingDependencyError",
+    "Mode",
+    "Options",
+    "PluginError",
+    "Robot",
+    "SafetyLevel",
+    "TickTimeoutError",
+    "__version__",
+    "load_config",
+    "parse_config",
+]

@@ -1,0 +1,479 @@
+"""One TOML file per robot, validated into typed objects before anything starts.
+
+Every error is collected with its key path (``driver[1].joints: unknown joint "a8"``) and
+raised together as one :class:`~aiohal.errors.ConfigError`; the CLI prints them and exits 2.
+Each section is validated on its own so that one bad section does not hide the others'
+errors. Paths in a config are relative to the config file.
+"""
+
+from __future__ import annotations
+
+import difflib
+import fnmatch
+import math
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, BaseModel, Field, TypeAdapter, ValidationError, ValidationInfo, model_validator
+
+from . import plugins
+from .errors import ConfigError, ConfigIssue, MissingDependencyError, PluginError
+from .hal import Options
+from .robot import DEVICE_GROUPS, JointSpec, Robot
+
+
+def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
+    base = (info.context or {}).get("base_dir")
+    if base is not None and not value.is_absolute():
+        return (Path(base) / value).resolve()
+    return value
+
+
+#: A path in a config: relative paths are taken from the config file's folder.
+ConfigPath = Annotated[Path, AfterValidator(_resolve_relative)]
+
+
+class RobotSection(Options):
+    name: str = Field("robot", min_length=1, description="Robot name, shown in logs and reports.")
+    model: ConfigPath | None = Field(None, description="Robot model file (MJCF), relative to this config.")
+
+
+class LoopSection(Options):
+    rate_hz: float = Field(1000.0, gt=0, le=50_000, description="Tick rate of the control loop.")
+    clock: Literal["auto", "timerfd", "sleep", "virtual"] = Field(
+        "auto",
+        description="Wake source: timerfd (Linux), sleep (portable), virtual (as fast as possible, "
+        "deterministic); auto picks timerfd where it exists.",
+    )
+    overrun: Literal["skip", "catch_up"] = Field(
+        "skip", description="After a stall: skip the missed ticks (keep phase) or run them late."
+    )
+    max_feedback_age: int = Field(
+        50, ge=1, description="Ticks after which a joint's feedback is stale and the robot holds."
+    )
+    stats_window: int = Field(
+        1 << 19, ge=1024, description="Ticks kept for percentiles (older ticks still count in max)."
+    )
+
+
+class JointSection(Options):
+    position: tuple[float, float] = Field(
+        (-math.inf, math.inf), description="[min, max] position (rad or m)."
+    )
+    velocity: float = Field(gt=0, description="Velocity limit (rad/s or m/s); inf for none.")
+    acceleration: float = Field(math.inf, gt=0, description="Acceleration limit.")
+    effort: float = Field(math.inf, gt=0, description="Effort limit (N·m or N).")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> JointSection:
+        lo, hi = self.position
+        if not lo < hi:
+            raise ValueError(f"position limits must satisfy min < max (got [{lo}, {hi}])")
+        return self
+
+
+class DeviceSection(Options):
+    type: Literal["imu", "force_torque", "hand"]
+    joint: str | None = Field(None, description="For a hand: the joint that carries it.")
+
+
+class DriverSection(Options):
+    type: str = Field(description="Driver name from `python -m aiohal plugins`.")
+    name: str | None = Field(None, min_length=1, description="Unique name; defaults to the type.")
+    joints: list[str] = Field(default_factory=list, description="Joint names or glob patterns.")
+    devices: list[str] = Field(default_factory=list)
+    options: dict[str, Any] = Field(default_factory=dict, description="The driver's own options.")
+
+
+class ControllerSection(Options):
+    type: str = Field("hold", description="Controller name from `python -m aiohal plugins`.")
+    params: dict[str, Any] = Field(default_factory=dict, description="The controller's parameters.")
+
+
+class _JointDefaults(Options):
+    position: tuple[float, float] | None = None
+    velocity: float | None = None
+    acceleration: float | None = None
+    effort: float | None = None
+
+
+SECTIONS: dict[str, Any] = {
+    "robot": RobotSection,
+    "loop": LoopSection,
+    "joint_defaults": _JointDefaults,
+    "joints": dict[str, JointSection],
+    "devices": dict[str, DeviceSection],
+    "driver": list[DriverSection],
+    "controller": ControllerSection,
+}
+REQUIRED_SECTIONS = ("joints", "driver")
+
+
+# ---------------------------------------------------------------- the validated result
+
+
+@dataclass(frozen=True)
+class DriverConfig:
+    name: str
+    type: str
+    cls: type
+    joints: tuple[str, ...]
+    devices: tuple[str, ...]
+    options: Options
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    type: str
+    cls: type
+    params: Options
+
+
+@dataclass(frozen=True)
+class Config:
+    """A validated robot configuration."""
+
+    robot: RobotSection
+    loop: LoopSection
+    joints: tuple[JointSpec, ...]
+    devices: tuple[tuple[str, str, str | None], ...]  # (name, kind, carrying joint)
+    drivers: tuple[DriverConfig, ...]
+    controller: ControllerConfig
+    path: Path | None = None
+    base_dir: Path = field(default_factory=Path.cwd)
+
+    @property
+    def period_ns(self) -> int:
+        return round(1e9 / self.loop.rate_hz)
+
+    def with_loop(self, **changes: Any) -> Config:
+        """A copy with loop settings changed (e.g. the CLI's --rate), validated again."""
+        loop = LoopSection.model_validate({**self.loop.model_dump(), **changes})
+        return replace(self, loop=loop)
+
+    def build_robot(self) -> Robot:
+        return Robot(self.robot.name, self.joints, period_ns=self.period_ns, devices=self.devices)
+
+
+# ---------------------------------------------------------------- validation
+
+
+def _path(loc: tuple[Any, ...], prefix: str = "") -> str:
+    out = prefix
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            out += f".{part}" if out else str(part)
+    return out
+
+
+def _describe(err: dict[str, Any], allowed: list[str] | None) -> str:
+    kind = err["type"]
+    value = err.get("input")
+    if kind == "missing":
+        return "required key is missing"
+    if kind == "extra_forbidden":
+        key = str(err["loc"][-1])
+        close = difflib.get_close_matches(key, allowed or [], n=1)
+        return "unknown key" + (f' (did you mean "{close[0]}"?)' if close else "")
+    msg = err["msg"]
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    msg = msg[:1].lower() + msg[1:]
+    if isinstance(value, (str, int, float, bool)) and kind != "value_error":
+        msg += f" (got {value!r})"
+    return msg
+
+
+def _model_fields(model: Any, loc: tuple[Any, ...]) -> list[str] | None:
+    """Field names valid at ``loc`` inside ``model`` (for did-you-mean hints)."""
+    target = model
+    for part in loc:
+        fields = getattr(target, "model_fields", None)
+        if fields is None:
+            return None
+        if part in fields:
+            ann = fields[part].annotation
+            target = ann
+        elif isinstance(part, int) or not fields:
+            continue
+        else:
+            return list(fields)
+    fields = getattr(target, "model_fields", None)
+    return list(fields) if fields else None
+
+
+def _validate(
+    schema: Any, data: Any, prefix: str, issues: list[ConfigIssue], context: dict[str, Any]
+) -> Any:
+    """Validate ``data`` against a model or type; append located issues; None on failure."""
+    try:
+        return TypeAdapter(schema).validate_python(data, context=context)
+    except ValidationError as exc:
+        for err in exc.errors():
+            loc = tuple(err["loc"])
+            item_model = schema
+            sub_loc = loc
+            # dict[str, Model] / list[Model]: the first loc part is the key or index
+            args = getattr(schema, "__args__", None)
+            if args:
+                item_model = args[-1]
+                sub_loc = loc[1:]
+            allowed = _model_fields(item_model, sub_loc[:-1])
+            issues.append(ConfigIssue(_path(loc, prefix), _describe(err, allowed)))
+        return None
+
+
+def _expand(patterns: list[str], names: tuple[str, ...], path: str, issues: list[ConfigIssue]) -> list[str]:
+    out: list[str] = []
+    for pattern in patterns:
+        if any(c in pattern for c in "*?["):
+            matched = [n for n in names if fnmatch.fnmatchcase(n, pattern) and n not in out]
+            if not matched:
+                issues.append(ConfigIssue(path, f'pattern "{pattern}" matches no joint'))
+            out.extend(matched)
+        elif pattern not in names:
+            close = difflib.get_close_matches(pattern, names, n=1)
+            hint = f' (did you mean "{close[0]}"?)' if close else ""
+            issues.append(ConfigIssue(path, f'unknown joint "{pattern}"{hint}'))
+        elif pattern in out:
+            issues.append(ConfigIssue(path, f'joint "{pattern}" is listed twice'))
+        else:
+            out.append(pattern)
+    return out
+
+
+def _load_plugin(kind: str, name: str, path: str, issues: list[ConfigIssue]) -> type | None:
+    try:
+        return plugins.load(kind, name)
+    except MissingDependencyError as exc:
+        issues.append(ConfigIssue(path, str(exc)))
+    except PluginError as exc:
+        issues.append(ConfigIssue(path, str(exc)))
+    return None
+
+
+def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Path | None = None) -> Config:
+    """Validate a parsed TOML document; raises ConfigError listing every issue."""
+    base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
+    context = {"base_dir": base_dir}
+    issues: list[ConfigIssue] = []
+    if not isinstance(raw, dict):
+        raise ConfigError([ConfigIssue("", "the document must be a table")], str(path) if path else None)
+
+    for key in raw:
+        if key not in SECTIONS:
+            close = difflib.get_close_matches(key, list(SECTIONS), n=1)
+            issues.append(ConfigIssue(key, "unknown section" + (f' (did you mean "{close[0]}"?)' if close else "")))
+    for key in REQUIRED_SECTIONS:
+        if key not in raw:
+            issues.append(ConfigIssue(key, "required section is missing"))
+
+    robot = _validate(RobotSection, raw.get("robot", {}), "robot", issues, context)
+    loop = _validate(LoopSection, raw.get("loop", {}), "loop", issues, context)
+    defaults = _validate(_JointDefaults, raw.get("joint_defaults", {}), "joint_defaults", issues, context)
+    default_values = defaults.model_dump(exclude_none=True) if defaults else {}
+
+    # joints: each validated on its own, with [joint_defaults] filled in
+    joint_specs: list[JointSpec] = []
+    raw_joints = raw.get("joints", {})
+    if not isinstance(raw_joints, dict):
+        issues.append(ConfigIssue("joints", "must be a table of joints"))
+        raw_joints = {}
+    elif "joints" in raw and not raw_joints:
+        issues.append(ConfigIssue("joints", "the robot needs at least one joint"))
+    for name, body in raw_joints.items():
+        if not isinstance(body, dict):
+            issues.append(ConfigIssue(f"joints.{name}", "must be a table"))
+            continue
+        joint = _validate(JointSection, {**default_values, **body}, f"joints.{name}", issues, context)
+        if joint is not None:
+            lo, hi = joint.position
+            joint_specs.append(
+                JointSpec(name, len(joint_specs), lo, hi, joint.velocity, joint.acceleration, joint.effort)
+            )
+    joint_names = tuple(raw_joints)
+
+    # devices
+    devices = _validate(dict[str, DeviceSection], raw.get("devices", {}), "devices", issues, context) or {}
+    for dev_name, dev in devices.items():
+        if dev.type == "hand":
+            if dev.joint is None:
+                issues.append(ConfigIssue(f"devices.{dev_name}.joint", "a hand needs the joint that carries it"))
+            elif dev.joint not in joint_names:
+                issues.append(ConfigIssue(f"devices.{dev_name}.joint", f'unknown joint "{dev.joint}"'))
+        elif dev.joint is not None:
+            issues.append(ConfigIssue(f"devices.{dev_name}.joint", f"only a hand is carried by a joint, not a {dev.type}"))
+
+    # drivers
+    drivers: list[DriverConfig] = []
+    raw_drivers = raw.get("driver", [])
+    if not isinstance(raw_drivers, list):
+        issues.append(ConfigIssue("driver", "must be an array of tables: write [[driver]]"))
+        raw_drivers = []
+    elif "driver" in raw and not raw_drivers:
+        issues.append(ConfigIssue("driver", "the robot needs at least one driver"))
+    joint_owner: dict[str, int] = {}
+    device_owner: dict[str, int] = {}
+    names_seen: dict[str, int] = {}
+    type_counts: dict[str, int] = {}
+    for d in raw_drivers:
+        if isinstance(d, dict) and isinstance(d.get("type"), str):
+            type_counts[d["type"]] = type_counts.get(d["type"], 0) + 1
+    for i, body in enumerate(raw_drivers):
+        where = f"driver[{i}]"
+        section = _validate(DriverSection, body, where, issues, context)
+        if section is None:
+            continue
+        name = section.name or (section.type if type_counts.get(section.type, 0) == 1 else f"{section.type}{i}")
+        if name in names_seen:
+            issues.append(ConfigIssue(f"{where}.name", f'"{name}" is already the name of driver[{names_seen[name]}]'))
+        names_seen.setdefault(name, i)
+
+        joints = _expand(section.joints, joint_names, f"{where}.joints", issues)
+        for j in joints:
+            if j in joint_owner:
+                issues.append(ConfigIssue(f"{where}.joints", f'joint "{j}" is already owned by driver[{joint_owner[j]}]'))
+            else:
+                joint_owner[j] = i
+        idx = [joint_names.index(j) for j in joints]
+        if idx and idx != list(range(idx[0], idx[0] + len(idx))):
+            issues.append(
+                ConfigIssue(
+                    f"{where}.joints",
+                    "a driver's joints must be a contiguous run in the order of [joints] "
+                    f"(got {', '.join(joints)})",
+                )
+            )
+
+        cls = _load_plugin("driver", section.type, f"{where}.type", issues)
+        dev_kinds: dict[str, str] = {}
+        for dev_name in section.devices:
+            if dev_name not in devices:
+                issues.append(ConfigIssue(f"{where}.devices", f'unknown device "{dev_name}"'))
+                continue
+            kind = devices[dev_name].type
+            dev_kinds[dev_name] = kind
+            if dev_name in device_owner:
+                issues.append(ConfigIssue(f"{where}.devices", f'device "{dev_name}" is already owned by driver[{device_owner[dev_name]}]'))
+            else:
+                device_owner[dev_name] = i
+            if cls is not None and kind not in getattr(cls, "device_kinds", frozenset()):
+                issues.append(ConfigIssue(f"{where}.devices", f'driver "{section.type}" cannot serve a {kind} ("{dev_name}")'))
+        if cls is None:
+            continue
+        options = _validate(cls.Options, section.options, f"{where}.options", issues, context)
+        if options is None:
+            continue
+        for rel, msg in cls.check_config(options, joints, dev_kinds):
+            issues.append(ConfigIssue(_path((rel,), f"{where}.options") if rel else f"{where}.options", msg))
+        drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options))
+
+    if "driver" in raw and isinstance(raw_drivers, list):
+        for j in joint_names:
+            if j not in joint_owner:
+                issues.append(ConfigIssue(f"joints.{j}", "no driver owns this joint"))
+        for dev_name in devices:
+            if dev_name not in device_owner:
+                issues.append(ConfigIssue(f"devices.{dev_name}", "no driver owns this device"))
+
+    # controller
+    controller = None
+    section = _validate(ControllerSection, raw.get("controller", {}), "controller", issues, context)
+    if section is not None:
+        cls = _load_plugin("controller", section.type, "controller.type", issues)
+        if cls is not None:
+            params = _validate(cls.Params, section.params, "controller.params", issues, context)
+            if params is not None:
+                for rel, msg in cls.check_config(params, tuple(joint_specs)):
+                    issues.append(ConfigIssue(_path((rel,), "controller.params") if rel else "controller.params", msg))
+                controller = ControllerConfig(section.type, cls, params)
+
+    if issues:
+        raise ConfigError(issues, str(path) if path else None)
+    assert robot is not None and loop is not None and controller is not None
+    return Config(
+        robot=robot,
+        loop=loop,
+        joints=tuple(joint_specs),
+        devices=tuple((n, d.type, d.joint) for n, d in devices.items()),
+        drivers=tuple(drivers),
+        controller=controller,
+        path=path,
+        base_dir=base_dir,
+    )
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a robot TOML file."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError([ConfigIssue("", f"cannot read the file: {exc}")], str(path)) from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError([ConfigIssue("", f"invalid TOML: {exc}")], str(path)) from None
+    return parse_config(raw, base_dir=path.resolve().parent, path=path)
+
+
+# ---------------------------------------------------------------- JSON Schema
+
+
+def json_schema() -> dict[str, Any]:
+    """A JSON Schema of robot configs for editors; plugin options included for loadable plugins."""
+    props: dict[str, Any] = {}
+    defs: dict[str, Any] = {}
+    for key, schema in SECTIONS.items():
+        sub = TypeAdapter(schema).json_schema(ref_template="#/$defs/{model}")
+        defs.update(sub.pop("$defs", {}))
+        props[key] = sub
+    props["joints"]["minProperties"] = 1
+    props["driver"]["minItems"] = 1
+    for kind, section_key, field_name in (("driver", "DriverSection", "options"), ("controller", "ControllerSection", "params")):
+        clauses = []
+        for name, (spec, error) in {s.name: (s, e) for s, e in plugins.describe(kind)}.items():
+            if error is not None:
+                continue
+            cls = plugins.load(kind, name)
+            model = cls.Options if kind == "driver" else cls.Params
+            sub = model.model_json_schema(ref_template="#/$defs/{model}")
+            defs.update(sub.pop("$defs", {}))
+            def_name = f"{kind}_{name}_{field_name}"
+            defs[def_name] = sub
+            clauses.append(
+                {
+                    "if": {"properties": {"type": {"const": name}}, "required": ["type"]},
+                    "then": {"properties": {field_name: {"$ref": f"#/$defs/{def_name}"}}},
+                }
+            )
+        defs[section_key]["allOf"] = clauses
+        defs[section_key]["properties"]["type"]["enum"] = sorted(plugins.available(kind))
+    return _finite_defaults({
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "aiohal robot configuration",
+        "type": "object",
+        "properties": props,
+        "required": list(REQUIRED_SECTIONS),
+        "additionalProperties": False,
+        "$defs": defs,
+    })
+
+
+def _finite_defaults(node: Any) -> Any:
+    """Drop defaults JSON cannot hold (inf limits mean "no limit"; TOML writes them as inf)."""
+    if isinstance(node, dict):
+        out = {k: _finite_defaults(v) for k, v in node.items()}
+        default = out.get("default")
+        values = default if isinstance(default, (list, tuple)) else [default]
+        if any(isinstance(v, float) and not math.isfinite(v) for v in values):
+            del out["default"]
+            out["description"] = (out.get("description", "") + " Default: no limit (inf).").strip()
+        return out
+    if isinstance(node, list):
+        return [_finite_defaults(v) for v in node]
+    return node

@@ -1,0 +1,445 @@
+"""The control loop: lifecycle and the tick.
+
+One tick, in order::
+
+    wake (absolute deadline k) -> read every driver -> check feedback -> controller.update
+    -> clamp commands to limits -> write every driver -> publish -> statistics
+
+Lifecycle: ``configure`` (build drivers and controller, nothing touches hardware) ->
+``activate`` (open drivers, first read, command := measured state, controller start) ->
+``run`` (ticks until a duration, a tick count or :meth:`ControlLoop.request_stop`) ->
+``deactivate`` (controller stop, drivers closed). ``async with ControlLoop(config)`` does the
+first two and the last. A driver or controller that raises never ends the process: the driver
+is isolated and emergency-stopped, the controller is replaced by ``hold`` without a jump, and
+the fault is recorded with its name.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from . import plugins
+from .config import Config
+from .errors import DriverError, LifecycleError
+from .hal import Controller, Driver
+from .limits import CommandLimiter
+from .logutil import RateLimitedLogger
+from .robot import Fault, Mode
+from .safety import FaultRecord, SafetyLevel
+from .stats import TickStats
+from .ticker import Ticker, TickSource, make_source
+
+log = logging.getLogger(__name__)
+
+
+class DriverSlot:
+    """A driver with its status and timing counters."""
+
+    __slots__ = ("driver", "name", "type", "status", "read_ns", "write_ns", "max_read_ns", "max_write_ns")
+
+    def __init__(self, driver: Driver, type_name: str) -> None:
+        self.driver = driver
+        self.name = driver.name
+        self.type = type_name
+        self.status = "created"  # created -> open -> failed | closed
+        self.read_ns = 0
+        self.write_ns = 0
+        self.max_read_ns = 0
+        self.max_write_ns = 0
+
+
+class ControlLoop:
+    """Runs one robot: its drivers, its controller and the tick."""
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        tick_source: TickSource | None = None,
+        controller: Controller | None = None,
+    ) -> None:
+        self.config = config
+        self.robot = config.build_robot()
+        self.period_ns = config.period_ns
+        self.period_s = self.period_ns / 1e9
+        self.source = tick_source or make_source(config.loop.clock)
+        self.ticker = Ticker(self.source, self.period_ns, config.loop.overrun)
+        self.stats = TickStats(config.loop.stats_window)
+        self.limiter = CommandLimiter(self.robot, self.period_s)
+        self.level = SafetyLevel.OFF
+        self.faults: list[FaultRecord] = []
+        self.slots: list[DriverSlot] = []
+        self._active: list[DriverSlot] = []
+        self._given_controller = controller
+        self.controller: Controller | None = None
+        self.controller_type = config.controller.type
+        self._hold: Controller | None = None
+        self._publishers: list[Callable[[ControlLoop], None]] = []
+        self._stop = False
+        self.stop_reason = ""
+        self.state = "created"
+        self.ticks_run = 0
+        self._k_start = 0
+        self._last_update_k = 0
+        self._stale = False
+        self._warn = RateLimitedLogger(log)
+
+    # ------------------------------------------------------------ lifecycle
+
+    def configure(self) -> None:
+        """Instantiate drivers and controllers from the config; touches no hardware."""
+        if self.state != "created":
+            raise LifecycleError(f"configure() in state {self.state!r}")
+        for dc in self.config.drivers:
+            view = self.robot.driver_view(dc.joints, dc.devices)
+            self.slots.append(DriverSlot(dc.cls(dc.name, view, dc.options), dc.type))
+        view = self.robot.controller_view()
+        hold_cls = plugins.load("controller", "hold")
+        self._hold = hold_cls()
+        self._hold.configure(view, hold_cls.Params())
+        if self._given_controller is not None:
+            self.controller = self._given_controller
+            self.controller_type = type(self.controller).__name__
+        else:
+            self.controller = self.config.controller.cls()
+        self.controller.configure(view, self.config.controller.params)
+        self.state = "configured"
+
+    async def activate(self) -> None:
+        """Open every driver, read once, start from the measured state, start the controller."""
+        if self.state == "created":
+            self.configure()
+        if self.state != "configured":
+            raise LifecycleError(f"activate() in state {self.state!r}")
+        clock = self.robot.clock
+        clock.tick = 0
+        clock.now_ns = self.source.now_ns()
+        try:
+            for slot in self.slots:
+                await self._bring_up(slot, "open", slot.driver.open)
+            for slot in self.slots:
+                await self._bring_up(slot, "read", slot.driver.read)
+        except BaseException:
+            self.estop()
+            await self._close_drivers()
+            self.state = "closed"
+            raise
+        self._active = list(self.slots)
+        cmd, state = self.robot.command, self.robot.state
+        np.copyto(cmd.position, state.position)
+        cmd.velocity[:] = 0.0
+        cmd.effort[:] = 0.0
+        cmd.feedforward[:] = 0.0
+        cmd.mode[cmd.mode == Mode.NONE] = Mode.POSITION
+        self.limiter.reset(state.position)
+        self.level = SafetyLevel.RUN
+        self.state = "active"
+        try:
+            self.controller.start(0.0)
+        except Exception as exc:
+            self._controller_failed("start", exc, 0)
+
+    async def _bring_up(self, slot: DriverSlot, phase: str, step: Callable) -> None:
+        try:
+            await step()
+        except Exception as exc:
+            record = FaultRecord(f"driver:{slot.name}", phase, 0, f"{type(exc).__name__}: {exc}")
+            self.faults.append(record)
+            slot.status = "failed"
+            log.error("driver %s failed in %s: %s", slot.name, phase, exc)
+            raise DriverError(slot.name, phase, f"{type(exc).__name__}: {exc}") from exc
+        if phase == "open":
+            slot.status = "open"
+
+    async def deactivate(self) -> None:
+        """Stop the controller and close every driver (also the failed ones)."""
+        if self.state in ("closed", "created", "configured"):
+            self.state = "closed"
+            return
+        controller = self.controller
+        try:
+            if controller is not None:
+                controller.stop()
+        except Exception as exc:
+            self._record(f"controller:{self.controller_type}", "stop", exc)
+        await self._close_drivers()
+        self.level = SafetyLevel.OFF
+        self.state = "closed"
+
+    async def _close_drivers(self) -> None:
+        for slot in reversed(self.slots):
+            if slot.status == "closed":
+                continue
+            try:
+                await slot.driver.close()
+            except Exception as exc:
+                self._record(f"driver:{slot.name}", "close", exc)
+                try:
+                    slot.driver.estop()
+                except Exception:
+                    pass
+            if slot.status != "failed":
+                slot.status = "closed"
+
+    async def __aenter__(self) -> ControlLoop:
+        await self.activate()
+        return self
+
+    async def __aexit__(self, *exc_info: Any) -> None:
+        await self.deactivate()
+
+    def request_stop(self, reason: str = "requested") -> None:
+        """Ask the loop to finish the current tick and return from :meth:`run`."""
+        if not self._stop:
+            self.stop_reason = reason
+        self._stop = True
+
+    def estop(self) -> None:
+        """Trigger every driver's emergency stop now (synchronous; safe to call twice)."""
+        for slot in self.slots:
+            try:
+                slot.driver.estop()
+            except Exception as exc:
+                self._record(f"driver:{slot.name}", "estop", exc)
+        if self.level > SafetyLevel.ESTOP:
+            self.level = SafetyLevel.ESTOP
+
+    def add_publisher(self, publish: Callable[[ControlLoop], None]) -> None:
+        """Call ``publish(loop)`` at the end of every tick; it must not block."""
+        self._publishers.append(publish)
+
+    # ------------------------------------------------------------ faults
+
+    def _record(self, source: str, phase: str, exc: BaseException | str) -> FaultRecord:
+        error = exc if isinstance(exc, str) else f"{type(exc).__name__}: {exc}"
+        record = FaultRecord(source, phase, self.robot.clock.tick, error)
+        self.faults.append(record)
+        log.error("%s", record)
+        return record
+
+    def _driver_failed(self, slot: DriverSlot, phase: str, exc: BaseException) -> None:
+        self._record(f"driver:{slot.name}", phase, exc)
+        slot.status = "failed"
+        try:
+            slot.driver.estop()
+        except Exception as estop_exc:
+            self._record(f"driver:{slot.name}", "estop", estop_exc)
+        self.robot.state.fault[slot.driver.view.rows] |= Fault.DRIVER
+        self._active = [s for s in self._active if s is not slot]
+        self.enter_hold(f"driver {slot.name} failed")
+
+    def _controller_failed(self, phase: str, exc: BaseException, k: int) -> None:
+        self._record(f"controller:{self.controller_type}", phase, exc)
+        self.enter_hold(f"controller {self.controller_type} failed")
+
+    def enter_hold(self, reason: str) -> None:
+        """Replace the controller by ``hold`` at the last command sent (bumpless)."""
+        if self.level <= SafetyLevel.HOLD:
+            return
+        log.warning("robot %s goes to hold: %s", self.robot.name, reason)
+        self.level = SafetyLevel.HOLD
+        old = self.controller
+        if old is not None and old is not self._hold:
+            try:
+                old.stop()
+            except Exception as exc:
+                self._record(f"controller:{self.controller_type}", "stop", exc)
+        self.limiter.hold_last()
+        self.controller = self._hold
+        self.controller_type = "hold"
+        self._hold.start((self.robot.clock.tick - self._k_start) * self.period_s)
+
+    def _feedback_stale(self, slot: DriverSlot, k: int) -> None:
+        view = slot.driver.view
+        self.robot.state.fault[view.rows] |= Fault.STALE
+        age = k - view.fresh_tick
+        if not self._stale:
+            self._stale = True
+            self._record(f"driver:{slot.name}", "check", f"feedback is stale ({age} ticks old)")
+            self.enter_hold(f"stale feedback from driver {slot.name}")
+        else:
+            self._warn.warning("stale", "feedback from driver %s still stale (%d ticks old)", slot.name, age)
+
+    # ------------------------------------------------------------ the tick
+
+    async def run(self, duration: float | None = None, *, ticks: int | None = None) -> dict:
+        """Tick until ``duration`` seconds (or ``ticks`` deadlines) passed, or a stop request.
+
+        Returns the report (see :meth:`report`).
+        """
+        if self.state != "active":
+            raise LifecycleError(f"run() in state {self.state!r}; use activate() or 'async with'")
+        if duration is not None:
+            ticks = max(1, round(duration * 1e9 / self.period_ns))
+        self.state = "running"
+        try:
+            await self._tick_loop(ticks)
+        finally:
+            self.stats.end()
+            self.ticker.close()
+            if self.state == "running":
+                self.state = "active"
+        return self.report()
+
+    async def _tick_loop(self, ticks: int | None) -> None:
+        robot, stats, ticker, limiter = self.robot, self.stats, self.ticker, self.limiter
+        clock = robot.clock
+        max_age = self.config.loop.max_feedback_age
+        period_s, period_ns = self.period_s, self.period_ns
+        mask = stats.mask
+        lat_buf, work_buf, ph = stats.lateness, stats.work, stats.phases
+        ph_read, ph_check, ph_control, ph_limits, ph_write, ph_publish = ph
+        first_lateness = stats.first_lateness
+        mono = time.monotonic_ns
+        now_ns = self.source.now_ns
+        publishers = self._publishers
+
+        ticker.start(lead_ns=period_ns)
+        stats.begin()
+        self._k_start = k_start = ticker.k
+        self._last_update_k = k_start
+        stop_k = None if ticks is None else k_start + ticks
+        count = stats.count
+        while not self._stop:
+            k = await ticker.next()
+            woke = now_ns()
+            t0 = mono()
+            lateness = woke - ticker.deadline_ns
+            clock.tick = k
+            clock.now_ns = woke
+
+            for slot in self._active:
+                a = mono()
+                try:
+                    await slot.driver.read()
+                except Exception as exc:
+                    self._driver_failed(slot, "read", exc)
+                d = mono() - a
+                slot.read_ns += d
+                if d > slot.max_read_ns:
+                    slot.max_read_ns = d
+            t1 = mono()
+
+            for slot in self._active:
+                if k - slot.driver.view.fresh_tick > max_age:
+                    self._feedback_stale(slot, k)
+                    break
+            else:
+                self._stale = False
+            t2 = mono()
+
+            try:
+                self.controller.update((k - k_start) * period_s, (k - self._last_update_k) * period_s)
+            except Exception as exc:
+                self._controller_failed("update", exc, k)
+            self._last_update_k = k
+            t3 = mono()
+
+            if not limiter.apply():
+                self._controller_failed("limits", "command is not finite (NaN or inf)", k)
+            t4 = mono()
+
+            for slot in self._active:
+                a = mono()
+                try:
+                    await slot.driver.write()
+                except Exception as exc:
+                    self._driver_failed(slot, "write", exc)
+                d = mono() - a
+                slot.write_ns += d
+                if d > slot.max_write_ns:
+                    slot.max_write_ns = d
+            t5 = mono()
+
+            for publish in publishers:
+                publish(self)
+            t6 = mono()
+
+            i = count & mask
+            work = t6 - t0
+            lat_buf[i] = lateness
+            work_buf[i] = work
+            ph_read[i] = t1 - t0
+            ph_check[i] = t2 - t1
+            ph_control[i] = t3 - t2
+            ph_limits[i] = t4 - t3
+            ph_write[i] = t5 - t4
+            ph_publish[i] = t6 - t5
+            if count < 100:
+                first_lateness.append(lateness)
+                if count == 0:
+                    stats.first_tick_ns = woke
+            stats.last_tick_ns = woke
+            if lateness > stats.max_lateness:
+                stats.max_lateness = lateness
+            if work > stats.max_work:
+                stats.max_work = work
+            if work > period_ns:
+                stats.overruns += 1
+            count += 1
+            stats.count = count
+            if stop_k is not None and k >= stop_k:
+                break
+        self.ticks_run = stats.count
+        if not self.stop_reason:
+            self.stop_reason = "stop requested" if self._stop else "duration reached"
+
+    # ------------------------------------------------------------ report
+
+    def report(self) -> dict:
+        """Timing, faults, drivers and the controller's own metrics of the run so far."""
+        stats = self.stats
+        summary = stats.summary()
+        n = stats.count
+        span = (stats.last_tick_ns - stats.first_tick_ns) / 1e9
+        achieved = (n - 1) / span if n > 1 and span > 0 else float("nan")
+        target = 1e9 / self.period_ns
+        controller = self.controller
+        metrics: dict[str, Any] = {"type": self.controller_type}
+        if self._given_controller is None and self.config.controller.type != self.controller_type:
+            metrics["configured"] = self.config.controller.type
+        if controller is not None:
+            try:
+                metrics.update(controller.metrics())
+            except Exception as exc:
+                metrics["metrics_error"] = f"{type(exc).__name__}: {exc}"
+        drivers = {}
+        for slot in self.slots:
+            try:
+                health = slot.driver.health()
+            except Exception as exc:
+                health = {"health_error": str(exc)}
+            drivers[slot.name] = {
+                "type": slot.type,
+                "status": slot.status,
+                "joints": len(slot.driver.view.joint_names),
+                "read_us_mean": round(slot.read_ns / n / 1e3, 2) if n else None,
+                "write_us_mean": round(slot.write_ns / n / 1e3, 2) if n else None,
+                "read_us_max": round(slot.max_read_ns / 1e3, 2),
+                "write_us_max": round(slot.max_write_ns / 1e3, 2),
+                **health,
+            }
+        return {
+            "robot": self.robot.name,
+            "joints": self.robot.dof,
+            "clock": self.source.kind,
+            "overrun_policy": self.config.loop.overrun,
+            "rate_hz_target": round(target, 3),
+            "rate_hz_achieved": round(achieved, 3),
+            "ticks": n,
+            "missed_ticks": self.ticker.missed,
+            "duration_s": round(span, 4),
+            **summary,
+            "safety_level": self.level.name.lower(),
+            "stop_reason": self.stop_reason,
+            "commands_refused": self.limiter.refused,
+            "faults": [f.as_dict() for f in self.faults],
+            "drivers": drivers,
+            "controller": metrics,
+        }

@@ -1,0 +1,112 @@
+"""Find drivers and controllers: a built-in table merged with entry points, imported lazily.
+
+Nothing is imported until a plugin is asked for by name, so a missing optional dependency
+(MuJoCo, pysoem, python-can) only matters to the configs that use it, and then gives one
+clear error naming the extra to install.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib.metadata import entry_points
+from typing import Literal
+
+from .errors import MissingDependencyError, PluginError
+
+Kind = Literal["driver", "controller"]
+
+GROUPS: dict[str, str] = {"driver": "aiohal.drivers", "controller": "aiohal.controllers"}
+
+#: name -> (import target "module:attribute", pip extra that provides its dependencies)
+BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
+    "driver": {
+        "mock": ("aiohal.drivers.mock:MockDriver", None),
+    },
+    "controller": {
+        "hold": ("aiohal.controllers.hold:HoldController", None),
+        "homing": ("aiohal.controllers.homing:HomingController", None),
+        "sine": ("aiohal.controllers.sine:SineController", None),
+    },
+}
+
+
+@dataclass(frozen=True)
+class PluginSpec:
+    kind: str
+    name: str
+    target: str
+    extra: str | None
+    source: str  # "built-in" or "entry point (distribution)"
+
+
+def _entry_point_specs(kind: str) -> list[PluginSpec]:
+    specs = []
+    for ep in entry_points(group=GROUPS[kind]):
+        dist = getattr(ep, "dist", None)
+        origin = f"entry point ({dist.name})" if dist is not None else "entry point"
+        specs.append(PluginSpec(kind, ep.name, ep.value, None, origin))
+    return specs
+
+
+def available(kind: str) -> dict[str, PluginSpec]:
+    """Every known plugin of a kind; a built-in name cannot be taken over by an entry point."""
+    found = {
+        name: PluginSpec(kind, name, target, extra, "built-in")
+        for name, (target, extra) in BUILTIN[kind].items()
+    }
+    for spec in _entry_point_specs(kind):
+        found.setdefault(spec.name, spec)
+    return found
+
+
+def shadowed(kind: str) -> list[PluginSpec]:
+    """Entry points ignored because a built-in has the same name."""
+    return [s for s in _entry_point_specs(kind) if s.name in BUILTIN[kind]]
+
+
+def _import_target(spec: PluginSpec) -> type:
+    module_name, _, attr = spec.target.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        missing = exc.name or "?"
+        if missing == module_name or module_name.startswith(missing + "."):
+            raise PluginError(f'{spec.kind} "{spec.name}": module {module_name!r} not found') from exc
+        if spec.extra:
+            hint = f'install the extra: pip install "aiohal[{spec.extra}]"'
+        else:
+            hint = f"install the package that provides {missing!r}"
+        raise MissingDependencyError(
+            f'{spec.kind} "{spec.name}" needs the optional dependency {missing!r}: {hint}'
+        ) from exc
+    try:
+        obj = module
+        for part in attr.split("."):
+            obj = getattr(obj, part)
+    except AttributeError as exc:
+        raise PluginError(f'{spec.kind} "{spec.name}": {spec.target} does not exist') from exc
+    return obj
+
+
+@lru_cache(maxsize=None)
+def load(kind: str, name: str) -> type:
+    """The driver or controller class registered under ``name``."""
+    specs = available(kind)
+    if name not in specs:
+        known = ", ".join(sorted(specs)) or "none"
+        raise PluginError(f'unknown {kind} "{name}" (available: {known})')
+    return _import_target(specs[name])
+
+
+def describe(kind: str) -> list[tuple[PluginSpec, str | None]]:
+    """Each plugin with None if it loads, else the reason it does not."""
+    rows = []
+    for name, spec in sorted(available(kind).items()):
+        try:
+            load(kind, name)
+            rows.append((spec, None))
+        except Exception as exc:  # a broken third-party plugin must not hide the others
+            rows.append((spec, str(exc) or type(exc).__name__))
+    return rows

@@ -1,0 +1,426 @@
+"""The robot's joint model and its data: state and command as numpy arrays, one per quantity.
+
+Every quantity of a kind lives in one 2-D block (rows = quantities, columns = joints), so a
+driver's rows are plain slices written in place, and a whole snapshot is one ``copyto``.
+Nothing here allocates once the robot is built.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+JOINT_STATE_FIELDS = ("position", "velocity", "effort", "motor_position", "motor_velocity", "temperature")
+JOINT_COMMAND_FIELDS = ("position", "velocity", "effort", "stiffness", "damping", "feedforward")
+
+
+class Mode(IntEnum):
+    """Command mode of a joint; a driver applies the command fields its mode names."""
+
+    NONE = 0
+    POSITION = 1
+    VELOCITY = 2
+    EFFORT = 3
+    IMPEDANCE = 4  # position + velocity targets with stiffness, damping and feed-forward effort
+
+
+class Fault(IntEnum):
+    """Bits of the per-row ``fault`` arrays."""
+
+    DRIVER = 1 << 0  # the owning driver failed and was isolated
+    STALE = 1 << 1  # feedback older than the configured age
+    HARDWARE = 1 << 2  # the device itself reports a fault
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """A joint and its limits (SI units: rad or m, per second, N·m or N)."""
+
+    name: str
+    index: int
+    position_min: float = -np.inf
+    position_max: float = np.inf
+    velocity: float = np.inf
+    acceleration: float = np.inf
+    effort: float = np.inf
+
+
+class TickInfo:
+    """The current tick, shared by reference with drivers and controllers (updated by the loop)."""
+
+    __slots__ = ("tick", "now_ns", "period_ns")
+
+    def __init__(self, period_ns: int) -> None:
+        self.tick = -1
+        self.now_ns = 0
+        self.period_ns = period_ns
+
+
+class _Rows:
+    """Arrays of one kind of record; ``view`` returns the same type over a slice of its columns."""
+
+    _fields: tuple[str, ...] = ()
+
+    block: np.ndarray
+    stamp_ns: np.ndarray
+    updated_tick: np.ndarray
+    fault: np.ndarray
+
+    def _bind_fields(self) -> None:
+        for i, field in enumerate(self._fields):
+            setattr(self, field, self.block[i])
+
+    def view(self, rows: slice):
+        other = object.__new__(type(self))
+        for name, value in vars(self).items():
+            if isinstance(value, np.ndarray) and name not in self._fields:
+                setattr(other, name, value[..., rows] if name == "block" else value[rows])
+            elif not isinstance(value, np.ndarray):
+                setattr(other, name, value)
+        other._bind_fields()
+        return other
+
+    def readonly(self):
+        other = object.__new__(type(self))
+        for name, value in vars(self).items():
+            if isinstance(value, np.ndarray) and name not in self._fields:
+                ro = value.view()
+                ro.flags.writeable = False
+                setattr(other, name, ro)
+            elif not isinstance(value, np.ndarray):
+                setattr(other, name, value)
+        other._bind_fields()
+        return other
+
+    def mark_fresh(self, tick: int, stamp_ns: int) -> None:
+        """Record that every row of this view was measured now (drivers call this after a read)."""
+        self.updated_tick[...] = tick
+        self.stamp_ns[...] = stamp_ns
+
+    def __len__(self) -> int:
+        return self.block.shape[-1]
+
+
+class JointState(_Rows):
+    """Measured joint values. ``temperature`` is NaN where a driver does not report it."""
+
+    _fields = JOINT_STATE_FIELDS
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+    motor_position: np.ndarray
+    motor_velocity: np.ndarray
+    temperature: np.ndarray
+
+    def __init__(self, n: int) -> None:
+        self.block = np.zeros((len(self._fields), n))
+        self.stamp_ns = np.zeros(n, dtype=np.int64)
+        self.updated_tick = np.full(n, -1, dtype=np.int64)
+        self.fault = np.zeros(n, dtype=np.uint32)
+        self._bind_fields()
+        self.temperature[:] = np.nan
+
+
+class JointCommand(_Rows):
+    """Joint commands; ``mode`` says which fields a driver applies."""
+
+    _fields = JOINT_COMMAND_FIELDS
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+    stiffness: np.ndarray
+    damping: np.ndarray
+    feedforward: np.ndarray
+    mode: np.ndarray
+
+    def __init__(self, n: int) -> None:
+        self.block = np.zeros((len(self._fields), n))
+        self.mode = np.zeros(n, dtype=np.int8)
+        self.stamp_ns = np.zeros(n, dtype=np.int64)
+        self.updated_tick = np.full(n, -1, dtype=np.int64)
+        self.fault = np.zeros(n, dtype=np.uint32)
+        self._bind_fields()
+
+
+# ---------------------------------------------------------------- devices besides joints
+
+
+class DeviceRecord:
+    """One device's values: numpy views into its group's arrays, written in place."""
+
+    def __init__(self, group: DeviceGroup, index: int, name: str) -> None:
+        self.name = name
+        self.index = index
+        self._group = group
+        for field in group.fields:
+            setattr(self, field, getattr(group, field)[index, ...])  # a view, 0-d for scalars
+
+    def mark_fresh(self, tick: int, stamp_ns: int) -> None:
+        self._group.updated_tick[self.index] = tick
+        self._group.stamp_ns[self.index] = stamp_ns
+
+    @property
+    def updated_tick(self) -> int:
+        return int(self._group.updated_tick[self.index])
+
+    @property
+    def fault(self) -> int:
+        return int(self._group.fault[self.index])
+
+    def set_fault(self, bits: int) -> None:
+        self._group.fault[self.index] = bits
+
+
+class DeviceGroup:
+    """All devices of one kind, as arrays with one row per device."""
+
+    kind = ""
+    fields: tuple[str, ...] = ()
+    shapes: dict[str, tuple[tuple[int, ...], type]] = {}
+
+    def __init__(self, names: Sequence[str]) -> None:
+        self.names = tuple(names)
+        n = len(self.names)
+        for field in self.fields:
+            shape, dtype = self.shapes[field]
+            setattr(self, field, np.zeros((n, *shape), dtype=dtype))
+        self.stamp_ns = np.zeros(n, dtype=np.int64)
+        self.updated_tick = np.full(n, -1, dtype=np.int64)
+        self.fault = np.zeros(n, dtype=np.uint32)
+        self._init_values()
+        self.records = {name: DeviceRecord(self, i, name) for i, name in enumerate(self.names)}
+
+    def _init_values(self) -> None:
+        pass
+
+    def __getitem__(self, name: str) -> DeviceRecord:
+        return self.records[name]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+class ImuGroup(DeviceGroup):
+    """Orientation as a unit quaternion (w, x, y, z), angular velocity (rad/s), acceleration (m/s²)."""
+
+    kind = "imu"
+    fields = ("quaternion", "angular_velocity", "linear_acceleration")
+    shapes = {
+        "quaternion": ((4,), np.float64),
+        "angular_velocity": ((3,), np.float64),
+        "linear_acceleration": ((3,), np.float64),
+    }
+
+    def _init_values(self) -> None:
+        self.quaternion[:, 0] = 1.0
+
+
+class ForceTorqueGroup(DeviceGroup):
+    """Force (N) and torque (N·m) in the sensor frame."""
+
+    kind = "force_torque"
+    fields = ("force", "torque")
+    shapes = {"force": ((3,), np.float64), "torque": ((3,), np.float64)}
+
+
+class HandGroup(DeviceGroup):
+    """Grippers: command ``grasp`` 0 (open) .. 1 (closed) with speed and force limits; measured state.
+
+    As in XBot, a hand is addressed through the joint that carries it (``joint`` per hand).
+    """
+
+    kind = "hand"
+    fields = ("grasp", "speed", "force", "position", "effort", "object_detected")
+    shapes = {
+        "grasp": ((), np.float64),
+        "speed": ((), np.float64),
+        "force": ((), np.float64),
+        "position": ((), np.float64),
+        "effort": ((), np.float64),
+        "object_detected": ((), np.bool_),
+    }
+
+    def __init__(self, names: Sequence[str], joints: Sequence[str | None] = ()) -> None:
+        super().__init__(names)
+        joints = list(joints) + [None] * (len(self.names) - len(joints))
+        self.joint_of = dict(zip(self.names, joints, strict=True))
+
+    def _init_values(self) -> None:
+        self.speed[:] = 1.0
+        self.force[:] = 1.0
+
+
+DEVICE_GROUPS: dict[str, type[DeviceGroup]] = {
+    cls.kind: cls for cls in (ImuGroup, ForceTorqueGroup, HandGroup)
+}
+
+
+# ---------------------------------------------------------------- the robot and its views
+
+
+class Robot:
+    """The joint model and every array of state and command. Built once from the configuration."""
+
+    def __init__(
+        self,
+        name: str,
+        joints: Sequence[JointSpec],
+        *,
+        period_ns: int = 1_000_000,
+        devices: Iterable[tuple[str, str, str | None]] = (),
+    ) -> None:
+        self.name = name
+        self.joints = tuple(joints)
+        self.joint_names = tuple(j.name for j in self.joints)
+        self._joint_index = {name: i for i, name in enumerate(self.joint_names)}
+        n = len(self.joints)
+        self.position_min = np.array([j.position_min for j in self.joints], dtype=np.float64)
+        self.position_max = np.array([j.position_max for j in self.joints], dtype=np.float64)
+        self.velocity_limit = np.array([j.velocity for j in self.joints], dtype=np.float64)
+        self.acceleration_limit = np.array([j.acceleration for j in self.joints], dtype=np.float64)
+        self.effort_limit = np.array([j.effort for j in self.joints], dtype=np.float64)
+        self.state = JointState(n)
+        self.command = JointCommand(n)
+        self.clock = TickInfo(period_ns)
+        by_kind: dict[str, list[tuple[str, str | None]]] = {kind: [] for kind in DEVICE_GROUPS}
+        for dev_name, kind, joint in devices:
+            by_kind[kind].append((dev_name, joint))
+        self.imu = ImuGroup([d for d, _ in by_kind["imu"]])
+        self.force_torque = ForceTorqueGroup([d for d, _ in by_kind["force_torque"]])
+        self.hand = HandGroup([d for d, _ in by_kind["hand"]], [j for _, j in by_kind["hand"]])
+        self.device_groups: dict[str, DeviceGroup] = {
+            "imu": self.imu,
+            "force_torque": self.force_torque,
+            "hand": self.hand,
+        }
+
+    @property
+    def dof(self) -> int:
+        return len(self.joints)
+
+    def joint_index(self, name: str) -> int:
+        return self._joint_index[name]
+
+    def indices(self, names: Iterable[str]) -> np.ndarray:
+        return np.array([self._joint_index[n] for n in names], dtype=np.intp)
+
+    def per_joint(self, values: float | dict[str, float] | Sequence[float], default: float = 0.0) -> np.ndarray:
+        """An array over all joints from a scalar, a {joint: value} map (others get ``default``) or a list."""
+        if isinstance(values, dict):
+            out = np.full(self.dof, default, dtype=np.float64)
+            for name, value in values.items():
+                out[self._joint_index[name]] = value
+            return out
+        if isinstance(values, (int, float)):
+            return np.full(self.dof, float(values))
+        out = np.asarray(values, dtype=np.float64)
+        if out.shape != (self.dof,):
+            raise ValueError(f"expected {self.dof} values, got {out.shape}")
+        return out.copy()
+
+    def device(self, name: str) -> DeviceRecord:
+        for group in self.device_groups.values():
+            if name in group.records:
+                return group.records[name]
+        raise KeyError(name)
+
+    def device_kind(self, name: str) -> str:
+        for kind, group in self.device_groups.items():
+            if name in group.records:
+                return kind
+        raise KeyError(name)
+
+    def hand_for_joint(self, joint: str) -> DeviceRecord:
+        """The hand carried by ``joint`` (XBot's joint-to-hand mapping)."""
+        for hand, carrier in self.hand.joint_of.items():
+            if carrier == joint:
+                return self.hand.records[hand]
+        raise KeyError(f"no hand is carried by joint {joint!r}")
+
+    def joint_slice(self, names: Sequence[str]) -> slice:
+        """The contiguous slice of ``names`` (config validation guarantees contiguity)."""
+        if not names:
+            return slice(0, 0)
+        idx = self.indices(names)
+        start = int(idx[0])
+        if not np.array_equal(idx, np.arange(start, start + len(idx))):
+            raise ValueError(f"joints {list(names)} are not a contiguous run of the robot's joints")
+        return slice(start, start + len(idx))
+
+    def driver_view(self, joints: Sequence[str], devices: Sequence[str] = ()) -> DriverView:
+        return DriverView(self, self.joint_slice(joints), tuple(devices))
+
+    def controller_view(self) -> RobotView:
+        return RobotView(self)
+
+
+class DriverView:
+    """What one driver may touch: its joint rows (state writable, command read) and its devices."""
+
+    def __init__(self, robot: Robot, rows: slice, devices: tuple[str, ...]) -> None:
+        self.robot_name = robot.name
+        self.rows = rows
+        self.joint_names = robot.joint_names[rows]
+        self.state = robot.state.view(rows)
+        self.command = robot.command.view(rows)
+        self.clock = robot.clock
+        self.position_min = robot.position_min[rows]
+        self.position_max = robot.position_max[rows]
+        self.velocity_limit = robot.velocity_limit[rows]
+        self.effort_limit = robot.effort_limit[rows]
+        self.devices = {name: robot.device(name) for name in devices}
+        self.device_kinds = {name: robot.device_kind(name) for name in devices}
+        self.fresh_tick = -1  # the last tick this driver's joints were all measured
+
+    def devices_of(self, kind: str) -> list[DeviceRecord]:
+        return [rec for name, rec in self.devices.items() if self.device_kinds[name] == kind]
+
+    def mark_fresh(self) -> None:
+        """Stamp all joints of this driver with the current tick (call after a successful read).
+
+        The loop's stale-feedback check reads ``fresh_tick``; controllers see per-joint stamps.
+        """
+        clock = self.clock
+        self.fresh_tick = clock.tick
+        self.state.mark_fresh(clock.tick, clock.now_ns)
+
+    @property
+    def dof(self) -> int:
+        return len(self.joint_names)
+
+
+class RobotView:
+    """What a controller sees: read-only state, writable command, limits and names."""
+
+    def __init__(self, robot: Robot) -> None:
+        self.name = robot.name
+        self.joints = robot.joints
+        self.joint_names = robot.joint_names
+        self.dof = robot.dof
+        self.state = robot.state.readonly()
+        self.command = robot.command
+        self.clock = robot.clock
+        self.imu = robot.imu
+        self.force_torque = robot.force_torque
+        self.hand = robot.hand
+        self.position_min = robot.position_min
+        self.position_max = robot.position_max
+        self.velocity_limit = robot.velocity_limit
+        self.acceleration_limit = robot.acceleration_limit
+        self.effort_limit = robot.effort_limit
+        self._robot = robot
+
+    def joint_index(self, name: str) -> int:
+        return self._robot.joint_index(name)
+
+    def indices(self, names: Iterable[str]) -> np.ndarray:
+        return self._robot.indices(names)
+
+    def per_joint(self, values, default: float = 0.0) -> np.ndarray:
+        return self._robot.per_joint(values, default)
+
+    def hand_for_joint(self, joint: str) -> DeviceRecord:
+        return self._robot.hand_for_joint(joint)

@@ -1,0 +1,276 @@
+"""Wake the control loop at absolute deadlines ``t0 + k·period`` (integer ns), never drifting.
+
+Three wake sources share one small interface (``start``, ``wait``, ``now_ns``, ``close``):
+
+* :class:`TimerfdTickSource` – Linux default: a periodic absolute timerfd on CLOCK_MONOTONIC
+  registered with the running loop (``add_reader``); the kernel keeps the phase and counts
+  expirations, so overruns are detected for free. Works the same on asyncio and uvloop.
+  An optional guard wakes that much early and spins to the deadline (sub-µs jitter).
+* :class:`SleepTickSource` – portable fallback: sleeps toward the deadline and re-checks,
+  so it never wakes early (uvloop rounds ``call_later`` to ms and may fire early).
+* :class:`VirtualTickSource` – a virtual clock for tests and lockstep simulation: each wait
+  advances time by exactly one period, as fast as the CPU allows, deterministically.
+
+:class:`Ticker` turns expirations into tick indices under an overrun policy:
+``skip`` (default: keep the phase, count the missed ticks) or ``catch_up`` (run them late).
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import ctypes
+import ctypes.util
+import os
+import sys
+import time
+
+CLOCK_MONOTONIC = 1
+TFD_TIMER_ABSTIME = 1
+
+
+class TickSource(abc.ABC):
+    """Something that wakes the loop at deadlines ``t0 + k·period`` for k = 1, 2, …"""
+
+    kind = "?"
+    t0_ns = 0
+    period_ns = 1
+
+    def now_ns(self) -> int:
+        return time.monotonic_ns()
+
+    @abc.abstractmethod
+    def start(self, t0_ns: int, period_ns: int) -> None:
+        """Arm the source; the first deadline is ``t0_ns + period_ns``. Call from inside the loop."""
+
+    @abc.abstractmethod
+    async def wait(self) -> int:
+        """Wait for the next deadline; return how many deadlines passed since the last wait (>= 1)."""
+
+    def close(self) -> None:
+        pass
+
+
+# ---------------------------------------------------------------- timerfd
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+class _Itimerspec(ctypes.Structure):
+    _fields_ = [("it_interval", _Timespec), ("it_value", _Timespec)]
+
+
+_libc = None
+
+
+def _timerfd_create_settime(first_ns: int, period_ns: int) -> int:
+    """A non-blocking timerfd armed at absolute ``first_ns``, then every ``period_ns``."""
+    if hasattr(os, "timerfd_create"):  # Python >= 3.13
+        fd = os.timerfd_create(time.CLOCK_MONOTONIC, flags=os.TFD_NONBLOCK | os.TFD_CLOEXEC)
+        os.timerfd_settime_ns(fd, flags=os.TFD_TIMER_ABSTIME, initial=first_ns, interval=period_ns)
+        return fd
+    global _libc
+    if _libc is None:
+        _libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+    fd = _libc.timerfd_create(CLOCK_MONOTONIC, os.O_NONBLOCK | os.O_CLOEXEC)
+    if fd < 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"timerfd_create: {os.strerror(err)}")
+    spec = _Itimerspec(
+        _Timespec(period_ns // 1_000_000_000, period_ns % 1_000_000_000),
+        _Timespec(first_ns // 1_000_000_000, first_ns % 1_000_000_000),
+    )
+    if _libc.timerfd_settime(fd, TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:
+        err = ctypes.get_errno()
+        os.close(fd)
+        raise OSError(err, f"timerfd_settime: {os.strerror(err)}")
+    return fd
+
+
+def timerfd_available() -> bool:
+    return sys.platform.startswith("linux")
+
+
+class TimerfdTickSource(TickSource):
+    """Periodic absolute timerfd + ``loop.add_reader``; optional spin for the last ``guard_ns``."""
+
+    kind = "timerfd"
+
+    def __init__(self, guard_ns: int = 0) -> None:
+        self.guard_ns = guard_ns
+        self._fd = -1
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._expirations = 0
+        self._waiter: asyncio.Future | None = None
+        self._k = 0
+
+    def start(self, t0_ns: int, period_ns: int) -> None:
+        if self.guard_ns * 2 > period_ns:
+            raise ValueError(f"spin guard {self.guard_ns} ns is more than half the period {period_ns} ns")
+        self.t0_ns, self.period_ns = t0_ns, period_ns
+        self._k = 0
+        self._loop = asyncio.get_running_loop()
+        self._fd = _timerfd_create_settime(t0_ns + period_ns - self.guard_ns, period_ns)
+        self._loop.add_reader(self._fd, self._on_readable)
+
+    def _on_readable(self) -> None:
+        try:
+            data = os.read(self._fd, 8)
+        except BlockingIOError:
+            return
+        self._expirations += int.from_bytes(data, sys.byteorder)
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    async def wait(self) -> int:
+        if self._expirations == 0:
+            self._waiter = self._loop.create_future()
+            try:
+                await self._waiter
+            finally:
+                self._waiter = None
+        n = self._expirations
+        self._expirations = 0
+        self._k += n
+        if self.guard_ns:
+            deadline = self.t0_ns + self._k * self.period_ns
+            mono = time.monotonic_ns
+            while mono() < deadline:
+                pass
+        return n
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            if self._loop is not None and not self._loop.is_closed():
+                self._loop.remove_reader(self._fd)
+            os.close(self._fd)
+            self._fd = -1
+
+
+# ---------------------------------------------------------------- portable sleep
+
+
+class SleepTickSource(TickSource):
+    """``asyncio.sleep`` to the absolute deadline, re-checked so that it never wakes early.
+
+    Lateness is 0–1 ms on the default loop (epoll rounds timeouts up to whole ms); prefer timerfd.
+    """
+
+    kind = "sleep"
+
+    def start(self, t0_ns: int, period_ns: int) -> None:
+        self.t0_ns, self.period_ns = t0_ns, period_ns
+        self._k = 0
+
+    async def wait(self) -> int:
+        deadline = self.t0_ns + (self._k + 1) * self.period_ns
+        now = time.monotonic_ns()
+        while now < deadline:
+            await asyncio.sleep((deadline - now) / 1e9)
+            now = time.monotonic_ns()
+        k = (now - self.t0_ns) // self.period_ns
+        n = k - self._k
+        self._k = k
+        return n
+
+
+# ---------------------------------------------------------------- virtual clock
+
+
+class VirtualTickSource(TickSource):
+    """Virtual time: each wait advances exactly one period (or more after :meth:`stall`).
+
+    It yields to the event loop once per tick, so other tasks (a stop request, a test) run,
+    but never sleeps: a lockstep simulation runs as fast as the CPU allows, deterministically.
+    """
+
+    kind = "virtual"
+
+    def __init__(self, start_ns: int = 0) -> None:
+        self._now = start_ns
+        self._k = 0
+        self._stall = 0
+
+    def now_ns(self) -> int:
+        return self._now
+
+    def start(self, t0_ns: int, period_ns: int) -> None:
+        self.t0_ns, self.period_ns = t0_ns, period_ns
+        self._k = 0
+        self._now = t0_ns
+
+    def stall(self, periods: int) -> None:
+        """Make the next wait return late by ``periods`` whole periods (overrun tests)."""
+        self._stall += periods
+
+    def advance(self, ns: int) -> None:
+        """Move virtual time forward by ``ns`` now (a driver or test consuming time)."""
+        self._now += ns
+
+    async def wait(self) -> int:
+        await asyncio.sleep(0)
+        n = 1 + self._stall
+        self._stall = 0
+        self._k += n
+        self._now = max(self._now, self.t0_ns + self._k * self.period_ns)
+        return n
+
+
+def make_source(kind: str, guard_ns: int = 0) -> TickSource:
+    """A tick source by config name; ``auto`` is timerfd on Linux, sleep elsewhere."""
+    if kind == "auto":
+        kind = "timerfd" if timerfd_available() else "sleep"
+    if kind == "timerfd":
+        return TimerfdTickSource(guard_ns)
+    if kind == "sleep":
+        return SleepTickSource()
+    if kind == "virtual":
+        return VirtualTickSource()
+    raise ValueError(f"unknown clock {kind!r}")
+
+
+class Ticker:
+    """Tick indices and deadlines from a source, under an overrun policy."""
+
+    def __init__(self, source: TickSource, period_ns: int, overrun: str = "skip") -> None:
+        if overrun not in ("skip", "catch_up"):
+            raise ValueError(f"unknown overrun policy {overrun!r}")
+        self.source = source
+        self.period_ns = period_ns
+        self.catch_up = overrun == "catch_up"
+        self.k = 0
+        self.t0_ns = 0
+        self.deadline_ns = 0
+        self.missed = 0  # deadlines not served (skip) or served late back-to-back (catch_up)
+        self._pending = 0
+
+    def start(self, lead_ns: int | None = None) -> None:
+        """Arm the source; tick 1 is due one period (plus ``lead_ns``) from now."""
+        now = self.source.now_ns()
+        self.t0_ns = now + (lead_ns or 0)
+        self.k = 0
+        self.deadline_ns = self.t0_ns
+        self.source.start(self.t0_ns, self.period_ns)
+
+    async def next(self) -> int:
+        """Wait for the next tick to run; return its index k (deadline ``t0 + k·period``)."""
+        if self._pending:
+            self._pending -= 1
+            self.k += 1
+        else:
+            n = await self.source.wait()
+            if n > 1:
+                self.missed += n - 1
+            if self.catch_up:
+                self._pending = n - 1
+                self.k += 1
+            else:
+                self.k += n
+        self.deadline_ns = self.t0_ns + self.k * self.period_ns
+        return self.k
+
+    def close(self) -> None:
+        self.source.close()

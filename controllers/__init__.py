@@ -1,0 +1,1 @@
+"""Built-in controllers (installed as ``aiohal.controllers``): hold, homing, sine."""

@@ -1,0 +1,184 @@
+"""``mock``: a robot with no hardware, for CI and for trying controllers (like ros2_control's
+GenericSystem).
+
+Commands are mirrored into state, or followed through first-order dynamics; velocity
+commands integrate into position. IMUs read gravity at rest, force/torque sensors a
+configured wrench, hands move toward their grasp command. Faults can be injected: errors in
+open/read/write at a given tick, lost feedback, delayed feedback and a slow (blocking) read.
+"""
+
+from __future__ import annotations
+
+import errno
+import math
+import time
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
+from aiohal.robot import Mode
+
+
+class MockFaults(Options):
+    open_error: bool = Field(False, description="Fail in open().")
+    read_error_at_tick: int | None = Field(None, ge=0, description="Raise in read() at this tick.")
+    write_error_at_tick: int | None = Field(None, ge=0, description="Raise in write() at this tick.")
+    feedback_lost_at_tick: int | None = Field(None, ge=0, description="Stop updating state from this tick.")
+    feedback_lost_for: int = Field(0, ge=0, description="Ticks without feedback; 0 = for good.")
+    estop_error: bool = Field(False, description="Raise in estop() (to test isolation).")
+
+
+class MockOptions(Options):
+    dynamics: Literal["mirror", "first_order"] = Field(
+        "mirror", description="mirror: state = command; first_order: state follows with time_constant."
+    )
+    time_constant: float = Field(0.02, gt=0, description="First-order time constant (s).")
+    initial_position: JointValues = Field(0.0, description="Start position, scalar or per joint.")
+    feedback_delay_ticks: int = Field(0, ge=0, le=1000, description="State shows the robot N ticks ago.")
+    read_latency_us: float = Field(0.0, ge=0, le=100_000, description="Busy time inside read() (a slow bus).")
+    force: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Force read by F/T sensors (N).")
+    torque: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Torque read by F/T sensors (N·m).")
+    hand_speed: float = Field(2.0, gt=0, description="Hand closing speed at speed=1 (grasp units/s).")
+    faults: MockFaults = Field(default_factory=MockFaults)
+
+
+class MockDriver(Driver):
+    Options = MockOptions
+    device_kinds = frozenset({"imu", "force_torque", "hand"})
+    options: MockOptions
+
+    @classmethod
+    def check_config(cls, options, joints, devices):
+        return unknown_joint_issues("initial_position", options.initial_position, joints)
+
+    async def open(self) -> None:
+        opts = self.options
+        if opts.faults.open_error:
+            raise OSError(errno.ENODEV, "injected open error")
+        view = self.view
+        n = view.dof
+        start = np.zeros(n)
+        init = opts.initial_position
+        for i, name in enumerate(view.joint_names):
+            start[i] = init.get(name, 0.0) if isinstance(init, dict) else init
+        np.clip(start, view.position_min, view.position_max, out=start)
+        self.sim = np.zeros((3, n))  # the simulated joints: position, velocity, effort
+        self.position, self.velocity, self.effort = self.sim
+        self.position[:] = start
+        self._target = np.zeros(n)
+        self._tmp = np.zeros(n)
+        self._velocity_rows = np.zeros(n, dtype=bool)
+        self._effort_rows = np.zeros(n, dtype=bool)
+        self._modes = b""
+        self._plain = True
+        delay = opts.feedback_delay_ticks
+        self._history = np.zeros((delay + 1, 3, n))  # ring of past states, oldest next
+        self._history[:, 0, :] = start
+        self._slot = 0
+        self._last_tick = None
+        self.reads = 0
+        self.writes = 0
+        self.estops = 0
+        self.closed = False
+        self.stopped = False
+        self.feedback_lost = 0
+        for imu in view.devices_of("imu"):
+            imu.quaternion[:] = (1.0, 0.0, 0.0, 0.0)
+            imu.linear_acceleration[:] = (0.0, 0.0, 9.81)  # at rest, the accelerometer reads +g up
+        for ft in view.devices_of("force_torque"):
+            ft.force[:] = opts.force
+            ft.torque[:] = opts.torque
+        self._imus = view.devices_of("imu")
+        self._fts = view.devices_of("force_torque")
+        self._hands = view.devices_of("hand")
+
+    def _step(self, dt: float) -> None:
+        """Advance the simulated joints by ``dt`` toward the current command."""
+        cmd = self.view.command
+        modes = cmd.mode.tobytes()
+        if modes != self._modes:
+            self._modes = modes
+            np.equal(cmd.mode, Mode.VELOCITY, out=self._velocity_rows)
+            np.equal(cmd.mode, Mode.EFFORT, out=self._effort_rows)
+            self._plain = not (self._velocity_rows.any() or self._effort_rows.any())
+        target = self._target
+        np.copyto(target, cmd.position)
+        if not self._plain:
+            np.multiply(cmd.velocity, dt, out=self._tmp)
+            self._tmp += self.position
+            np.copyto(target, self._tmp, where=self._velocity_rows)
+            np.copyto(target, self.position, where=self._effort_rows)
+        if self.options.dynamics == "first_order":
+            alpha = 1.0 - math.exp(-dt / self.options.time_constant)
+            target -= self.position
+            target *= alpha
+            target += self.position
+        np.subtract(target, self.position, out=self.velocity)
+        self.velocity *= 1.0 / dt
+        np.copyto(self.position, target)
+        np.add(cmd.effort, cmd.feedforward, out=self.effort)
+
+    async def read(self) -> None:
+        opts = self.options
+        faults = opts.faults
+        clock = self.view.clock
+        tick = clock.tick
+        if faults.read_error_at_tick is not None and tick >= faults.read_error_at_tick:
+            raise OSError(errno.EIO, f"injected read error at tick {tick}")
+        if opts.read_latency_us:
+            until = time.monotonic_ns() + int(opts.read_latency_us * 1e3)
+            while time.monotonic_ns() < until:
+                pass
+        if self._last_tick is not None and tick > self._last_tick and not self.stopped:
+            self._step((tick - self._last_tick) * clock.period_ns / 1e9)
+        self._last_tick = tick
+        self.reads += 1
+        lost_at = faults.feedback_lost_at_tick
+        if lost_at is not None and tick >= lost_at and (not faults.feedback_lost_for or tick < lost_at + faults.feedback_lost_for):
+            self.feedback_lost += 1
+            return
+        measured = self.view.state.block[:3]
+        if opts.feedback_delay_ticks:
+            history = self._history
+            np.copyto(history[self._slot], self.sim)
+            self._slot = (self._slot + 1) % len(history)
+            np.copyto(measured, history[self._slot])
+        else:
+            np.copyto(measured, self.sim)
+        self.view.mark_fresh()
+        now = clock.now_ns
+        for imu in self._imus:
+            imu.mark_fresh(tick, now)
+        for ft in self._fts:
+            ft.mark_fresh(tick, now)
+        for hand in self._hands:
+            step = opts.hand_speed * float(hand.speed) * clock.period_ns / 1e9
+            hand.position[...] = min(max(float(hand.grasp), float(hand.position) - step), float(hand.position) + step)
+            hand.effort[...] = float(hand.force) if float(hand.position) > 0.0 else 0.0
+            hand.mark_fresh(tick, now)
+
+    async def write(self) -> None:
+        faults = self.options.faults
+        tick = self.view.clock.tick
+        if faults.write_error_at_tick is not None and tick >= faults.write_error_at_tick:
+            raise OSError(errno.EIO, f"injected write error at tick {tick}")
+        self.writes += 1
+
+    def estop(self) -> None:
+        self.estops = getattr(self, "estops", 0) + 1
+        self.stopped = True  # the simulated joints freeze, as braked drives would
+        if self.options.faults.estop_error:
+            raise RuntimeError("injected estop error")
+
+    async def close(self) -> None:
+        self.closed = True
+
+    def health(self) -> dict:
+        return {
+            "reads": getattr(self, "reads", 0),
+            "writes": getattr(self, "writes", 0),
+            "estops": getattr(self, "estops", 0),
+            "feedback_lost_ticks": getattr(self, "feedback_lost", 0),
+        }

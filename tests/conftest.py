@@ -1,0 +1,35 @@
+"""Shared test set-up: every async test runs on asyncio and on uvloop; root-only tests."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = ROOT / "configs"
+
+
+def _loop_factories() -> dict:
+    factories = {"asyncio": asyncio.new_event_loop}
+    try:
+        import uvloop
+    except ImportError:  # uvloop is a core dependency on Linux; tolerate its absence elsewhere
+        return factories
+    factories["uvloop"] = uvloop.new_event_loop
+    return factories
+
+
+def pytest_asyncio_loop_factories(config, item):
+    return _loop_factories()
+
+
+def require_root(reason: str) -> None:
+    """Skip a test that needs root, except under CI=true where missing root is a failure."""
+    if os.geteuid() == 0:
+        return
+    if os.environ.get("CI") == "true":
+        pytest.fail(f"needs root under CI: {reason}")
+    pytest.skip(f"needs root: {reason}")

@@ -1,0 +1,36 @@
+"""Small builders shared by tests: configs as dicts, loops on the virtual clock."""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+from aiohal.config import parse_config
+from aiohal.loop import ControlLoop
+from aiohal.ticker import VirtualTickSource
+
+
+def arm_raw(n: int = 3, **controller: Any) -> dict[str, Any]:
+    """A minimal n-joint robot on one mock driver, as a parsed-TOML dict."""
+    raw: dict[str, Any] = {
+        "robot": {"name": "test_arm"},
+        "loop": {"rate_hz": 1000, "clock": "virtual"},
+        "joints": {
+            f"j{i}": {"position": [-2.0, 2.0], "velocity": 2.0, "acceleration": 20.0, "effort": 50.0}
+            for i in range(n)
+        },
+        "driver": [{"type": "mock", "name": "arm", "joints": [f"j{i}" for i in range(n)]}],
+        "controller": controller or {"type": "hold"},
+    }
+    return raw
+
+
+def with_changes(raw: dict[str, Any], fn) -> dict[str, Any]:
+    out = copy.deepcopy(raw)
+    fn(out)
+    return out
+
+
+def virtual_loop(raw: dict[str, Any], **kwargs: Any) -> ControlLoop:
+    config = parse_config(raw)
+    return ControlLoop(config, tick_source=VirtualTickSource(), **kwargs)

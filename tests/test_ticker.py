@@ -1,0 +1,162 @@
+"""The tick sources and the Ticker: exact on the virtual clock, bounded drift on the real one."""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+import time
+
+import pytest
+
+from aiohal.ticker import (
+    SleepTickSource,
+    Ticker,
+    TimerfdTickSource,
+    VirtualTickSource,
+    make_source,
+    timerfd_available,
+)
+
+PERIOD = 1_000_000  # 1 kHz
+
+
+@pytest.mark.asyncio
+async def test_virtual_clock_ticks_are_exact():
+    source = VirtualTickSource(start_ns=5_000)
+    ticker = Ticker(source, PERIOD)
+    ticker.start()
+    seen = []
+    for _ in range(1000):
+        k = await ticker.next()
+        seen.append((k, source.now_ns(), ticker.deadline_ns))
+    assert [k for k, _, _ in seen] == list(range(1, 1001))
+    # virtual time is exactly the deadline of each tick: t0 + k·period
+    assert all(now == 5_000 + k * PERIOD == deadline for k, now, deadline in seen)
+    assert ticker.missed == 0
+
+
+@pytest.mark.asyncio
+async def test_skip_policy_keeps_phase_and_counts_missed():
+    source = VirtualTickSource()
+    ticker = Ticker(source, PERIOD, "skip")
+    ticker.start()
+    assert await ticker.next() == 1
+    source.stall(3)  # the next wake comes 3 periods late
+    assert await ticker.next() == 5  # ticks 2, 3, 4 skipped, phase kept
+    assert ticker.deadline_ns == ticker.t0_ns + 5 * PERIOD
+    assert source.now_ns() == ticker.deadline_ns
+    assert ticker.missed == 3
+    assert await ticker.next() == 6
+
+
+@pytest.mark.asyncio
+async def test_catch_up_policy_runs_missed_ticks_late():
+    source = VirtualTickSource()
+    ticker = Ticker(source, PERIOD, "catch_up")
+    ticker.start()
+    await ticker.next()
+    source.stall(2)
+    ks = [await ticker.next() for _ in range(4)]
+    assert ks == [2, 3, 4, 5]
+    assert ticker.missed == 2
+    # ticks 2 and 3 ran late (their deadlines passed), 4 ran at its deadline, 5 one period on
+    assert source.now_ns() == ticker.t0_ns + 5 * PERIOD
+
+
+def test_unknown_policy_and_source_are_refused():
+    with pytest.raises(ValueError):
+        Ticker(VirtualTickSource(), PERIOD, "whenever")
+    with pytest.raises(ValueError):
+        make_source("sundial")
+
+
+@pytest.mark.asyncio
+async def test_timerfd_guard_above_half_period_is_refused():
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    source = TimerfdTickSource(guard_ns=600_000)
+    with pytest.raises(ValueError, match="half the period"):
+        source.start(time.monotonic_ns(), PERIOD)
+
+
+async def _run_real(source, seconds: float, period_ns: int = PERIOD):
+    ticker = Ticker(source, period_ns)
+    ticker.start(lead_ns=period_ns)
+    n = int(seconds * 1e9 / period_ns)
+    lateness = []
+    try:
+        while ticker.k < n:
+            await ticker.next()
+            lateness.append(time.monotonic_ns() - ticker.deadline_ns)
+    finally:
+        ticker.close()
+    return ticker, lateness
+
+
+@pytest.mark.asyncio
+@pytest.mark.realtime
+async def test_timerfd_has_bounded_drift_over_two_seconds():
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    ticker, lateness = await _run_real(TimerfdTickSource(), 2.0)
+    assert ticker.k == 2000
+    assert min(lateness) >= 0, "a tick woke before its deadline"
+    # drift: the lateness of the last ticks is not larger than the first ones' by more than 1 ms
+    tail = sorted(lateness[-100:])[50]
+    head = sorted(lateness[:100])[50]
+    assert abs(tail - head) < 1_000_000
+    # a loose bound only: this is a shared VM, not an RT kernel
+    assert sorted(lateness)[len(lateness) // 2] < 1_000_000
+    assert len(lateness) + ticker.missed == 2000
+
+
+@pytest.mark.asyncio
+@pytest.mark.realtime
+async def test_sleep_source_never_wakes_early_and_does_not_drift():
+    ticker, lateness = await _run_real(SleepTickSource(), 1.0)
+    assert min(lateness) >= 0, "the portable source woke before a deadline"
+    assert ticker.k == 1000
+    tail = sorted(lateness[-100:])[50]
+    head = sorted(lateness[:100])[50]
+    assert abs(tail - head) < 2_000_000
+
+
+@pytest.mark.asyncio
+@pytest.mark.realtime
+async def test_timerfd_detects_a_stall_as_missed_ticks():
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    ticker = Ticker(TimerfdTickSource(), PERIOD)
+    ticker.start()
+    try:
+        await ticker.next()
+        before = ticker.k
+        time.sleep(0.0105)  # block the loop for 10.5 periods
+        k = await ticker.next()
+    finally:
+        ticker.close()
+    assert k - before >= 10
+    assert ticker.missed >= 9
+
+
+@pytest.mark.asyncio
+async def test_timerfd_source_works_on_this_loop():
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    source = TimerfdTickSource()
+    source.start(time.monotonic_ns(), PERIOD)
+    try:
+        n = await asyncio.wait_for(source.wait(), timeout=1.0)
+    finally:
+        source.close()
+    assert n >= 1
+    assert source._fd == -1
+
+
+@pytest.mark.skipif(sys.version_info >= (3, 13), reason="ctypes path is for Python < 3.13")
+def test_ctypes_timerfd_reports_errors():
+    from aiohal import ticker as t
+
+    # an invalid period makes timerfd_settime fail with EINVAL, raised as OSError
+    with pytest.raises(OSError):
+        t._timerfd_create_settime(time.monotonic_ns(), -5)
