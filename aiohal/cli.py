@@ -19,7 +19,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from . import __version__, plugins
-from .config import Config, json_schema, load_config
+from .config import Config, describe_validation_error, json_schema, load_config
 from .errors import AiohalError, ConfigError, ConfigIssue
 
 log = logging.getLogger("aiohal.cli")
@@ -98,7 +98,10 @@ def _apply_overrides(config: Config, args: argparse.Namespace) -> Config:
     try:
         return config.with_loop(**changes)
     except ValidationError as exc:
-        issues = [ConfigIssue("loop." + ".".join(map(str, e["loc"])) + " (command line)", e["msg"]) for e in exc.errors()]
+        issues = [
+            ConfigIssue("loop." + ".".join(map(str, e["loc"])) + " (command line)", describe_validation_error(e))
+            for e in exc.errors()
+        ]
         raise ConfigError(issues, str(args.config)) from None
 
 
@@ -121,7 +124,7 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
     task = asyncio.current_task()
 
     def on_signal(name: str) -> None:
-        if not control._stop:
+        if not control.stop_requested:
             log.info("%s received: stopping", name)
             control.request_stop(name)
         else:  # a second signal: stop the hardware now, abandon what is pending
@@ -141,13 +144,18 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
         log.error("bring-up failed: %s", exc)
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    log.info("running%s; Ctrl-C or SIGTERM stops safely",
+             f" for {args.duration:g} s" if args.duration is not None else "")
     try:
-        if not control._stop:
+        if not control.stop_requested:
             await control.run(args.duration)
     except asyncio.CancelledError:
         control.stop_reason = "forced by a second signal"
-    finally:
+    try:
         await control.deactivate()
+    except asyncio.CancelledError:
+        control.record_fault("runtime", "close", "forced by a second signal: drivers emergency-stopped, not all closed")
+    finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
     report = control.report()

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, Field, TypeAdapter, ValidationError, ValidationInfo, model_validator
+from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
 
 from . import plugins
 from .errors import ConfigError, ConfigIssue, MissingDependencyError, PluginError
@@ -54,7 +54,7 @@ class LoopSection(Options):
         50, ge=1, description="Ticks after which a joint's feedback is stale and the robot holds."
     )
     stats_window: int = Field(
-        1 << 19, ge=1024, description="Ticks kept for percentiles (older ticks still count in max)."
+        1 << 17, ge=1024, description="Ticks kept for percentiles (older ticks still count in max)."
     )
 
 
@@ -66,12 +66,13 @@ class JointSection(Options):
     acceleration: float = Field(math.inf, gt=0, description="Acceleration limit.")
     effort: float = Field(math.inf, gt=0, description="Effort limit (N·m or N).")
 
-    @model_validator(mode="after")
-    def _ordered(self) -> JointSection:
-        lo, hi = self.position
+    @field_validator("position")
+    @classmethod
+    def _ordered(cls, value: tuple[float, float]) -> tuple[float, float]:
+        lo, hi = value
         if not lo < hi:
-            raise ValueError(f"position limits must satisfy min < max (got [{lo}, {hi}])")
-        return self
+            raise ValueError(f"must be [min, max] with min < max (got [{lo}, {hi}])")
+        return value
 
 
 class DeviceSection(Options):
@@ -170,7 +171,8 @@ def _path(loc: tuple[Any, ...], prefix: str = "") -> str:
     return out
 
 
-def _describe(err: dict[str, Any], allowed: list[str] | None) -> str:
+def describe_validation_error(err: dict[str, Any], allowed: list[str] | None = None) -> str:
+    """One pydantic error as a short message (the path is reported separately)."""
     kind = err["type"]
     value = err.get("input")
     if kind == "missing":
@@ -223,7 +225,7 @@ def _validate(
                 item_model = args[-1]
                 sub_loc = loc[1:]
             allowed = _model_fields(item_model, sub_loc[:-1])
-            issues.append(ConfigIssue(_path(loc, prefix), _describe(err, allowed)))
+            issues.append(ConfigIssue(_path(loc, prefix), describe_validation_error(err, allowed)))
         return None
 
 
@@ -316,6 +318,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         raw_drivers = []
     elif "driver" in raw and not raw_drivers:
         issues.append(ConfigIssue("driver", "the robot needs at least one driver"))
+    drivers_incomplete = False
     joint_owner: dict[str, int] = {}
     device_owner: dict[str, int] = {}
     names_seen: dict[str, int] = {}
@@ -327,6 +330,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         where = f"driver[{i}]"
         section = _validate(DriverSection, body, where, issues, context)
         if section is None:
+            drivers_incomplete = True  # its joints are unknown: do not call them unowned
             continue
         name = section.name or (section.type if type_counts.get(section.type, 0) == 1 else f"{section.type}{i}")
         if name in names_seen:
@@ -372,7 +376,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
             issues.append(ConfigIssue(_path((rel,), f"{where}.options") if rel else f"{where}.options", msg))
         drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options))
 
-    if "driver" in raw and isinstance(raw_drivers, list):
+    if isinstance(raw.get("driver"), list) and not drivers_incomplete:  # raw_drivers is [] after a malformed section
         for j in joint_names:
             if j not in joint_owner:
                 issues.append(ConfigIssue(f"joints.{j}", "no driver owns this joint"))
@@ -451,8 +455,10 @@ def json_schema() -> dict[str, Any]:
                     "then": {"properties": {field_name: {"$ref": f"#/$defs/{def_name}"}}},
                 }
             )
-        defs[section_key]["allOf"] = clauses
-        defs[section_key]["properties"]["type"]["enum"] = sorted(plugins.available(kind))
+        # a model used directly as a top-level section is inlined in props, not in $defs
+        section_schema = defs[section_key] if section_key in defs else props[kind]
+        section_schema["allOf"] = clauses
+        section_schema["properties"]["type"]["enum"] = sorted(plugins.available(kind))
     return _finite_defaults({
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": "aiohal robot configuration",
@@ -470,7 +476,8 @@ def _finite_defaults(node: Any) -> Any:
         out = {k: _finite_defaults(v) for k, v in node.items()}
         default = out.get("default")
         values = default if isinstance(default, (list, tuple)) else [default]
-        if any(isinstance(v, float) and not math.isfinite(v) for v in values):
+        # pydantic already renders inf inside a sequence default as null: [-inf, inf] -> [null, null]
+        if any((isinstance(v, float) and not math.isfinite(v)) or (v is None and values is default) for v in values):
             del out["default"]
             out["description"] = (out.get("description", "") + " Default: no limit (inf).").strip()
         return out

@@ -88,6 +88,7 @@ class ControlLoop:
         self._k_start = 0
         self._last_update_k = 0
         self._stale = False
+        self._missed_before = 0
         self._warn = RateLimitedLogger(log)
 
     # ------------------------------------------------------------ lifecycle
@@ -167,7 +168,7 @@ class ControlLoop:
             if controller is not None:
                 controller.stop()
         except Exception as exc:
-            self._record(f"controller:{self.controller_type}", "stop", exc)
+            self.record_fault(f"controller:{self.controller_type}", "stop", exc)
         await self._close_drivers()
         self.level = SafetyLevel.OFF
         self.state = "closed"
@@ -179,7 +180,7 @@ class ControlLoop:
             try:
                 await slot.driver.close()
             except Exception as exc:
-                self._record(f"driver:{slot.name}", "close", exc)
+                self.record_fault(f"driver:{slot.name}", "close", exc)
                 try:
                     slot.driver.estop()
                 except Exception:
@@ -200,13 +201,17 @@ class ControlLoop:
             self.stop_reason = reason
         self._stop = True
 
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop
+
     def estop(self) -> None:
         """Trigger every driver's emergency stop now (synchronous; safe to call twice)."""
         for slot in self.slots:
             try:
                 slot.driver.estop()
             except Exception as exc:
-                self._record(f"driver:{slot.name}", "estop", exc)
+                self.record_fault(f"driver:{slot.name}", "estop", exc)
         if self.level > SafetyLevel.ESTOP:
             self.level = SafetyLevel.ESTOP
 
@@ -216,7 +221,8 @@ class ControlLoop:
 
     # ------------------------------------------------------------ faults
 
-    def _record(self, source: str, phase: str, exc: BaseException | str) -> FaultRecord:
+    def record_fault(self, source: str, phase: str, exc: BaseException | str) -> FaultRecord:
+        """Record and log a fault; it appears in the report and makes the CLI exit 1."""
         error = exc if isinstance(exc, str) else f"{type(exc).__name__}: {exc}"
         record = FaultRecord(source, phase, self.robot.clock.tick, error)
         self.faults.append(record)
@@ -224,18 +230,18 @@ class ControlLoop:
         return record
 
     def _driver_failed(self, slot: DriverSlot, phase: str, exc: BaseException) -> None:
-        self._record(f"driver:{slot.name}", phase, exc)
+        self.record_fault(f"driver:{slot.name}", phase, exc)
         slot.status = "failed"
         try:
             slot.driver.estop()
         except Exception as estop_exc:
-            self._record(f"driver:{slot.name}", "estop", estop_exc)
-        self.robot.state.fault[slot.driver.view.rows] |= Fault.DRIVER
+            self.record_fault(f"driver:{slot.name}", "estop", estop_exc)
+        self.robot.state.fault[slot.driver.view.rows] |= np.uint32(Fault.DRIVER)
         self._active = [s for s in self._active if s is not slot]
         self.enter_hold(f"driver {slot.name} failed")
 
     def _controller_failed(self, phase: str, exc: BaseException, k: int) -> None:
-        self._record(f"controller:{self.controller_type}", phase, exc)
+        self.record_fault(f"controller:{self.controller_type}", phase, exc)
         self.enter_hold(f"controller {self.controller_type} failed")
 
     def enter_hold(self, reason: str) -> None:
@@ -249,7 +255,7 @@ class ControlLoop:
             try:
                 old.stop()
             except Exception as exc:
-                self._record(f"controller:{self.controller_type}", "stop", exc)
+                self.record_fault(f"controller:{self.controller_type}", "stop", exc)
         self.limiter.hold_last()
         self.controller = self._hold
         self.controller_type = "hold"
@@ -257,11 +263,11 @@ class ControlLoop:
 
     def _feedback_stale(self, slot: DriverSlot, k: int) -> None:
         view = slot.driver.view
-        self.robot.state.fault[view.rows] |= Fault.STALE
+        self.robot.state.fault[view.rows] |= np.uint32(Fault.STALE)
         age = k - view.fresh_tick
         if not self._stale:
             self._stale = True
-            self._record(f"driver:{slot.name}", "check", f"feedback is stale ({age} ticks old)")
+            self.record_fault(f"driver:{slot.name}", "check", f"feedback is stale ({age} ticks old)")
             self.enter_hold(f"stale feedback from driver {slot.name}")
         else:
             self._warn.warning("stale", "feedback from driver %s still stale (%d ticks old)", slot.name, age)
@@ -288,6 +294,7 @@ class ControlLoop:
         return self.report()
 
     async def _tick_loop(self, ticks: int | None) -> None:
+        self.stats.reset()
         robot, stats, ticker, limiter = self.robot, self.stats, self.ticker, self.limiter
         clock = robot.clock
         max_age = self.config.loop.max_feedback_age
@@ -301,6 +308,7 @@ class ControlLoop:
         publishers = self._publishers
 
         ticker.start(lead_ns=period_ns)
+        self._missed_before = ticker.missed
         stats.begin()
         self._k_start = k_start = ticker.k
         self._last_update_k = k_start
@@ -433,7 +441,7 @@ class ControlLoop:
             "rate_hz_target": round(target, 3),
             "rate_hz_achieved": round(achieved, 3),
             "ticks": n,
-            "missed_ticks": self.ticker.missed,
+            "missed_ticks": self.ticker.missed - self._missed_before,
             "duration_s": round(span, 4),
             **summary,
             "safety_level": self.level.name.lower(),

@@ -41,6 +41,10 @@ class TickStats:
         self.work = np.zeros(size, dtype=np.int64)
         # rows: one per phase of the tick, in PHASES order
         self.phases = np.zeros((len(PHASES), size), dtype=np.int64)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every tick recorded (the buffers are reused, not reallocated)."""
         self.count = 0
         self.max_lateness = 0
         self.max_work = 0

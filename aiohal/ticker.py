@@ -40,8 +40,11 @@ class TickSource(abc.ABC):
         return time.monotonic_ns()
 
     @abc.abstractmethod
-    def start(self, t0_ns: int, period_ns: int) -> None:
-        """Arm the source; the first deadline is ``t0_ns + period_ns``. Call from inside the loop."""
+    def start(self, t0_ns: int, period_ns: int, k0: int = 0) -> None:
+        """Arm the source; the first deadline is ``t0_ns + (k0 + 1)·period_ns``.
+
+        Call from inside the running event loop.
+        """
 
     @abc.abstractmethod
     async def wait(self) -> int:
@@ -106,13 +109,15 @@ class TimerfdTickSource(TickSource):
         self._waiter: asyncio.Future | None = None
         self._k = 0
 
-    def start(self, t0_ns: int, period_ns: int) -> None:
+    def start(self, t0_ns: int, period_ns: int, k0: int = 0) -> None:
         if self.guard_ns * 2 > period_ns:
             raise ValueError(f"spin guard {self.guard_ns} ns is more than half the period {period_ns} ns")
+        self.close()
         self.t0_ns, self.period_ns = t0_ns, period_ns
-        self._k = 0
+        self._k = k0
+        self._expirations = 0
         self._loop = asyncio.get_running_loop()
-        self._fd = _timerfd_create_settime(t0_ns + period_ns - self.guard_ns, period_ns)
+        self._fd = _timerfd_create_settime(t0_ns + (k0 + 1) * period_ns - self.guard_ns, period_ns)
         self._loop.add_reader(self._fd, self._on_readable)
 
     def _on_readable(self) -> None:
@@ -161,9 +166,9 @@ class SleepTickSource(TickSource):
 
     kind = "sleep"
 
-    def start(self, t0_ns: int, period_ns: int) -> None:
+    def start(self, t0_ns: int, period_ns: int, k0: int = 0) -> None:
         self.t0_ns, self.period_ns = t0_ns, period_ns
-        self._k = 0
+        self._k = k0
 
     async def wait(self) -> int:
         deadline = self.t0_ns + (self._k + 1) * self.period_ns
@@ -197,10 +202,10 @@ class VirtualTickSource(TickSource):
     def now_ns(self) -> int:
         return self._now
 
-    def start(self, t0_ns: int, period_ns: int) -> None:
+    def start(self, t0_ns: int, period_ns: int, k0: int = 0) -> None:
         self.t0_ns, self.period_ns = t0_ns, period_ns
-        self._k = 0
-        self._now = t0_ns
+        self._k = k0
+        self._now = max(self._now, t0_ns + k0 * period_ns)
 
     def stall(self, periods: int) -> None:
         """Make the next wait return late by ``periods`` whole periods (overrun tests)."""
@@ -248,12 +253,15 @@ class Ticker:
         self._pending = 0
 
     def start(self, lead_ns: int | None = None) -> None:
-        """Arm the source; tick 1 is due one period (plus ``lead_ns``) from now."""
+        """Arm the source; the next tick (k + 1) is due one period (plus ``lead_ns``) from now.
+
+        Tick indices keep counting across restarts, so drivers see a monotonic tick.
+        """
         now = self.source.now_ns()
-        self.t0_ns = now + (lead_ns or 0)
-        self.k = 0
-        self.deadline_ns = self.t0_ns
-        self.source.start(self.t0_ns, self.period_ns)
+        self.t0_ns = now + (lead_ns or 0) - self.k * self.period_ns
+        self.deadline_ns = self.t0_ns + self.k * self.period_ns
+        self._pending = 0
+        self.source.start(self.t0_ns, self.period_ns, self.k)
 
     async def next(self) -> int:
         """Wait for the next tick to run; return its index k (deadline ``t0 + k·period``)."""

@@ -3,8 +3,8 @@
 ``amplitude``, ``frequency`` and ``phase`` are one number for all joints or a table per
 joint name (joints not named get 0 amplitude). The motion starts at the measured position
 and its amplitude ramps in smoothly over ``ramp`` seconds, so nothing jumps at start.
-Reports the tracking error between the command of one tick and the position measured at
-the next.
+Reports the tracking error: the position measured at a tick against the command sent the
+tick before (zero for a mirroring mock, the lag of the dynamics otherwise).
 """
 
 from __future__ import annotations
@@ -41,19 +41,25 @@ class SineController(Controller):
             v = getattr(params, field)
             return v.get(name, default) if isinstance(v, dict) else v
 
+        too_fast: dict[str, list[str]] = {}
+        too_wide: dict[str, list[str]] = {}
         for joint in joints:
             amplitude = abs(value("amplitude", joint.name, 0.0))
             frequency = value("frequency", joint.name, 0.5)
+            where = f"amplitude.{joint.name}" if isinstance(params.amplitude, dict) else "amplitude"
             if frequency < 0:
                 issues.append((f"frequency.{joint.name}" if isinstance(params.frequency, dict) else "frequency",
                                f"must be >= 0 (got {frequency})"))
             peak = 2.0 * math.pi * frequency * amplitude
             if peak > joint.velocity:
-                where = f"amplitude.{joint.name}" if isinstance(params.amplitude, dict) else "amplitude"
-                issues.append((where, f'peak velocity {peak:.3g} exceeds joint "{joint.name}" limit {joint.velocity:.3g}'))
+                too_fast.setdefault(where, []).append(f"{joint.name} ({peak:.3g} > {joint.velocity:.3g})")
             if 2 * amplitude > joint.position_max - joint.position_min:
-                where = f"amplitude.{joint.name}" if isinstance(params.amplitude, dict) else "amplitude"
-                issues.append((where, f'swing {2 * amplitude:.3g} is wider than joint "{joint.name}" range'))
+                too_wide.setdefault(where, []).append(joint.name)
+        # one line per key: a scalar amplitude that is too fast for 30 joints is one mistake
+        for where, names in too_fast.items():
+            issues.append((where, f"peak velocity 2π·f·A exceeds the velocity limit of {', '.join(names)}"))
+        for where, names in too_wide.items():
+            issues.append((where, f"swing 2·A is wider than the range of {', '.join(names)}"))
         return issues
 
     def configure(self, robot, params) -> None:

@@ -9,6 +9,7 @@ open/read/write at a given tick, lost feedback, delayed feedback and a slow (blo
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import math
 import time
@@ -28,6 +29,7 @@ class MockFaults(Options):
     feedback_lost_at_tick: int | None = Field(None, ge=0, description="Stop updating state from this tick.")
     feedback_lost_for: int = Field(0, ge=0, description="Ticks without feedback; 0 = for good.")
     estop_error: bool = Field(False, description="Raise in estop() (to test isolation).")
+    close_hangs: bool = Field(False, description="close() never returns (to test a forced stop).")
 
 
 class MockOptions(Options):
@@ -173,6 +175,8 @@ class MockDriver(Driver):
             raise RuntimeError("injected estop error")
 
     async def close(self) -> None:
+        if self.options.faults.close_hangs:
+            await asyncio.get_running_loop().create_future()  # never resolved
         self.closed = True
 
     def health(self) -> dict:

@@ -1,0 +1,219 @@
+"""The control loop: lifecycle, the tick pipeline, fault isolation, limits before writes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aiohal.errors import DriverError, LifecycleError
+from aiohal.hal import Controller
+from aiohal.robot import Fault, Mode
+from aiohal.safety import SafetyLevel
+from helpers import arm_raw, virtual_loop
+
+
+def two_driver_raw(**faults_b):
+    raw = arm_raw(4)
+    raw["driver"] = [
+        {"type": "mock", "name": "left", "joints": ["j0", "j1"]},
+        {"type": "mock", "name": "right", "joints": ["j2", "j3"], "options": {"faults": faults_b}},
+    ]
+    return raw
+
+
+@pytest.mark.asyncio
+async def test_lifecycle_order_and_states():
+    loop = virtual_loop(arm_raw(3))
+    assert loop.state == "created"
+    loop.configure()
+    assert loop.state == "configured"
+    mock = loop.slots[0].driver
+    await loop.activate()
+    assert loop.state == "active" and loop.level == SafetyLevel.RUN
+    assert loop.slots[0].status == "open"
+    report = await loop.run(ticks=250)
+    assert report["ticks"] == 250 and loop.state == "active"
+    assert mock.reads == 251  # one read at activation, one per tick
+    assert mock.writes == 250
+    await loop.deactivate()
+    assert loop.state == "closed" and mock.closed and loop.level == SafetyLevel.OFF
+    with pytest.raises(LifecycleError):
+        await loop.run(ticks=1)
+
+
+@pytest.mark.asyncio
+async def test_activation_starts_from_measured_state_without_a_jump():
+    raw = arm_raw(3)
+    raw["driver"][0]["options"] = {"initial_position": {"j0": 0.3, "j1": -0.4, "j2": 1.0}}
+    async with virtual_loop(raw) as loop:
+        cmd = loop.robot.command
+        assert np.allclose(cmd.position, [0.3, -0.4, 1.0])
+        assert np.all(cmd.mode == Mode.POSITION)
+        await loop.run(ticks=10)
+        assert np.allclose(loop.robot.state.position, [0.3, -0.4, 1.0])
+
+
+@pytest.mark.asyncio
+async def test_run_stops_on_request_from_another_task():
+    import asyncio
+
+    async with virtual_loop(arm_raw(2)) as loop:
+        async def stopper():
+            while loop.robot.clock.tick < 42:
+                await asyncio.sleep(0)
+            loop.request_stop("test")
+
+        task = asyncio.create_task(stopper())
+        report = await loop.run()  # no duration: runs until the request
+        await task
+    assert report["stop_reason"] == "test"
+    assert 42 <= report["ticks"] <= 43
+
+
+@pytest.mark.asyncio
+async def test_driver_read_failure_is_isolated_and_robot_holds():
+    loop = virtual_loop(two_driver_raw(read_error_at_tick=100))
+    async with loop:
+        left, right = (s.driver for s in loop.slots)
+        report = await loop.run(ticks=300)
+    assert report["ticks"] == 300  # the loop went on
+    assert report["safety_level"] == "hold"
+    assert report["controller"]["type"] == "hold"
+    [fault] = report["faults"]
+    assert fault["source"] == "driver:right" and fault["phase"] == "read" and fault["tick"] == 100
+    assert "injected read error" in fault["error"]
+    assert report["drivers"]["right"]["status"] == "failed"
+    assert report["drivers"]["left"]["status"] == "open"
+    final = loop.report()  # after deactivation
+    assert final["drivers"]["left"]["status"] == "closed" and final["drivers"]["right"]["status"] == "failed"
+    assert right.estops == 1 and right.reads == 100  # not read again after failing
+    assert left.reads == 301 and left.estops == 0
+    assert np.all(loop.robot.state.fault[2:] & Fault.DRIVER)
+    assert not np.any(loop.robot.state.fault[:2] & Fault.DRIVER)
+
+
+@pytest.mark.asyncio
+async def test_driver_write_failure_and_failing_estop_do_not_escape():
+    loop = virtual_loop(two_driver_raw(write_error_at_tick=5, estop_error=True))
+    async with loop:
+        report = await loop.run(ticks=20)
+    sources = [(f["source"], f["phase"]) for f in report["faults"]]
+    assert ("driver:right", "write") in sources and ("driver:right", "estop") in sources
+    assert report["ticks"] == 20 and report["safety_level"] == "hold"
+
+
+@pytest.mark.asyncio
+async def test_driver_that_fails_to_open_stops_bring_up_and_closes_the_others():
+    raw = two_driver_raw(open_error=True)
+    loop = virtual_loop(raw)
+    with pytest.raises(DriverError) as info:
+        await loop.activate()
+    assert info.value.driver == "right" and info.value.phase == "open"
+    assert isinstance(info.value, RuntimeError)
+    left = loop.slots[0].driver
+    assert left.closed and left.estops == 1 and loop.state == "closed"
+
+
+class Exploding(Controller):
+    """Moves joint 0 at constant speed, then raises at a given tick."""
+
+    def __init__(self, at_tick: int, nan: bool = False):
+        self.at_tick, self.nan = at_tick, nan
+
+    def start(self, t):
+        self.q0 = self.robot.state.position.copy()
+
+    def update(self, t, dt):
+        if self.robot.clock.tick >= self.at_tick:
+            if self.nan:
+                self.robot.command.position[0] = np.nan
+                return
+            raise ZeroDivisionError("controller bug")
+        self.robot.command.position[:] = self.q0
+        self.robot.command.position[0] = self.q0[0] + 1.0 * t  # 1 rad/s
+
+
+@pytest.mark.parametrize("nan", [False, True], ids=["raises", "writes-nan"])
+@pytest.mark.asyncio
+async def test_controller_failure_switches_to_hold_without_a_jump(nan):
+    loop = virtual_loop(arm_raw(2), controller=Exploding(at_tick=200, nan=nan))
+    sent = []
+    loop.add_publisher(lambda lp: sent.append(lp.limiter.last_position[0]))
+    async with loop:
+        report = await loop.run(ticks=600)
+    assert report["controller"]["type"] == "hold"
+    assert report["faults"][0]["tick"] == 200
+    assert report["faults"][0]["phase"] == ("limits" if nan else "update")
+    assert all(np.isfinite(sent))
+    steps = np.abs(np.diff(sent))
+    # before the fault the command moved 1 mrad per tick; after, it brakes at 20 rad/s²:
+    # no step is larger than the last one plus one acceleration step
+    assert steps.max() <= 1e-3 + 20.0 * 1e-6 + 1e-12
+    # it comes to rest within the braking distance v²/2a = 25 mm past the fault position
+    assert steps[-50:].max() == 0.0
+    assert sent[-1] - sent[198] <= 1.0 / (2 * 20.0) + 1e-3
+
+
+@pytest.mark.asyncio
+async def test_commands_are_clamped_before_any_write():
+    seen = []
+
+    class Greedy(Controller):
+        def update(self, t, dt):
+            cmd = self.robot.command
+            cmd.position[:] = 100.0  # far beyond the range, as a step
+            cmd.velocity[:] = -50.0
+            cmd.effort[:] = 1e6
+
+    loop = virtual_loop(arm_raw(2), controller=Greedy())
+    async with loop:
+        mock = loop.slots[0].driver
+        original_write = mock.write
+
+        async def spy():
+            seen.append(mock.view.command.block.copy())
+            await original_write()
+
+        mock.write = spy
+        await loop.run(ticks=3000)
+    first, last = seen[0], seen[-1]
+    assert first[0, 0] == pytest.approx(2.0 * 1e-3)  # one tick at the 2 rad/s rate limit
+    assert last[0, 0] == 2.0  # reached the position limit and stays there
+    assert np.all(np.array([s[0] for s in seen]) <= 2.0)
+    assert np.all(np.array([s[1] for s in seen]) >= -2.0)  # velocity limit
+    assert np.all(np.array([s[2] for s in seen]) <= 50.0)  # effort limit
+    # velocity command changes at most acceleration·dt = 0.02 per tick
+    assert np.abs(np.diff([s[1, 0] for s in seen])).max() <= 0.02 + 1e-12
+
+
+@pytest.mark.asyncio
+async def test_lost_feedback_makes_the_robot_hold():
+    raw = arm_raw(2, type="sine", params={"amplitude": 0.1, "frequency": 1.0})
+    raw["loop"]["max_feedback_age"] = 20
+    raw["driver"][0]["options"] = {"faults": {"feedback_lost_at_tick": 50, "feedback_lost_for": 100}}
+    async with virtual_loop(raw) as loop:
+        report = await loop.run(ticks=300)
+    [fault] = report["faults"]
+    assert fault["source"] == "driver:arm" and fault["phase"] == "check"
+    assert fault["tick"] == 50 + 20  # last fresh at tick 49, stale when older than 20 ticks
+    assert report["safety_level"] == "hold"
+    assert report["drivers"]["arm"]["status"] == "open"  # not isolated: it may come back
+    assert report["drivers"]["arm"]["feedback_lost_ticks"] == 100
+
+
+@pytest.mark.asyncio
+async def test_skipped_ticks_give_controller_the_real_dt():
+    dts = []
+
+    class Recorder(Controller):
+        def update(self, t, dt):
+            dts.append((self.robot.clock.tick, round(t, 9), round(dt, 9)))
+
+    loop = virtual_loop(arm_raw(1), controller=Recorder())
+    async with loop:
+        loop.add_publisher(lambda lp: lp.source.stall(2) if lp.robot.clock.tick == 3 else None)
+        report = await loop.run(ticks=8)
+    assert [d[0] for d in dts] == [1, 2, 3, 6, 7, 8]
+    assert dts[3] == (6, 0.006, 0.003)  # t counts from activation (tick 0)
+    assert report["missed_ticks"] == 2
+    assert report["ticks"] == 6

@@ -1,0 +1,169 @@
+"""The mock driver: mirroring, first-order dynamics, modes, devices, injected faults."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from aiohal.robot import Mode
+from helpers import arm_raw, virtual_loop
+from aiohal.hal import Controller
+
+
+class Fixed(Controller):
+    """Commands fixed values per mode, set by the test."""
+
+    def __init__(self, mode=Mode.POSITION, position=0.0, velocity=0.0, effort=0.0):
+        self.mode, self.p, self.v, self.e = mode, position, velocity, effort
+
+    def update(self, t, dt):
+        cmd = self.robot.command
+        cmd.mode[:] = self.mode
+        cmd.position[:] = self.p
+        cmd.velocity[:] = self.v
+        cmd.effort[:] = self.e
+
+
+def raw_with(options, n=2):
+    raw = arm_raw(n)
+    raw["joints"] = {f"j{i}": {"position": [-10.0, 10.0], "velocity": 1e4, "effort": 50.0} for i in range(n)}
+    raw["driver"][0]["options"] = options
+    return raw
+
+
+@pytest.mark.asyncio
+async def test_mirror_follows_the_command_one_tick_later():
+    loop = virtual_loop(raw_with({"dynamics": "mirror"}), controller=Fixed(position=0.05, effort=3.0))
+    async with loop:
+        await loop.run(ticks=2)  # commanded at tick 1, measured at tick 2
+        state = loop.robot.state
+        assert np.allclose(state.position, 0.05)
+        assert np.allclose(state.velocity, 0.05 / 0.001)
+        await loop.run(ticks=1)
+    assert np.allclose(state.position, 0.05)
+    assert np.allclose(state.effort, 3.0)
+    assert np.allclose(state.velocity, 0.0)  # no motion between the last two ticks
+
+
+@pytest.mark.asyncio
+async def test_first_order_reaches_63_percent_after_one_time_constant():
+    tau = 0.05
+    loop = virtual_loop(raw_with({"dynamics": "first_order", "time_constant": tau}), controller=Fixed(position=1.0))
+    async with loop:
+        await loop.run(ticks=51)  # the command of tick 1 is applied from tick 2 on: 50 ticks = τ
+    assert loop.robot.state.position[0] == pytest.approx(1 - math.exp(-1), rel=1e-9)
+    assert loop.robot.state.velocity[0] > 0
+
+
+@pytest.mark.asyncio
+async def test_velocity_mode_integrates_and_effort_mode_holds_position():
+    loop = virtual_loop(raw_with({"initial_position": 0.5}), controller=Fixed(mode=Mode.VELOCITY, velocity=2.0))
+    async with loop:
+        await loop.run(ticks=101)
+    assert loop.robot.state.position[0] == pytest.approx(0.5 + 2.0 * 0.1, rel=1e-9)
+    assert loop.robot.state.velocity[0] == pytest.approx(2.0)
+
+    loop = virtual_loop(raw_with({"initial_position": 0.5}), controller=Fixed(mode=Mode.EFFORT, position=9.0, effort=4.0))
+    async with loop:
+        await loop.run(ticks=50)
+    assert np.allclose(loop.robot.state.position, 0.5)
+    assert np.allclose(loop.robot.state.effort, 4.0)
+
+
+@pytest.mark.asyncio
+async def test_initial_position_is_clipped_to_the_range():
+    raw = arm_raw(2)  # range [-2, 2]
+    raw["driver"][0]["options"] = {"initial_position": {"j0": 5.0, "j1": -0.25}}
+    loop = virtual_loop(raw)
+    async with loop:
+        assert list(loop.robot.state.position) == [2.0, -0.25]
+
+
+@pytest.mark.asyncio
+async def test_feedback_delay_shows_the_past():
+    loop = virtual_loop(raw_with({"feedback_delay_ticks": 10}), controller=Fixed(position=1.0))
+    async with loop:
+        await loop.run(ticks=11)
+        assert np.allclose(loop.robot.state.position, 0.0)  # the step is applied at tick 2
+    loop2 = virtual_loop(raw_with({"feedback_delay_ticks": 10}), controller=Fixed(position=1.0))
+    async with loop2:
+        await loop2.run(ticks=12)
+        assert np.allclose(loop2.robot.state.position, 1.0)
+
+
+@pytest.mark.asyncio
+async def test_read_latency_is_spent_inside_read():
+    loop = virtual_loop(raw_with({"read_latency_us": 2000}))
+    async with loop:
+        t0 = time.monotonic()
+        report = await loop.run(ticks=20)
+        elapsed = time.monotonic() - t0
+    assert elapsed >= 20 * 0.002
+    assert report["phases_us"]["read"]["p50"] >= 2000
+
+
+@pytest.mark.asyncio
+async def test_devices_read_gravity_wrench_and_hand_motion():
+    raw = arm_raw(3)
+    raw["devices"] = {
+        "imu": {"type": "imu"},
+        "ft": {"type": "force_torque"},
+        "gripper": {"type": "hand", "joint": "j2"},
+    }
+    raw["driver"][0]["devices"] = ["imu", "ft", "gripper"]
+    raw["driver"][0]["options"] = {"force": [1.0, 2.0, 30.0], "hand_speed": 2.0}
+    loop = virtual_loop(raw)
+    async with loop:
+        robot = loop.robot
+        hand = robot.hand_for_joint("j2")
+        assert hand.name == "gripper"
+        hand.grasp[...] = 1.0
+        await loop.run(ticks=100)  # 0.1 s at 2 /s: half closed
+        assert float(hand.position) == pytest.approx(0.2, abs=1e-9)
+        await loop.run(ticks=500)
+        assert float(hand.position) == pytest.approx(1.0)
+        assert hand.updated_tick == robot.clock.tick
+    imu, ft = robot.imu["imu"], robot.force_torque["ft"]
+    assert list(imu.quaternion) == [1.0, 0.0, 0.0, 0.0]
+    assert list(imu.linear_acceleration) == [0.0, 0.0, 9.81]
+    assert list(ft.force) == [1.0, 2.0, 30.0]
+    assert robot.imu.updated_tick[0] == robot.clock.tick
+
+
+@pytest.mark.asyncio
+async def test_estop_freezes_the_simulated_joints():
+    loop = virtual_loop(raw_with({}), controller=Fixed(mode=Mode.VELOCITY, velocity=1.0))
+    async with loop:
+        await loop.run(ticks=10)
+        mock = loop.slots[0].driver
+        before = loop.robot.state.position.copy()
+        mock.estop()
+        mock.estop()  # idempotent
+        await loop.run(ticks=10)
+        assert np.array_equal(loop.robot.state.position, before)
+        assert mock.estops == 2
+
+
+def test_views_write_in_place():
+    from aiohal.config import parse_config
+
+    raw = arm_raw(4)
+    raw["driver"] = [
+        {"type": "mock", "name": "a", "joints": ["j0", "j1"]},
+        {"type": "mock", "name": "b", "joints": ["j2", "j3"]},
+    ]
+    robot = parse_config(raw).build_robot()
+    view = robot.driver_view(["j2", "j3"])
+    view.state.position[:] = [7.0, 8.0]
+    view.mark_fresh()
+    assert list(robot.state.position) == [0.0, 0.0, 7.0, 8.0]
+    assert np.shares_memory(view.state.block, robot.state.block)
+    assert np.shares_memory(view.command.position, robot.command.position)
+    ro = robot.controller_view()
+    with pytest.raises(ValueError):
+        ro.state.position[0] = 1.0  # controllers read state, they do not write it
+    ro.command.position[0] = 1.0
+    assert robot.command.position[0] == 1.0

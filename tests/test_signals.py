@@ -1,0 +1,83 @@
+"""SIGINT and SIGTERM stop a running robot safely: controller stopped, drivers closed, report."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from conftest import CONFIGS, ROOT
+
+
+def _start(tmp_path, *extra):
+    report = tmp_path / "report.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "aiohal", str(CONFIGS / "mock_arm.toml"), "--log-format", "json",
+         "--report-json", str(report), *extra],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    deadline = time.monotonic() + 30
+    lines = []
+    while time.monotonic() < deadline:  # bounded: wait for the loop to report it is running
+        line = proc.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        if json.loads(line)["event"].startswith("running"):
+            return proc, report, lines
+    proc.kill()
+    pytest.fail(f"the robot did not start: {lines}")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_stops_the_robot_safely(tmp_path, sig):
+    proc, report_path, _ = _start(tmp_path)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "aiohal run report" in out
+    assert "Traceback" not in err
+    report = json.loads(report_path.read_text())
+    assert report["stop_reason"] == sig.name
+    assert report["ticks"] > 0
+    assert report["drivers"]["arm"]["status"] == "closed"
+    assert report["safety_level"] == "off"
+    assert report["faults"] == []
+
+
+def test_second_signal_forces_emergency_stop(tmp_path):
+    # a driver whose close() never returns: the first signal stops the loop and waits for it,
+    # the second one triggers every driver's emergency stop and ends the process
+    cfg = tmp_path / "hang.toml"
+    text = (CONFIGS / "mock_arm.toml").read_text().replace(
+        'dynamics = "first_order"', 'dynamics = "first_order"\nfaults = { close_hangs = true }'
+    )
+    cfg.write_text(text)
+    report = tmp_path / "report.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "aiohal", str(cfg), "--log-format", "json", "--report-json", str(report)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        line = proc.stderr.readline()
+        if not line or json.loads(line)["event"].startswith("running"):
+            break
+    proc.send_signal(signal.SIGINT)
+    while time.monotonic() < deadline:  # the first signal is handled before the second is sent
+        line = proc.stderr.readline()
+        if not line or "received: stopping" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    data = json.loads(report.read_text())
+    assert proc.returncode == 1  # the run ended with a fault: not every driver closed
+    assert data["drivers"]["arm"]["estops"] == 1
+    assert data["drivers"]["arm"]["status"] == "open"  # honest: close() never finished
+    assert data["faults"][-1]["source"] == "runtime"
+    assert "second signal" in data["faults"][-1]["error"]
+    assert "Traceback" not in err
