@@ -103,6 +103,8 @@ def _apply_overrides(config: Config, args: argparse.Namespace) -> Config:
             for e in exc.errors()
         ]
         raise ConfigError(issues, str(args.config)) from None
+    except ValueError as exc:
+        raise ConfigError([ConfigIssue("loop.rate_hz (command line)", str(exc))], str(args.config)) from None
 
 
 def _loop_factory(name: str):

@@ -21,7 +21,8 @@ from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, Valida
 from . import plugins
 from .errors import ConfigError, ConfigIssue, MissingDependencyError, PluginError
 from .hal import Options
-from .robot import DEVICE_GROUPS, JointSpec, Robot
+from .realtime import RealtimeSection
+from .robot import JointSpec, Robot
 
 
 def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
@@ -103,6 +104,7 @@ class _JointDefaults(Options):
 SECTIONS: dict[str, Any] = {
     "robot": RobotSection,
     "loop": LoopSection,
+    "realtime": RealtimeSection,
     "joint_defaults": _JointDefaults,
     "joints": dict[str, JointSection],
     "devices": dict[str, DeviceSection],
@@ -138,6 +140,7 @@ class Config:
 
     robot: RobotSection
     loop: LoopSection
+    realtime: RealtimeSection
     joints: tuple[JointSpec, ...]
     devices: tuple[tuple[str, str, str | None], ...]  # (name, kind, carrying joint)
     drivers: tuple[DriverConfig, ...]
@@ -152,6 +155,8 @@ class Config:
     def with_loop(self, **changes: Any) -> Config:
         """A copy with loop settings changed (e.g. the CLI's --rate), validated again."""
         loop = LoopSection.model_validate({**self.loop.model_dump(), **changes})
+        if self.realtime.spin_guard_us > 1e6 / loop.rate_hz / 2:
+            raise ValueError(f"realtime.spin_guard_us {self.realtime.spin_guard_us:g} is more than half the new period")
         return replace(self, loop=loop)
 
     def build_robot(self) -> Robot:
@@ -276,6 +281,15 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
 
     robot = _validate(RobotSection, raw.get("robot", {}), "robot", issues, context)
     loop = _validate(LoopSection, raw.get("loop", {}), "loop", issues, context)
+    realtime = _validate(RealtimeSection, raw.get("realtime", {}), "realtime", issues, context)
+    if loop is not None and realtime is not None:
+        period_us = 1e6 / loop.rate_hz
+        if realtime.spin_guard_us > period_us / 2:
+            issues.append(ConfigIssue(
+                "realtime.spin_guard_us",
+                f"{realtime.spin_guard_us:g} µs is more than half the period ({period_us / 2:g} µs): "
+                "the loop would spin most of the time",
+            ))
     defaults = _validate(_JointDefaults, raw.get("joint_defaults", {}), "joint_defaults", issues, context)
     default_values = defaults.model_dump(exclude_none=True) if defaults else {}
 
@@ -398,10 +412,11 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
 
     if issues:
         raise ConfigError(issues, str(path) if path else None)
-    assert robot is not None and loop is not None and controller is not None
+    assert robot is not None and loop is not None and realtime is not None and controller is not None
     return Config(
         robot=robot,
         loop=loop,
+        realtime=realtime,
         joints=tuple(joint_specs),
         devices=tuple((n, d.type, d.joint) for n, d in devices.items()),
         drivers=tuple(drivers),

@@ -31,6 +31,9 @@ from .hal import Controller, Driver
 from .limits import CommandLimiter
 from .logutil import RateLimitedLogger
 from .robot import Fault, Mode
+from .realtime import RealtimeState
+from .realtime import apply as apply_realtime
+from .realtime import restore as restore_realtime
 from .safety import FaultRecord, SafetyLevel
 from .stats import TickStats
 from .ticker import Ticker, TickSource, make_source
@@ -68,7 +71,9 @@ class ControlLoop:
         self.robot = config.build_robot()
         self.period_ns = config.period_ns
         self.period_s = self.period_ns / 1e9
-        self.source = tick_source or make_source(config.loop.clock)
+        guard_ns = int(config.realtime.spin_guard_us * 1e3)
+        self.source = tick_source or make_source(config.loop.clock, guard_ns)
+        self.realtime: RealtimeState | None = None
         self.ticker = Ticker(self.source, self.period_ns, config.loop.overrun)
         self.stats = TickStats(config.loop.stats_window)
         self.limiter = CommandLimiter(self.robot, self.period_s)
@@ -284,11 +289,13 @@ class ControlLoop:
         if duration is not None:
             ticks = max(1, round(duration * 1e9 / self.period_ns))
         self.state = "running"
+        self.realtime = apply_realtime(self.config.realtime)
         try:
             await self._tick_loop(ticks)
         finally:
             self.stats.end()
             self.ticker.close()
+            restore_realtime(self.realtime)
             if self.state == "running":
                 self.state = "active"
         return self.report()
@@ -438,6 +445,7 @@ class ControlLoop:
             "joints": self.robot.dof,
             "clock": self.source.kind,
             "overrun_policy": self.config.loop.overrun,
+            "realtime": self.realtime.report() if self.realtime else {},
             "rate_hz_target": round(target, 3),
             "rate_hz_achieved": round(achieved, 3),
             "ticks": n,

@@ -34,6 +34,9 @@ def format_report(report: dict[str, Any]) -> str:
         + "  ".join(f"{name} {_fmt(p['p50'])}/{_fmt(p['p99'])}" for name, p in report["phases_us"].items())
         + "  (p50/p99)",
         f"  cpu          {_fmt(report['cpu_percent'])} % of one core",
+        "  realtime     "
+        + (", ".join(f"{k} {v}" for k, v in report.get("realtime", {}).items() if k != "warnings") or "none")
+        + "".join(f"\n  WARNING      {w}" for w in report.get("realtime", {}).get("warnings", [])),
         f"  safety       {report['safety_level']}  (stop: {report['stop_reason']})",
     ]
     for name, d in report["drivers"].items():

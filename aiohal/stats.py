@@ -37,10 +37,12 @@ class TickStats:
     def __init__(self, window: int = 1 << 19) -> None:
         size = _pow2(window)
         self.mask = size - 1
-        self.lateness = np.zeros(size, dtype=np.int64)
-        self.work = np.zeros(size, dtype=np.int64)
+        # np.full writes every page now: a lazily mapped page (np.zeros) faults on its first
+        # write, and 8 buffers faulting in the same tick every 512 ticks cost a missed tick
+        self.lateness = np.full(size, 0, dtype=np.int64)
+        self.work = np.full(size, 0, dtype=np.int64)
         # rows: one per phase of the tick, in PHASES order
-        self.phases = np.zeros((len(PHASES), size), dtype=np.int64)
+        self.phases = np.full((len(PHASES), size), 0, dtype=np.int64)
         self.reset()
 
     def reset(self) -> None:

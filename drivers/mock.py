@@ -66,9 +66,22 @@ class MockDriver(Driver):
         for i, name in enumerate(view.joint_names):
             start[i] = init.get(name, 0.0) if isinstance(init, dict) else init
         np.clip(start, view.position_min, view.position_max, out=start)
-        self.sim = np.zeros((3, n))  # the simulated joints: position, velocity, effort
-        self.position, self.velocity, self.effort = self.sim
+        faults = opts.faults
+        # without delay or lost feedback the simulated joints *are* the state rows: no copy
+        self._direct = opts.feedback_delay_ticks == 0 and faults.feedback_lost_at_tick is None
+        self.sim = view.state.block[:3] if self._direct else np.zeros((3, n))
+        self.position, self.velocity, self.effort = self.sim  # views: position, velocity, effort
         self.position[:] = start
+        self.velocity[:] = 0.0
+        self.effort[:] = 0.0
+        self._faulty = (
+            faults.read_error_at_tick is not None or faults.write_error_at_tick is not None
+            or opts.read_latency_us > 0
+        )
+        self._first_order = opts.dynamics == "first_order"
+        self._dt = 0.0
+        self._alpha = 1.0
+        self._inv_dt = 0.0
         self._target = np.zeros(n)
         self._tmp = np.zeros(n)
         self._velocity_rows = np.zeros(n, dtype=bool)
@@ -79,7 +92,7 @@ class MockDriver(Driver):
         self._history = np.zeros((delay + 1, 3, n))  # ring of past states, oldest next
         self._history[:, 0, :] = start
         self._slot = 0
-        self._last_tick = None
+        self._last_tick = view.clock.tick
         self.reads = 0
         self.writes = 0
         self.estops = 0
@@ -105,42 +118,63 @@ class MockDriver(Driver):
             np.equal(cmd.mode, Mode.VELOCITY, out=self._velocity_rows)
             np.equal(cmd.mode, Mode.EFFORT, out=self._effort_rows)
             self._plain = not (self._velocity_rows.any() or self._effort_rows.any())
-        target = self._target
-        np.copyto(target, cmd.position)
-        if not self._plain:
+        if dt != self._dt:
+            self._dt = dt
+            self._inv_dt = 1.0 / dt
+            self._alpha = 1.0 - math.exp(-dt / self.options.time_constant) if self._first_order else 1.0
+        position, motion = self.position, self.velocity
+        if self._plain:  # every joint in position (or impedance) mode
+            np.subtract(cmd.position, position, out=motion)
+        else:
+            target = self._target
+            np.copyto(target, cmd.position)
             np.multiply(cmd.velocity, dt, out=self._tmp)
-            self._tmp += self.position
+            self._tmp += position
             np.copyto(target, self._tmp, where=self._velocity_rows)
-            np.copyto(target, self.position, where=self._effort_rows)
-        if self.options.dynamics == "first_order":
-            alpha = 1.0 - math.exp(-dt / self.options.time_constant)
-            target -= self.position
-            target *= alpha
-            target += self.position
-        np.subtract(target, self.position, out=self.velocity)
-        self.velocity *= 1.0 / dt
-        np.copyto(self.position, target)
+            np.copyto(target, position, where=self._effort_rows)
+            np.subtract(target, position, out=motion)
+        if self._first_order:
+            motion *= self._alpha
+        position += motion
+        motion *= self._inv_dt  # the step becomes the velocity
         np.add(cmd.effort, cmd.feedforward, out=self.effort)
 
     async def read(self) -> None:
-        opts = self.options
-        faults = opts.faults
-        clock = self.view.clock
+        view = self.view
+        clock = view.clock
         tick = clock.tick
-        if faults.read_error_at_tick is not None and tick >= faults.read_error_at_tick:
+        if self._faulty:
+            self._inject_read_faults(tick)
+        if tick > self._last_tick and not self.stopped:
+            self._step((tick - self._last_tick) * clock.period_ns * 1e-9)
+        self._last_tick = tick
+        self.reads += 1
+        if not self._direct and not self._publish_state(tick):
+            return
+        view.mark_fresh()
+        if self._hands or self._imus or self._fts:
+            self._read_devices(tick, clock.now_ns)
+
+    def _inject_read_faults(self, tick: int) -> None:
+        opts = self.options
+        at = opts.faults.read_error_at_tick
+        if at is not None and tick >= at:
             raise OSError(errno.EIO, f"injected read error at tick {tick}")
         if opts.read_latency_us:
             until = time.monotonic_ns() + int(opts.read_latency_us * 1e3)
             while time.monotonic_ns() < until:
                 pass
-        if self._last_tick is not None and tick > self._last_tick and not self.stopped:
-            self._step((tick - self._last_tick) * clock.period_ns / 1e9)
-        self._last_tick = tick
-        self.reads += 1
+
+    def _publish_state(self, tick: int) -> bool:
+        """Copy the simulated joints into the state rows, delayed or lost; False if lost."""
+        opts = self.options
+        faults = opts.faults
         lost_at = faults.feedback_lost_at_tick
-        if lost_at is not None and tick >= lost_at and (not faults.feedback_lost_for or tick < lost_at + faults.feedback_lost_for):
+        if lost_at is not None and tick >= lost_at and (
+            not faults.feedback_lost_for or tick < lost_at + faults.feedback_lost_for
+        ):
             self.feedback_lost += 1
-            return
+            return False
         measured = self.view.state.block[:3]
         if opts.feedback_delay_ticks:
             history = self._history
@@ -149,23 +183,27 @@ class MockDriver(Driver):
             np.copyto(measured, history[self._slot])
         else:
             np.copyto(measured, self.sim)
-        self.view.mark_fresh()
-        now = clock.now_ns
+        return True
+
+    def _read_devices(self, tick: int, now: int) -> None:
         for imu in self._imus:
             imu.mark_fresh(tick, now)
         for ft in self._fts:
             ft.mark_fresh(tick, now)
+        period_s = self.view.clock.period_ns * 1e-9
         for hand in self._hands:
-            step = opts.hand_speed * float(hand.speed) * clock.period_ns / 1e9
-            hand.position[...] = min(max(float(hand.grasp), float(hand.position) - step), float(hand.position) + step)
-            hand.effort[...] = float(hand.force) if float(hand.position) > 0.0 else 0.0
+            step = self.options.hand_speed * float(hand.speed) * period_s
+            position = float(hand.position)
+            hand.position[...] = min(max(float(hand.grasp), position - step), position + step)
+            hand.effort[...] = float(hand.force) if position > 0.0 else 0.0
             hand.mark_fresh(tick, now)
 
     async def write(self) -> None:
-        faults = self.options.faults
-        tick = self.view.clock.tick
-        if faults.write_error_at_tick is not None and tick >= faults.write_error_at_tick:
-            raise OSError(errno.EIO, f"injected write error at tick {tick}")
+        if self._faulty:
+            at = self.options.faults.write_error_at_tick
+            tick = self.view.clock.tick
+            if at is not None and tick >= at:
+                raise OSError(errno.EIO, f"injected write error at tick {tick}")
         self.writes += 1
 
     def estop(self) -> None:
