@@ -69,6 +69,13 @@ class _Rows:
     updated_tick: np.ndarray
     fault: np.ndarray
 
+    def __init__(self, n: int) -> None:
+        self.block = np.zeros((len(self._fields), n))
+        self.stamp_ns = np.zeros(n, dtype=np.int64)
+        self.updated_tick = np.full(n, -1, dtype=np.int64)
+        self.fault = np.zeros(n, dtype=np.uint32)
+        self._bind_fields()
+
     def _bind_fields(self) -> None:
         for i, field in enumerate(self._fields):
             setattr(self, field, self.block[i])
@@ -116,11 +123,7 @@ class JointState(_Rows):
     temperature: np.ndarray
 
     def __init__(self, n: int) -> None:
-        self.block = np.zeros((len(self._fields), n))
-        self.stamp_ns = np.zeros(n, dtype=np.int64)
-        self.updated_tick = np.full(n, -1, dtype=np.int64)
-        self.fault = np.zeros(n, dtype=np.uint32)
-        self._bind_fields()
+        super().__init__(n)
         self.temperature[:] = np.nan
 
 
@@ -137,12 +140,8 @@ class JointCommand(_Rows):
     mode: np.ndarray
 
     def __init__(self, n: int) -> None:
-        self.block = np.zeros((len(self._fields), n))
+        super().__init__(n)
         self.mode = np.zeros(n, dtype=np.int8)
-        self.stamp_ns = np.zeros(n, dtype=np.int64)
-        self.updated_tick = np.full(n, -1, dtype=np.int64)
-        self.fault = np.zeros(n, dtype=np.uint32)
-        self._bind_fields()
 
 
 # ---------------------------------------------------------------- devices besides joints
