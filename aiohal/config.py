@@ -160,7 +160,9 @@ class Config:
         return replace(self, loop=loop)
 
     def build_robot(self) -> Robot:
-        return Robot(self.robot.name, self.joints, period_ns=self.period_ns, devices=self.devices)
+        return Robot(
+            self.robot.name, self.joints, period_ns=self.period_ns, devices=self.devices, model_path=self.robot.model
+        )
 
 
 # ---------------------------------------------------------------- validation
@@ -386,8 +388,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         options = _validate(cls.Options, section.options, f"{where}.options", issues, context)
         if options is None:
             continue
-        for rel, msg in cls.check_config(options, joints, dev_kinds):
-            issues.append(ConfigIssue(_path((rel,), f"{where}.options") if rel else f"{where}.options", msg))
+        for rel, msg in cls.check_config(options, joints, dev_kinds, robot or RobotSection()):
+            issues.append(ConfigIssue(f"{where}.{rel}" if rel else where, msg))
         drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options))
 
     if isinstance(raw.get("driver"), list) and not drivers_incomplete:  # raw_drivers is [] after a malformed section
@@ -406,8 +408,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         if cls is not None:
             params = _validate(cls.Params, section.params, "controller.params", issues, context)
             if params is not None:
-                for rel, msg in cls.check_config(params, tuple(joint_specs)):
-                    issues.append(ConfigIssue(_path((rel,), "controller.params") if rel else "controller.params", msg))
+                for rel, msg in cls.check_config(params, tuple(joint_specs), robot or RobotSection()):
+                    issues.append(ConfigIssue(f"controller.{rel}" if rel else "controller", msg))
                 controller = ControllerConfig(section.type, cls, params)
 
     if issues:

@@ -49,6 +49,16 @@ class DriverError(AiohalError, RuntimeError):
         super().__init__(f"driver {driver!r} failed in {phase}: {reason}")
 
 
+class ControllerError(AiohalError, RuntimeError):
+    """A controller could not be configured or started."""
+
+    def __init__(self, controller: str, phase: str, reason: str) -> None:
+        self.controller = controller
+        self.phase = phase
+        self.reason = reason
+        super().__init__(f"controller {controller!r} failed in {phase}: {reason}")
+
+
 class TickTimeoutError(AiohalError, TimeoutError):
     """Waiting for a tick took longer than allowed (e.g. the loop stalled or stopped)."""
 

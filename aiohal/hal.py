@@ -58,11 +58,13 @@ class Driver(abc.ABC):
 
     @classmethod
     def check_config(
-        cls, options: Options, joints: list[str], devices: dict[str, str]
+        cls, options: Options, joints: list[str], devices: dict[str, str], robot: Any
     ) -> list[tuple[str, str]]:
-        """Extra checks of options against the joints and devices given to this driver.
+        """Extra checks of options against the joints and devices given to this driver and
+        the ``[robot]`` section (its ``model`` path, resolved).
 
-        Returns (path relative to ``options``, message) pairs; empty when all is well.
+        Returns (path relative to the driver's entry, e.g. ``options.kp`` or ``joints``,
+        message) pairs; empty when all is well.
         """
         return []
 
@@ -96,8 +98,9 @@ class Controller(abc.ABC):
     robot: RobotView
 
     @classmethod
-    def check_config(cls, params: Options, joints: Sequence[JointSpec]) -> list[tuple[str, str]]:
-        """Extra checks of params against the robot's joints and limits; (path, message) pairs."""
+    def check_config(cls, params: Options, joints: Sequence[JointSpec], robot: Any) -> list[tuple[str, str]]:
+        """Extra checks of params against the robot's joints, limits and ``[robot]`` section;
+        (path relative to ``[controller]``, e.g. ``params.pose``, message) pairs."""
         return []
 
     def configure(self, robot: RobotView, params: Options) -> None:

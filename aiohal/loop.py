@@ -26,7 +26,7 @@ import numpy as np
 
 from . import plugins
 from .config import Config
-from .errors import DriverError, LifecycleError
+from .errors import ControllerError, DriverError, LifecycleError
 from .hal import Controller, Driver
 from .limits import CommandLimiter
 from .logutil import RateLimitedLogger
@@ -108,7 +108,11 @@ class ControlLoop:
             raise LifecycleError(f"configure() in state {self.state!r}")
         for dc in self.config.drivers:
             view = self.robot.driver_view(dc.joints, dc.devices)
-            self.slots.append(DriverSlot(dc.cls(dc.name, view, dc.options), dc.type))
+            try:
+                driver = dc.cls(dc.name, view, dc.options)
+            except Exception as exc:
+                raise DriverError(dc.name, "configure", f"{type(exc).__name__}: {exc}") from exc
+            self.slots.append(DriverSlot(driver, dc.type))
         view = self.robot.controller_view()
         hold_cls = plugins.load("controller", "hold")
         self._hold = hold_cls()
@@ -120,7 +124,10 @@ class ControlLoop:
         else:
             self.controller = self.config.controller.cls()
             params = self.config.controller.params
-        self.controller.configure(view, params)
+        try:
+            self.controller.configure(view, params)
+        except Exception as exc:
+            raise ControllerError(self.controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
         self.state = "configured"
 
     async def activate(self) -> None:
@@ -130,6 +137,7 @@ class ControlLoop:
         if self.state != "configured":
             raise LifecycleError(f"activate() in state {self.state!r}")
         clock = self.robot.clock
+        clock.kind = self.source.kind
         clock.tick = 0
         clock.now_ns = self.source.now_ns()
         try:
@@ -295,7 +303,11 @@ class ControlLoop:
         if duration is not None:
             ticks = max(1, round(duration * 1e9 / self.period_ns))
         self.state = "running"
-        self.realtime = apply_realtime(self.config.realtime)
+        if self.source.kind == "virtual":
+            # a virtual clock runs flat out: SCHED_FIFO would starve the machine (and be throttled)
+            self.realtime = RealtimeState(warnings=["virtual clock: real-time settings not applied"])
+        else:
+            self.realtime = apply_realtime(self.config.realtime)
         try:
             await self._tick_loop(ticks)
         finally:

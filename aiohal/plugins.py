@@ -23,11 +23,13 @@ GROUPS: dict[str, str] = {"driver": "aiohal.drivers", "controller": "aiohal.cont
 BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
     "driver": {
         "mock": ("aiohal.drivers.mock:MockDriver", None),
+        "mujoco": ("aiohal.drivers.mujoco:MujocoDriver", "sim"),
     },
     "controller": {
         "hold": ("aiohal.controllers.hold:HoldController", None),
         "homing": ("aiohal.controllers.homing:HomingController", None),
         "sine": ("aiohal.controllers.sine:SineController", None),
+        "circle": ("aiohal.controllers.circle:CircleController", "sim"),
     },
 }
 

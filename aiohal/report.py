@@ -12,6 +12,8 @@ def _fmt(value: Any) -> str:
     if isinstance(value, float):
         if math.isnan(value):
             return "-"
+        if 0 < abs(value) < 0.1:
+            return f"{value:.3g}"
         return f"{value:,.2f}" if abs(value) < 1e6 else f"{value:.3g}"
     return str(value)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 
@@ -51,12 +52,13 @@ class JointSpec:
 class TickInfo:
     """The current tick, shared by reference with drivers and controllers (updated by the loop)."""
 
-    __slots__ = ("tick", "now_ns", "period_ns")
+    __slots__ = ("tick", "now_ns", "period_ns", "kind")
 
     def __init__(self, period_ns: int) -> None:
         self.tick = -1
         self.now_ns = 0
         self.period_ns = period_ns
+        self.kind = "?"  # the wake source: timerfd, sleep or virtual (a simulation steps in lockstep)
 
 
 class _Rows:
@@ -270,8 +272,10 @@ class Robot:
         *,
         period_ns: int = 1_000_000,
         devices: Iterable[tuple[str, str, str | None]] = (),
+        model_path: Any = None,
     ) -> None:
         self.name = name
+        self.model_path = model_path  # the robot's model file (MJCF), if the config names one
         self.joints = tuple(joints)
         self.joint_names = tuple(j.name for j in self.joints)
         self._joint_index = {name: i for i, name in enumerate(self.joint_names)}
@@ -361,6 +365,7 @@ class DriverView:
 
     def __init__(self, robot: Robot, rows: slice, devices: tuple[str, ...]) -> None:
         self.robot_name = robot.name
+        self.model_path = robot.model_path
         self.rows = rows
         self.joint_names = robot.joint_names[rows]
         self.state = robot.state.view(rows)
@@ -396,6 +401,7 @@ class RobotView:
 
     def __init__(self, robot: Robot) -> None:
         self.name = robot.name
+        self.model_path = robot.model_path
         self.joints = robot.joints
         self.joint_names = robot.joint_names
         self.dof = robot.dof

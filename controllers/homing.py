@@ -22,13 +22,13 @@ class HomingController(Controller):
     Params = HomingParams
 
     @classmethod
-    def check_config(cls, params, joints):
-        issues = unknown_joint_issues("pose", params.pose, (j.name for j in joints))
+    def check_config(cls, params, joints, robot):
+        issues = unknown_joint_issues("params.pose", params.pose, (j.name for j in joints))
         for joint in joints:
             target = params.pose.get(joint.name)
             if target is not None and not joint.position_min <= target <= joint.position_max:
                 issues.append(
-                    (f"pose.{joint.name}", f"{target} is outside the joint's range "
+                    (f"params.pose.{joint.name}", f"{target} is outside the joint's range "
                      f"[{joint.position_min}, {joint.position_max}]")
                 )
         return issues

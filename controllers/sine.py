@@ -29,11 +29,11 @@ class SineController(Controller):
     Params = SineParams
 
     @classmethod
-    def check_config(cls, params, joints):
+    def check_config(cls, params, joints, robot):
         names = [j.name for j in joints]
         issues = []
         for key in ("amplitude", "frequency", "phase"):
-            issues += unknown_joint_issues(key, getattr(params, key), names)
+            issues += unknown_joint_issues(f"params.{key}", getattr(params, key), names)
         if issues:
             return issues
 
@@ -46,9 +46,9 @@ class SineController(Controller):
         for joint in joints:
             amplitude = abs(value("amplitude", joint.name, 0.0))
             frequency = value("frequency", joint.name, 0.5)
-            where = f"amplitude.{joint.name}" if isinstance(params.amplitude, dict) else "amplitude"
+            where = f"params.amplitude.{joint.name}" if isinstance(params.amplitude, dict) else "params.amplitude"
             if frequency < 0:
-                issues.append((f"frequency.{joint.name}" if isinstance(params.frequency, dict) else "frequency",
+                issues.append((f"params.frequency.{joint.name}" if isinstance(params.frequency, dict) else "params.frequency",
                                f"must be >= 0 (got {frequency})"))
             peak = 2.0 * math.pi * frequency * amplitude
             if peak > joint.velocity:

@@ -52,8 +52,8 @@ class MockDriver(Driver):
     options: MockOptions
 
     @classmethod
-    def check_config(cls, options, joints, devices):
-        return unknown_joint_issues("initial_position", options.initial_position, joints)
+    def check_config(cls, options, joints, devices, robot):
+        return unknown_joint_issues("options.initial_position", options.initial_position, joints)
 
     async def open(self) -> None:
         opts = self.options

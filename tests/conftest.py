@@ -26,6 +26,14 @@ def pytest_asyncio_loop_factories(config, item):
     return _loop_factories()
 
 
+def require_module(name: str):
+    """Import an optional dependency or skip; under CI=true (where make test installs every
+    extra the tests need) a missing one is a failure."""
+    if os.environ.get("CI") == "true":
+        return __import__(name)
+    return pytest.importorskip(name)
+
+
 def require_root(reason: str) -> None:
     """Skip a test that needs root, except under CI=true where missing root is a failure."""
     if os.geteuid() == 0:

@@ -226,11 +226,14 @@ def test_json_schema_is_strict_json_with_plugin_options():
     assert mock_options["additionalProperties"] is False
     assert mock_options["properties"]["dynamics"]["enum"] == ["mirror", "first_order"]
 
-    # every controller's params too
+    # every loadable controller's params too (circle needs the sim extra)
+    from aiohal import plugins
+
     controller = props["controller"]
-    assert controller["properties"]["type"]["enum"] == ["hold", "homing", "sine"]
+    assert controller["properties"]["type"]["enum"] == sorted(plugins.available("controller"))
     consts = [c["if"]["properties"]["type"]["const"] for c in controller["allOf"]]
-    assert consts == ["hold", "homing", "sine"]
+    loadable = [spec.name for spec, error in plugins.describe("controller") if error is None]
+    assert {"hold", "homing", "sine"} <= set(consts) and consts == loadable
 
     # every $ref resolves
     def refs(node):

@@ -10,6 +10,7 @@ from aiohal import realtime
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError
 from conftest import require_root
+from aiohal.loop import ControlLoop
 from helpers import arm_raw, virtual_loop
 
 
@@ -50,7 +51,8 @@ async def test_run_reports_realtime_and_keeps_going_without_permission(monkeypat
     monkeypatch.setattr(os, "sched_setscheduler", lambda *a: (_ for _ in ()).throw(PermissionError(1, "nope")))
     raw = arm_raw(2)
     raw["realtime"] = {"priority": 50}
-    async with virtual_loop(raw) as loop:
+    raw["loop"]["clock"] = "auto"  # a real clock: the virtual one never applies these settings
+    async with ControlLoop(parse_config(raw)) as loop:
         report = await loop.run(ticks=10)
     assert report["ticks"] == 10
     assert report["realtime"]["warnings"] and "nope" in report["realtime"]["warnings"][0]
@@ -68,3 +70,15 @@ def test_spin_guard_above_half_the_period_is_a_config_error():
     config = parse_config(raw)
     with pytest.raises(ValueError):
         config.with_loop(rate_hz=4000)  # 200 µs is more than half of 250 µs
+
+
+@pytest.mark.asyncio
+async def test_virtual_clock_never_applies_realtime_settings(monkeypatch):
+    calls = []
+    monkeypatch.setattr(os, "sched_setscheduler", lambda *a: calls.append(a))
+    raw = arm_raw(2)
+    raw["realtime"] = {"priority": 50, "lock_memory": True}
+    async with virtual_loop(raw) as loop:
+        report = await loop.run(ticks=10)
+    assert calls == []  # a flat-out virtual loop under SCHED_FIFO would starve the machine
+    assert report["realtime"]["warnings"] == ["virtual clock: real-time settings not applied"]

@@ -99,7 +99,8 @@ async def test_timerfd_has_bounded_drift_over_two_seconds():
     if not timerfd_available():
         pytest.skip("timerfd is Linux only")
     ticker, lateness = await _run_real(TimerfdTickSource(), 2.0)
-    assert ticker.k == 2000
+    # every deadline up to the last one was either served or counted as missed
+    assert ticker.k >= 2000 and len(lateness) + ticker.missed == ticker.k
     assert min(lateness) >= 0, "a tick woke before its deadline"
     # drift: the lateness of the last ticks is not larger than the first ones' by more than 1 ms
     tail = sorted(lateness[-100:])[50]
@@ -107,7 +108,6 @@ async def test_timerfd_has_bounded_drift_over_two_seconds():
     assert abs(tail - head) < 1_000_000
     # a loose bound only: this is a shared VM, not an RT kernel
     assert sorted(lateness)[len(lateness) // 2] < 1_000_000
-    assert len(lateness) + ticker.missed == 2000
 
 
 @pytest.mark.asyncio
@@ -115,7 +115,7 @@ async def test_timerfd_has_bounded_drift_over_two_seconds():
 async def test_sleep_source_never_wakes_early_and_does_not_drift():
     ticker, lateness = await _run_real(SleepTickSource(), 1.0)
     assert min(lateness) >= 0, "the portable source woke before a deadline"
-    assert ticker.k == 1000
+    assert ticker.k >= 1000 and len(lateness) + ticker.missed == ticker.k
     tail = sorted(lateness[-100:])[50]
     head = sorted(lateness[:100])[50]
     assert abs(tail - head) < 2_000_000

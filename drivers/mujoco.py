@@ -1,0 +1,261 @@
+"""``mujoco``: a robot simulated in MuJoCo behind the HAL (extra ``sim``).
+
+The configured joints are MJCF joints of the same name (or renamed with ``joint_map``), each
+driven by the motor actuator attached to it. The driver closes the joint loop itself, once per
+tick, as a drive would: ``tau = kp·(q* - q) + kd·(v* - v) + effort* + feed-forward`` plus
+gravity and Coriolis compensation (``qfrc_bias``) when asked, clipped to the actuator range.
+Position mode uses the configured gains, velocity mode only kd, effort mode none, impedance
+mode the command's own stiffness and damping.
+
+Time: in ``lockstep`` the physics advances exactly one tick period (in substeps of the model
+timestep) inside ``write()``; with the virtual clock the simulation is the clock and runs as
+fast as the CPU allows, deterministically. In ``realtime`` (paced by the ticker) the step runs
+in a worker thread between ticks (``mj_step`` releases the GIL), so the tick only pays for
+reading and writing arrays. ``auto`` picks lockstep on the virtual clock, real time otherwise.
+
+IMUs read ``framequat``/``gyro``/``accelerometer`` sensors, force/torque devices ``force``/
+``torque`` sensors, named ``<device>_quat``, ``<device>_gyro``, ``<device>_accel``,
+``<device>_force``, ``<device>_torque`` unless ``sensors`` says otherwise.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Literal
+
+import mujoco
+import numpy as np
+from pydantic import Field
+
+from aiohal.config import ConfigPath
+from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
+from aiohal.robot import Mode
+
+from .mujoco_model import actuator_for_joints, joint_addresses, load_model, model_names, sensor_slice
+
+log = logging.getLogger(__name__)
+
+SENSOR_FIELDS = {
+    "imu": {"quaternion": ("quat", 4), "angular_velocity": ("gyro", 3), "linear_acceleration": ("accel", 3)},
+    "force_torque": {"force": ("force", 3), "torque": ("torque", 3)},
+}
+
+
+class MujocoOptions(Options):
+    model: ConfigPath | None = Field(None, description="MJCF file; default: [robot] model.")
+    time_mode: Literal["auto", "lockstep", "realtime"] = Field(
+        "auto", description="lockstep: physics steps inside the tick; realtime: in a worker thread."
+    )
+    kp: JointValues = Field(300.0, description="Position gain (N·m/rad), scalar or per joint.")
+    kd: JointValues = Field(20.0, description="Velocity gain (N·m·s/rad), scalar or per joint.")
+    gravity_compensation: bool = Field(True, description="Add qfrc_bias (gravity, Coriolis) to the torque.")
+    initial_position: JointValues = Field(0.0, description="Start position, scalar or per joint.")
+    joint_map: dict[str, str] = Field(default_factory=dict, description="Config joint -> MJCF joint name.")
+    sensors: dict[str, dict[str, str]] = Field(
+        default_factory=dict, description="Device -> {field: MJCF sensor name}, to override the naming rule."
+    )
+    viewer: bool = Field(False, description="Open MuJoCo's passive viewer (needs a display).")
+
+
+def _sensor_name(options: MujocoOptions, device: str, field: str, suffix: str) -> str:
+    return options.sensors.get(device, {}).get(field, f"{device}_{suffix}")
+
+
+class MujocoDriver(Driver):
+    Options = MujocoOptions
+    device_kinds = frozenset({"imu", "force_torque"})
+    options: MujocoOptions
+
+    @classmethod
+    def check_config(cls, options, joints, devices, robot):
+        issues = unknown_joint_issues("options.initial_position", options.initial_position, joints)
+        issues += unknown_joint_issues("options.kp", options.kp, joints)
+        issues += unknown_joint_issues("options.kd", options.kd, joints)
+        issues += unknown_joint_issues("options.joint_map", options.joint_map, joints)
+        path = options.model or robot.model
+        if path is None:
+            return issues + [("options.model", "no model: set options.model or [robot] model")]
+        if not os.path.exists(path):
+            return issues + [("options.model", f"file not found: {path}")]
+        try:
+            names = model_names(str(path))
+        except ValueError as exc:
+            return issues + [("options.model", str(exc))]
+        for joint in joints:
+            mjcf = options.joint_map.get(joint, joint)
+            if mjcf not in names.joints:
+                issues.append((f"options.joint_map.{joint}" if joint in options.joint_map else "joints",
+                               f'joint "{mjcf}" is not in the model {os.path.basename(path)}'))
+            elif mjcf not in names.actuated_joints:
+                issues.append(("joints", f'joint "{mjcf}" has no actuator in the model {os.path.basename(path)}'))
+        for device, kind in devices.items():
+            for field, (suffix, dim) in SENSOR_FIELDS.get(kind, {}).items():
+                sensor = _sensor_name(options, device, field, suffix)
+                if names.sensors.get(sensor) != dim:
+                    found = "missing" if sensor not in names.sensors else f"has {names.sensors[sensor]} values"
+                    issues.append((f"options.sensors.{device}", f'{kind} "{device}" needs sensor "{sensor}" with {dim} values ({found})'))
+        return issues
+
+    async def open(self) -> None:
+        opts, view = self.options, self.view
+        path = opts.model or view.model_path
+        self.model = await asyncio.to_thread(load_model, path)
+        self.data = mujoco.MjData(self.model)
+        names = [opts.joint_map.get(j, j) for j in view.joint_names]
+        self.qpos_adr, self.dof_adr = joint_addresses(self.model, names)
+        self.actuators = actuator_for_joints(self.model, names)
+        period_s = view.clock.period_ns * 1e-9
+        steps = period_s / self.model.opt.timestep
+        self.substeps = int(round(steps))
+        if self.substeps < 1 or abs(steps - self.substeps) > 1e-6:
+            raise ValueError(
+                f"the tick period {period_s * 1e3:g} ms is not a whole number of model timesteps "
+                f"({self.model.opt.timestep * 1e3:g} ms)"
+            )
+        n = view.dof
+        self.kp = self._per_joint(opts.kp)
+        self.kd = self._per_joint(opts.kd)
+        lo = self.model.actuator_ctrlrange[self.actuators, 0]
+        hi = self.model.actuator_ctrlrange[self.actuators, 1]
+        limited = self.model.actuator_ctrllimited[self.actuators].astype(bool)
+        self.tau_min = np.where(limited, lo, -np.inf)
+        self.tau_max = np.where(limited, hi, np.inf)
+        self.tau = np.zeros(n)
+        self._kp_eff = np.zeros(n)
+        self._kd_eff = np.zeros(n)
+        self._tmp = np.zeros(n)
+        self._modes = b""
+        self._impedance = np.zeros(n, dtype=bool)
+        self._any_impedance = False
+        start = np.clip(self._per_joint(opts.initial_position), view.position_min, view.position_max)
+        self.data.qpos[self.qpos_adr] = start
+        mujoco.mj_forward(self.model, self.data)
+        self._sensors = []
+        for device, record in view.devices.items():
+            kind = view.device_kinds[device]
+            for field, (suffix, _dim) in SENSOR_FIELDS[kind].items():
+                sl = sensor_slice(self.model, _sensor_name(opts, device, field, suffix))
+                self._sensors.append((record, getattr(record, field), sl))
+        mode = opts.time_mode
+        if mode == "auto":
+            mode = "lockstep" if view.clock.kind == "virtual" else "realtime"
+        self.time_mode = mode
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="mujoco-step") if mode == "realtime" else None
+        self._pending: asyncio.Future | None = None
+        self.steps = 0
+        self.step_ns = 0
+        self._estopped = False
+        self._viewer = self._open_viewer() if opts.viewer else None
+
+    def _per_joint(self, values) -> np.ndarray:
+        names = self.view.joint_names
+        if isinstance(values, dict):
+            return np.array([float(values.get(j, 0.0)) for j in names])
+        return np.full(len(names), float(values))
+
+    def _open_viewer(self):
+        if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+            log.warning("viewer requested but there is no display; running without it")
+            return None
+        import mujoco.viewer
+
+        return mujoco.viewer.launch_passive(self.model, self.data)
+
+    def _step(self) -> None:
+        t0 = time.monotonic_ns()
+        mujoco.mj_step(self.model, self.data, nstep=self.substeps)
+        self.step_ns += time.monotonic_ns() - t0
+        self.steps += self.substeps
+
+    async def read(self) -> None:
+        pending = self._pending
+        if pending is not None:
+            self._pending = None
+            await pending  # the step of the last tick, done in the worker thread
+        data, view = self.data, self.view
+        state = view.state
+        np.take(data.qpos, self.qpos_adr, out=state.position)
+        np.take(data.qvel, self.dof_adr, out=state.velocity)
+        np.copyto(state.effort, self.tau)
+        view.mark_fresh()
+        if self._sensors:
+            clock = view.clock
+            sensordata = data.sensordata
+            for record, target, sl in self._sensors:
+                target[...] = sensordata[sl]
+                record.mark_fresh(clock.tick, clock.now_ns)
+        if self._viewer is not None and view.clock.tick % 16 == 0:
+            self._viewer.sync()
+
+    def _gains(self) -> None:
+        """Effective gains per joint from the command modes (recomputed when modes change)."""
+        cmd = self.view.command
+        modes = cmd.mode.tobytes()
+        if modes != self._modes:
+            self._modes = modes
+            mode = cmd.mode
+            position = (mode == Mode.POSITION)
+            self._impedance = mode == Mode.IMPEDANCE
+            self._any_impedance = bool(self._impedance.any())
+            np.multiply(self.kp, position, out=self._kp_eff)
+            np.multiply(self.kd, position | (mode == Mode.VELOCITY), out=self._kd_eff)
+        if self._any_impedance:
+            np.copyto(self._kp_eff, cmd.stiffness, where=self._impedance)
+            np.copyto(self._kd_eff, cmd.damping, where=self._impedance)
+
+    async def write(self) -> None:
+        if self._estopped:
+            self.tau[:] = 0.0
+            self.data.ctrl[self.actuators] = 0.0
+            self._step_next()
+            return
+        cmd, state = self.view.command, self.view.state
+        self._gains()
+        tau, tmp = self.tau, self._tmp
+        # tau = kp·(q* - q) + kd·(v* - v) + effort* + feed-forward (+ bias)
+        np.subtract(cmd.position, state.position, out=tau)
+        tau *= self._kp_eff
+        np.subtract(cmd.velocity, state.velocity, out=tmp)
+        tmp *= self._kd_eff
+        tau += tmp
+        tau += cmd.effort
+        tau += cmd.feedforward
+        if self.options.gravity_compensation:
+            tau += np.take(self.data.qfrc_bias, self.dof_adr, out=tmp)
+        np.clip(tau, self.tau_min, self.tau_max, out=tau)
+        self.data.ctrl[self.actuators] = tau
+        self._step_next()
+
+    def _step_next(self) -> None:
+        if self._executor is None:
+            self._step()
+        else:
+            self._pending = asyncio.get_running_loop().run_in_executor(self._executor, self._step)
+
+    def estop(self) -> None:
+        # drives off: no torque from now on, the simulated robot goes limp
+        self._estopped = True
+        if hasattr(self, "data"):
+            self.data.ctrl[self.actuators] = 0.0
+
+    async def close(self) -> None:
+        if self._pending is not None:
+            await self._pending
+            self._pending = None
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+        if self._viewer is not None:
+            self._viewer.close()
+
+    def health(self) -> dict:
+        steps = getattr(self, "steps", 0)
+        return {
+            "time_mode": getattr(self, "time_mode", None),
+            "sim_time_s": round(float(self.data.time), 6) if hasattr(self, "data") else 0.0,
+            "sim_steps": steps,
+            "sim_steps_per_s": round(steps / (self.step_ns * 1e-9)) if getattr(self, "step_ns", 0) else None,
+        }
