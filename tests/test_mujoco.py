@@ -20,7 +20,7 @@ from aiohal.errors import ConfigError  # noqa: E402
 from aiohal.loop import ControlLoop  # noqa: E402
 from aiohal.ticker import VirtualTickSource  # noqa: E402
 
-ROBOTS = ["kuka_lwr_sim", "centauro_upper_sim"]  # coman_sim and walkman_sim follow with their models
+ROBOTS = ["kuka_lwr_sim", "centauro_upper_sim", "coman_sim", "walkman_sim"]
 
 
 def lockstep(config):
