@@ -84,54 +84,78 @@ class CircleController(Controller):
         self.rows = robot.indices(names)  # the robot's rows the IK moves
         self.qpos_adr, self.dof_adr = joint_addresses(self.model, names)
         all_qpos, _ = joint_addresses(self.model, list(robot.joint_names))
-        self.all_qpos = all_qpos
-        self.site_ids = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, s) for s in params.sites]
-        m = 3 * len(self.site_ids)
-        n = len(names)
+        # a fixed-base model usually stores the joints in order: write them as one slice
+        first = int(all_qpos[0])
+        contiguous = np.array_equal(all_qpos, np.arange(first, first + len(all_qpos)))
+        self.all_qpos = slice(first, first + len(all_qpos)) if contiguous else all_qpos
+        self.site_ids = np.array(
+            [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, s) for s in params.sites], dtype=np.intp
+        )
+        sites = len(self.site_ids)
+        m, n = 3 * sites, len(names)
         self._jac_full = np.zeros((3, self.model.nv))
         self.J = np.zeros((m, n))
+        self._JT = np.zeros((n, m))
+        self._A = np.zeros((m, m))
+        self._w = np.zeros(m)
         self._x = np.zeros(m)
         self._err = np.zeros(m)
+        self._task = np.zeros(m)
+        self._x_d = np.zeros(m)
+        self._v_d = np.zeros(m)
+        self._tmp = np.zeros(m)
+        self._dq = np.zeros(n)
+        self._q = np.zeros(n)
         self._reg = (params.damping**2) * np.eye(m)
         self.q_min = robot.position_min[self.rows]
         self.q_max = robot.position_max[self.rows]
         self.max_step = robot.velocity_limit[self.rows] * 0.95
         a, b = PLANES[params.plane]
-        self.u = np.zeros(3)
-        self.v = np.zeros(3)
-        self.u[a] = 1.0
-        self.v[b] = 1.0
+        u, v = np.zeros(3), np.zeros(3)
+        u[a], v[b] = 1.0, 1.0
+        self.u = u
+        self.U = np.tile(u, sites)  # the plane's axes, once per site
+        self.V = np.tile(v, sites)
         self.omega = 2.0 * math.pi / params.period
 
     # ------------------------------------------------------------ kinematics
 
     def _site_positions(self, q_all: np.ndarray, out: np.ndarray, jacobian: bool) -> None:
         """Forward kinematics at joint positions ``q_all`` (robot order) into ``out``; J if asked."""
-        data = self.data
+        model, data = self.model, self.data
         data.qpos[self.all_qpos] = q_all
-        mujoco.mj_kinematics(self.model, data)
+        mujoco.mj_kinematics(model, data)
+        data.site_xpos.take(self.site_ids, axis=0, out=out.reshape(-1, 3))
         if jacobian:
-            mujoco.mj_comPos(self.model, data)
-        for i, sid in enumerate(self.site_ids):
-            out[3 * i : 3 * i + 3] = data.site_xpos[sid]
-            if jacobian:
-                mujoco.mj_jacSite(self.model, data, self._jac_full, None, sid)
-                self.J[3 * i : 3 * i + 3] = self._jac_full[:, self.dof_adr]
+            mujoco.mj_comPos(model, data)
+            jac, J = self._jac_full, self.J
+            for i, sid in enumerate(self.site_ids):
+                mujoco.mj_jacSite(model, data, jac, None, sid)
+                jac.take(self.dof_adr, axis=1, out=J[3 * i : 3 * i + 3])
 
-    def _target(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Desired site positions and velocities at time t since start (stacked per site)."""
+    def _target(self, t: float) -> None:
+        """Desired site positions and velocities at time t since start, into _x_d and _v_d."""
         p = self.params
         phase = self.omega * t
-        sites = len(self.site_ids)
-        x_d = self.center + np.tile(p.radius * (math.cos(phase) * self.u + math.sin(phase) * self.v), sites)
-        v_d = np.tile(p.radius * self.omega * (-math.sin(phase) * self.u + math.cos(phase) * self.v), sites)
-        if t < p.ramp:
+        c, s = math.cos(phase), math.sin(phase)
+        x_d, v_d, tmp = self._x_d, self._v_d, self._tmp
+        # x = centre + r(cos·U + sin·V),  v = rω(-sin·U + cos·V)
+        np.multiply(self.U, p.radius * c, out=x_d)
+        np.multiply(self.V, p.radius * s, out=tmp)
+        x_d += tmp
+        x_d += self.center
+        np.multiply(self.U, -p.radius * self.omega * s, out=v_d)
+        np.multiply(self.V, p.radius * self.omega * c, out=tmp)
+        v_d += tmp
+        if t < p.ramp:  # blend from the start pose: x = start + b(t)·(circle - start)
             r = t / p.ramp
-            s = r * r * r * (10.0 + r * (-15.0 + 6.0 * r))
-            ds = 30.0 * r * r * (1.0 - r) * (1.0 - r) / p.ramp
-            v_d = ds * (x_d - self.x_start) + s * v_d
-            x_d = self.x_start + s * (x_d - self.x_start)
-        return x_d, v_d
+            b = r * r * r * (10.0 + r * (-15.0 + 6.0 * r))
+            db = 30.0 * r * r * (1.0 - r) * (1.0 - r) / p.ramp
+            np.subtract(x_d, self.x_start, out=tmp)
+            v_d *= b
+            v_d += db * tmp
+            tmp *= b
+            np.add(self.x_start, tmp, out=x_d)
 
     # ------------------------------------------------------------ lifecycle
 
@@ -139,8 +163,7 @@ class CircleController(Controller):
         robot = self.robot
         self.t0 = t
         self.q_cmd = robot.state.position.copy()  # IK integrates the commanded configuration
-        m = 3 * len(self.site_ids)
-        self.x_start = np.zeros(m)
+        self.x_start = np.zeros(3 * len(self.site_ids))
         self._site_positions(self.q_cmd, self.x_start, jacobian=False)
         offset = np.array(self.params.offset) if self.params.offset is not None else -self.params.radius * self.u
         self.center = self.x_start + np.tile(offset, len(self.site_ids))
@@ -154,32 +177,48 @@ class CircleController(Controller):
     def update(self, t: float, dt: float) -> None:
         robot = self.robot
         elapsed = t - self.t0
+        err = self._err
         # tracking: the measured pose against the target the last command was made for
         if elapsed > self.params.ramp:
             self._site_positions(robot.state.position, self._x, jacobian=False)
-            np.subtract(self._x, self._last_target, out=self._err)
-            for i in range(len(self.site_ids)):
-                e = float(np.dot(self._err[3 * i : 3 * i + 3], self._err[3 * i : 3 * i + 3]))
+            np.subtract(self._x, self._last_target, out=err)
+            err *= err
+            for e in err.reshape(-1, 3).sum(axis=1):
                 self.sum_sq += e
-                self.samples += 1
                 if e > self.max_err:
                     self.max_err = e
-        x_d, v_d = self._target(elapsed)
+            self.samples += len(self.site_ids)
+        self._target(elapsed)
         self._site_positions(self.q_cmd, self._x, jacobian=True)
-        task = v_d + self.params.gain * (x_d - self._x)
-        J = self.J
-        dq = J.T @ np.linalg.solve(J @ J.T + self._reg, task)
+        # task velocity: feed-forward plus feedback on the commanded pose
+        task = self._task
+        np.subtract(self._x_d, self._x, out=task)
+        task *= self.params.gain
+        task += self._v_d
+        # dq = Jᵀ (J Jᵀ + λ² I)⁻¹ task · dt, with MuJoCo's small dense routines: no BLAS call
+        # on the tick (its first call starts a thread pool and costs milliseconds)
+        J, A, w, dq = self.J, self._A, self._w, self._dq
+        mujoco.mju_mulMatMatT(A, J, J)
+        A += self._reg
+        mujoco.mju_cholFactor(A, 0.0)
+        mujoco.mju_cholSolve(w, A, task)
+        mujoco.mju_mulMatTVec(dq, J, w)
         dq *= dt
         limit = self.max_step * dt
-        np.clip(dq, -limit, limit, out=dq)
-        q = self.q_cmd[self.rows] + dq
-        np.clip(q, self.q_min, self.q_max, out=q)
+        np.minimum(dq, limit, out=dq)
+        np.maximum(dq, -limit, out=dq)
+        q = self._q
+        self.q_cmd.take(self.rows, out=q)
+        q += dq
+        np.minimum(q, self.q_max, out=q)
+        np.maximum(q, self.q_min, out=q)
         self.q_cmd[self.rows] = q
         cmd = robot.command
         np.copyto(cmd.position, self.q_cmd)
-        cmd.velocity[:] = 0.0
-        cmd.velocity[self.rows] = dq / dt if dt > 0 else 0.0
-        self._last_target = x_d
+        if dt > 0:
+            dq *= 1.0 / dt
+            cmd.velocity[self.rows] = dq
+        np.copyto(self._last_target, self._x_d)
 
     def metrics(self) -> dict:
         if not getattr(self, "samples", 0):

@@ -7,11 +7,13 @@ gravity and Coriolis compensation (``qfrc_bias``) when asked, clipped to the act
 Position mode uses the configured gains, velocity mode only kd, effort mode none, impedance
 mode the command's own stiffness and damping.
 
-Time: in ``lockstep`` the physics advances exactly one tick period (in substeps of the model
-timestep) inside ``write()``; with the virtual clock the simulation is the clock and runs as
-fast as the CPU allows, deterministically. In ``realtime`` (paced by the ticker) the step runs
-in a worker thread between ticks (``mj_step`` releases the GIL), so the tick only pays for
-reading and writing arrays. ``auto`` picks lockstep on the virtual clock, real time otherwise.
+Time: each tick advances the physics by exactly one tick period (in substeps of the model
+timestep). On the virtual clock this is lockstep: the simulation is the clock and runs as fast
+as the CPU allows, deterministically. On a real clock (timerfd) it is real time, paced by the
+ticker. ``step = "inline"`` (default) steps inside ``write()``; ``step = "thread"`` steps in a
+worker thread between ticks (``mj_step`` releases the GIL), which takes the step off the tick
+but adds two thread hand-offs per tick: on the 2-vCPU development VM it lowered lateness p99 by
+about 30 µs and cost about 20 % more CPU and a few more missed ticks (docs/performance.md).
 
 IMUs read ``framequat``/``gyro``/``accelerometer`` sensors, force/torque devices ``force``/
 ``torque`` sensors, named ``<device>_quat``, ``<device>_gyro``, ``<device>_accel``,
@@ -47,8 +49,8 @@ SENSOR_FIELDS = {
 
 class MujocoOptions(Options):
     model: ConfigPath | None = Field(None, description="MJCF file; default: [robot] model.")
-    time_mode: Literal["auto", "lockstep", "realtime"] = Field(
-        "auto", description="lockstep: physics steps inside the tick; realtime: in a worker thread."
+    step: Literal["inline", "thread"] = Field(
+        "inline", description="Where mj_step runs: inside write() or in a worker thread between ticks."
     )
     kp: JointValues = Field(300.0, description="Position gain (N·m/rad), scalar or per joint.")
     kd: JointValues = Field(20.0, description="Velocity gain (N·m·s/rad), scalar or per joint.")
@@ -134,17 +136,16 @@ class MujocoDriver(Driver):
         start = np.clip(self._per_joint(opts.initial_position), view.position_min, view.position_max)
         self.data.qpos[self.qpos_adr] = start
         mujoco.mj_forward(self.model, self.data)
-        self._sensors = []
+        self._sensors = []  # (target array view, sensordata slice)
+        self._devices = list(view.devices.values())
         for device, record in view.devices.items():
             kind = view.device_kinds[device]
             for field, (suffix, _dim) in SENSOR_FIELDS[kind].items():
                 sl = sensor_slice(self.model, _sensor_name(opts, device, field, suffix))
-                self._sensors.append((record, getattr(record, field), sl))
-        mode = opts.time_mode
-        if mode == "auto":
-            mode = "lockstep" if view.clock.kind == "virtual" else "realtime"
-        self.time_mode = mode
-        self._executor = ThreadPoolExecutor(1, thread_name_prefix="mujoco-step") if mode == "realtime" else None
+                self._sensors.append((getattr(record, field), self.data.sensordata[sl]))
+        self.time_mode = "lockstep" if view.clock.kind == "virtual" else "realtime"
+        threaded = opts.step == "thread"
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="mujoco-step") if threaded else None
         self._pending: asyncio.Future | None = None
         self.steps = 0
         self.step_ns = 0
@@ -178,15 +179,15 @@ class MujocoDriver(Driver):
             await pending  # the step of the last tick, done in the worker thread
         data, view = self.data, self.view
         state = view.state
-        np.take(data.qpos, self.qpos_adr, out=state.position)
-        np.take(data.qvel, self.dof_adr, out=state.velocity)
+        data.qpos.take(self.qpos_adr, out=state.position)
+        data.qvel.take(self.dof_adr, out=state.velocity)
         np.copyto(state.effort, self.tau)
         view.mark_fresh()
         if self._sensors:
+            for target, source in self._sensors:  # sources are views of data.sensordata
+                np.copyto(target, source)
             clock = view.clock
-            sensordata = data.sensordata
-            for record, target, sl in self._sensors:
-                target[...] = sensordata[sl]
+            for record in self._devices:
                 record.mark_fresh(clock.tick, clock.now_ns)
         if self._viewer is not None and view.clock.tick % 16 == 0:
             self._viewer.sync()
@@ -225,8 +226,9 @@ class MujocoDriver(Driver):
         tau += cmd.effort
         tau += cmd.feedforward
         if self.options.gravity_compensation:
-            tau += np.take(self.data.qfrc_bias, self.dof_adr, out=tmp)
-        np.clip(tau, self.tau_min, self.tau_max, out=tau)
+            tau += self.data.qfrc_bias.take(self.dof_adr, out=tmp)
+        np.minimum(tau, self.tau_max, out=tau)
+        np.maximum(tau, self.tau_min, out=tau)
         self.data.ctrl[self.actuators] = tau
         self._step_next()
 
@@ -255,6 +257,7 @@ class MujocoDriver(Driver):
         steps = getattr(self, "steps", 0)
         return {
             "time_mode": getattr(self, "time_mode", None),
+            "step": self.options.step,
             "sim_time_s": round(float(self.data.time), 6) if hasattr(self, "data") else 0.0,
             "sim_steps": steps,
             "sim_steps_per_s": round(steps / (self.step_ns * 1e-9)) if getattr(self, "step_ns", 0) else None,

@@ -155,13 +155,17 @@ def test_missing_sensor_for_a_device_is_a_config_error():
 
 
 @pytest.mark.asyncio(loop_factories=["asyncio"])
-async def test_realtime_mode_steps_in_a_worker_thread():
-    config = load_config(CONFIGS / "kuka_lwr_sim.toml").with_loop(clock="timerfd")
+@pytest.mark.parametrize("step", ["inline", "thread"])
+async def test_real_time_keeps_one_step_per_tick(step):
+    raw = tomllib.loads((CONFIGS / "kuka_lwr_sim.toml").read_text())
+    raw["driver"][0]["options"]["step"] = step
+    raw["realtime"] = {}
+    config = parse_config(raw, base_dir=CONFIGS).with_loop(clock="timerfd")
     loop = ControlLoop(config)
     async with loop:
         report = await loop.run(ticks=300)
     sim = report["drivers"]["sim"]
-    assert sim["time_mode"] == "realtime"
+    assert sim["time_mode"] == "realtime" and sim["step"] == step
     # the physics kept pace: one step per tick, started at activation
     assert sim["sim_steps"] == report["ticks"]
     assert sim["sim_time_s"] == pytest.approx(report["ticks"] * 1e-3)
