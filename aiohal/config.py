@@ -42,7 +42,7 @@ class RobotSection(Options):
 
 
 class LoopSection(Options):
-    rate_hz: float = Field(1000.0, gt=0, le=50_000, description="Tick rate of the control loop.")
+    rate_hz: float = Field(1000.0, ge=0.1, le=50_000, description="Tick rate of the control loop.")
     clock: Literal["auto", "timerfd", "sleep", "virtual"] = Field(
         "auto",
         description="Wake source: timerfd (Linux), sleep (portable), virtual (as fast as possible, "
@@ -54,8 +54,11 @@ class LoopSection(Options):
     max_feedback_age: int = Field(
         50, ge=1, description="Ticks after which a joint's feedback is stale and the robot holds."
     )
+    stall_timeout_ms: float = Field(
+        500.0, ge=0, description="No tick for this long: emergency stop and end the run (0 = never)."
+    )
     stats_window: int = Field(
-        1 << 17, ge=1024, description="Ticks kept for percentiles (older ticks still count in max)."
+        1 << 17, ge=1024, le=1 << 24, description="Ticks kept for percentiles (older ticks still count in max)."
     )
 
 
@@ -265,6 +268,14 @@ def _load_plugin(kind: str, name: str, path: str, issues: list[ConfigIssue]) -> 
     return None
 
 
+def _plugin_checks(cls: type, where: str, *args: Any) -> list[tuple[str, str]]:
+    """A plugin's own config checks; a check that crashes is reported, not raised."""
+    try:
+        return list(cls.check_config(*args))
+    except Exception as exc:
+        return [("", f"{cls.__name__}.check_config failed: {type(exc).__name__}: {exc}")]
+
+
 def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Path | None = None) -> Config:
     """Validate a parsed TOML document; raises ConfigError listing every issue."""
     base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
@@ -388,7 +399,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         options = _validate(cls.Options, section.options, f"{where}.options", issues, context)
         if options is None:
             continue
-        for rel, msg in cls.check_config(options, joints, dev_kinds, robot or RobotSection()):
+        for rel, msg in _plugin_checks(cls, where, options, joints, dev_kinds, robot or RobotSection()):
             issues.append(ConfigIssue(f"{where}.{rel}" if rel else where, msg))
         drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options))
 
@@ -408,7 +419,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         if cls is not None:
             params = _validate(cls.Params, section.params, "controller.params", issues, context)
             if params is not None:
-                for rel, msg in cls.check_config(params, tuple(joint_specs), robot or RobotSection()):
+                for rel, msg in _plugin_checks(cls, "controller", params, tuple(joint_specs), robot or RobotSection()):
                     issues.append(ConfigIssue(f"controller.{rel}" if rel else "controller", msg))
                 controller = ControllerConfig(section.type, cls, params)
 

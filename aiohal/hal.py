@@ -10,14 +10,17 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from .robot import DriverView, JointSpec, RobotView
 
+#: A finite number (NaN and inf are refused at validation).
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
 #: A per-joint value in options: one number for every joint, or a {joint name: number} table.
-JointValues = float | dict[str, float]
+JointValues = FiniteFloat | dict[str, FiniteFloat]
 
 
 class Options(BaseModel):

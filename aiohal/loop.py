@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -96,7 +97,9 @@ class ControlLoop:
         self.ticks_run = 0
         self._k_start = 0
         self._last_update_k = 0
-        self._stale = False
+        self._stale_drivers: set[str] = set()
+        self._refusing = False
+        self._run_finished = asyncio.Event()
         self._missed_before = 0
         self._warn = RateLimitedLogger(log)
 
@@ -150,8 +153,18 @@ class ControlLoop:
             await self._close_drivers()
             self.state = "closed"
             raise
+        state = self.robot.state
+        for slot in self.slots:
+            rows = slot.driver.view.rows
+            if not np.isfinite(state.block[:3, rows]).all():
+                reason = "measured position, velocity or effort is not finite after the first read"
+                self.record_fault(f"driver:{slot.name}", "read", reason)
+                self.estop()
+                await self._close_drivers()
+                self.state = "closed"
+                raise DriverError(slot.name, "read", reason)
         self._active = list(self.slots)
-        cmd, state = self.robot.command, self.robot.state
+        cmd = self.robot.command
         np.copyto(cmd.position, state.position)
         cmd.velocity[:] = 0.0
         cmd.effort[:] = 0.0
@@ -160,10 +173,12 @@ class ControlLoop:
         self.limiter.reset(state.position)
         self.level = SafetyLevel.RUN
         self.state = "active"
+        self._k_start = 0  # controller time counts from activation, across run() calls
+        self._last_update_k = 0
         try:
             self.controller.start(0.0)
         except Exception as exc:
-            self._controller_failed("start", exc, 0)
+            self._controller_failed("start", exc)
 
     async def _bring_up(self, slot: DriverSlot, phase: str, step: Callable) -> None:
         try:
@@ -182,6 +197,9 @@ class ControlLoop:
         if self.state in ("closed", "created", "configured"):
             self.state = "closed"
             return
+        if self.state == "running":  # finish the tick in progress before closing anything
+            self.request_stop("deactivated")
+            await self._run_finished.wait()
         controller = self.controller
         try:
             if controller is not None:
@@ -259,12 +277,20 @@ class ControlLoop:
         self._active = [s for s in self._active if s is not slot]
         self.enter_hold(f"driver {slot.name} failed")
 
-    def _controller_failed(self, phase: str, exc: BaseException, k: int) -> None:
+    def _controller_failed(self, phase: str, exc: BaseException | str) -> None:
+        """The controller raised or wrote a non-finite command: hold, and command this tick."""
         self.record_fault(f"controller:{self.controller_type}", phase, exc)
         self.enter_hold(f"controller {self.controller_type} failed")
+        t = (self.robot.clock.tick - self._k_start) * self.period_s
+        try:
+            self._hold.update(t, self.period_s)
+        except Exception as hold_exc:  # hold is simple enough never to get here
+            self.record_fault("controller:hold", "update", hold_exc)
+            self.estop()
 
     def enter_hold(self, reason: str) -> None:
-        """Replace the controller by ``hold`` at the last command sent (bumpless)."""
+        """Replace the controller by ``hold``, continuing from the last command sent: a joint
+        that was moving brakes to rest within its acceleration limit (no jump, no stall)."""
         if self.level <= SafetyLevel.HOLD:
             return
         log.warning("robot %s goes to hold: %s", self.robot.name, reason)
@@ -275,21 +301,43 @@ class ControlLoop:
                 old.stop()
             except Exception as exc:
                 self.record_fault(f"controller:{self.controller_type}", "stop", exc)
+        cmd = self.robot.command
+        # joints in velocity or effort mode had no meaningful position command: continue them
+        # from where they are measured, at their commanded velocity (0 in effort mode)
+        not_position = (cmd.mode != Mode.POSITION) & (cmd.mode != Mode.IMPEDANCE)
+        if not_position.any():
+            velocity = np.where((cmd.mode == Mode.VELOCITY) & np.isfinite(cmd.velocity), cmd.velocity, 0.0)
+            self.limiter.follow_measured(not_position, velocity)
         self.limiter.hold_last()
         self.controller = self._hold
         self.controller_type = "hold"
-        self._hold.start((self.robot.clock.tick - self._k_start) * self.period_s)
+        # the last command was sent one period ago: hold's motion starts there
+        self._hold.start((self.robot.clock.tick - self._k_start - 1) * self.period_s)
 
-    def _feedback_stale(self, slot: DriverSlot, k: int) -> None:
-        view = slot.driver.view
-        self.robot.state.fault[view.rows] |= np.uint32(Fault.STALE)
-        age = k - view.fresh_tick
-        if not self._stale:
-            self._stale = True
-            self.record_fault(f"driver:{slot.name}", "check", f"feedback is stale ({age} ticks old)")
-            self.enter_hold(f"stale feedback from driver {slot.name}")
+    def _check_feedback(self, k: int, max_age: int) -> None:
+        """Some driver's feedback is older than ``max_age`` ticks: flag it, hold, report once."""
+        stale = [s for s in self._active if k - s.driver.view.fresh_tick > max_age]
+        for slot in stale:
+            view = slot.driver.view
+            self.robot.state.fault[view.rows] |= np.uint32(Fault.STALE)
+            if slot.name not in self._stale_drivers:
+                self._stale_drivers.add(slot.name)
+                self.record_fault(f"driver:{slot.name}", "check", f"feedback is stale ({k - view.fresh_tick} ticks old)")
+        if stale:
+            self.enter_hold("stale feedback from " + ", ".join(s.name for s in stale))
+            self._warn.warning("stale", "feedback still stale from %s", ", ".join(s.name for s in stale))
         else:
-            self._warn.warning("stale", "feedback from driver %s still stale (%d ticks old)", slot.name, age)
+            self._stale_drivers.clear()
+
+    def _publisher_failed(self, publish: Callable, exc: BaseException) -> None:
+        name = getattr(publish, "__qualname__", repr(publish))
+        self.record_fault(f"publisher:{name}", "publish", exc)
+        self._publishers[:] = [p for p in self._publishers if p is not publish]
+
+    def _no_driver_left(self) -> None:
+        self.record_fault("loop", "check", "every driver has failed: nothing left to command")
+        self.estop()
+        self.request_stop("no driver left")
 
     # ------------------------------------------------------------ the tick
 
@@ -302,20 +350,34 @@ class ControlLoop:
             raise LifecycleError(f"run() in state {self.state!r}; use activate() or 'async with'")
         if duration is not None:
             ticks = max(1, round(duration * 1e9 / self.period_ns))
+        self._stop = False
+        self.stop_reason = ""
+        for slot in self.slots:
+            slot.read_ns = slot.write_ns = slot.max_read_ns = slot.max_write_ns = 0
         self.state = "running"
-        if self.source.kind == "virtual":
-            # a virtual clock runs flat out: SCHED_FIFO would starve the machine (and be throttled)
-            self.realtime = RealtimeState(warnings=["virtual clock: real-time settings not applied"])
-        else:
-            self.realtime = apply_realtime(self.config.realtime)
+        self._run_finished.clear()
+        self.realtime = RealtimeState()
         try:
-            await self._tick_loop(ticks)
+            if self.source.kind == "virtual":
+                # a virtual clock runs flat out: SCHED_FIFO would starve the machine (and be throttled)
+                self.realtime.warnings.append("virtual clock: real-time settings not applied")
+            else:
+                self.realtime = apply_realtime(self.config.realtime)
+            watchdog = StallWatchdog(self, self.config.loop.stall_timeout_ms / 1e3)
+            with watchdog:
+                try:
+                    await self._tick_loop(ticks)
+                except asyncio.CancelledError:
+                    if not watchdog.fired:
+                        raise
+                    asyncio.current_task().uncancel()  # the watchdog's cancel ends the run, not the caller
         finally:
             self.stats.end()
             self.ticker.close()
             restore_realtime(self.realtime)
             if self.state == "running":
                 self.state = "active"
+            self._run_finished.set()
         return self.report()
 
     async def _tick_loop(self, ticks: int | None) -> None:
@@ -335,9 +397,8 @@ class ControlLoop:
         ticker.start(lead_ns=period_ns)
         self._missed_before = ticker.missed
         stats.begin()
-        self._k_start = k_start = ticker.k
-        self._last_update_k = k_start
-        stop_k = None if ticks is None else k_start + ticks
+        k_start = self._k_start
+        stop_k = None if ticks is None else ticker.k + ticks
         count = stats.count
         while not self._stop:
             k = await ticker.next()
@@ -363,37 +424,52 @@ class ControlLoop:
 
             for slot in self._active:
                 if k - slot.driver.view.fresh_tick > max_age:
-                    self._feedback_stale(slot, k)
+                    self._check_feedback(k, max_age)
                     break
             else:
-                self._stale = False
+                if self._stale_drivers:
+                    self._stale_drivers.clear()
+            if not self._active:
+                self._no_driver_left()
+                break
             t2 = mono()
 
-            try:
-                self.controller.update((k - k_start) * period_s, (k - self._last_update_k) * period_s)
-            except Exception as exc:
-                self._controller_failed("update", exc, k)
-            self._last_update_k = k
-            t3 = mono()
-
-            if not limiter.apply():
-                self._controller_failed("limits", "command is not finite (NaN or inf)", k)
-            t4 = mono()
-
-            for slot in self._active:
-                a = mono()
+            if self.level < SafetyLevel.HOLD:  # emergency stop: keep reading, command nothing
+                t3 = t4 = t5 = mono()
+            else:
                 try:
-                    await slot.driver.write()
+                    self.controller.update((k - k_start) * period_s, (k - self._last_update_k) * period_s)
                 except Exception as exc:
-                    self._driver_failed(slot, "write", exc)
-                d = mono() - a
-                slot.write_ns += d
-                if d > slot.max_write_ns:
-                    slot.max_write_ns = d
-            t5 = mono()
+                    self._controller_failed("update", exc)
+                self._last_update_k = k
+                t3 = mono()
+
+                if not limiter.apply():
+                    if not self._refusing:  # once per episode, not once per tick
+                        self._refusing = True
+                        self._controller_failed("limits", "command is not finite (NaN or inf)")
+                        limiter.apply()
+                elif self._refusing:
+                    self._refusing = False
+                t4 = mono()
+
+                for slot in self._active:
+                    a = mono()
+                    try:
+                        await slot.driver.write()
+                    except Exception as exc:
+                        self._driver_failed(slot, "write", exc)
+                    d = mono() - a
+                    slot.write_ns += d
+                    if d > slot.max_write_ns:
+                        slot.max_write_ns = d
+                t5 = mono()
 
             for publish in publishers:
-                publish(self)
+                try:
+                    publish(self)
+                except Exception as exc:
+                    self._publisher_failed(publish, exc)
             t6 = mono()
 
             i = count & mask
@@ -479,3 +555,56 @@ class ControlLoop:
             "drivers": drivers,
             "controller": metrics,
         }
+
+
+class StallWatchdog:
+    """A thread that notices when the tick stops advancing (a driver awaiting forever, a
+    blocking call) and then emergency-stops every driver and cancels the run.
+
+    It only reads an integer per check: nothing is added to the tick. A stall of the whole
+    process (the GIL held by C code, a frozen VM) needs the external watchdog of the safety
+    layer; this one covers the event loop being stuck inside an ``await``.
+    """
+
+    def __init__(self, control: ControlLoop, timeout_s: float) -> None:
+        self.control = control
+        self.timeout_s = timeout_s
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task | None = None
+        self.fired = False
+
+    def __enter__(self) -> StallWatchdog:
+        if self.timeout_s > 0:
+            self._loop = asyncio.get_running_loop()
+            self._task = asyncio.current_task()
+            self._thread = threading.Thread(target=self._watch, name="aiohal-watchdog", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc_info: Any) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+
+    def _watch(self) -> None:
+        stats = self.control.stats
+        last, since = -1, time.monotonic()
+        while not self._stop.wait(self.timeout_s / 4):
+            count = stats.count
+            now = time.monotonic()
+            if count != last:
+                last, since = count, now
+            elif now - since > self.timeout_s:
+                self.fired = True
+                self.control.estop()  # synchronous, from this thread: the loop may be stuck
+                self._loop.call_soon_threadsafe(self._cancel)
+                return
+
+    def _cancel(self) -> None:
+        self.control.record_fault("loop", "tick", f"no tick for {self.timeout_s * 1e3:g} ms: emergency stop")
+        self.control.request_stop("stalled")
+        if self._task is not None:
+            self._task.cancel()
+

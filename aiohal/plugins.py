@@ -83,6 +83,10 @@ def _import_target(spec: PluginSpec) -> type:
         raise MissingDependencyError(
             f'{spec.kind} "{spec.name}" needs the optional dependency {missing!r}: {hint}'
         ) from exc
+    except Exception as exc:  # a plugin module that fails while importing
+        raise PluginError(
+            f'{spec.kind} "{spec.name}": importing {module_name} failed: {type(exc).__name__}: {exc}'
+        ) from exc
     try:
         obj = module
         for part in attr.split("."):

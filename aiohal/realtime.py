@@ -14,7 +14,7 @@ import ctypes.util
 import logging
 import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import Field
 
@@ -32,9 +32,11 @@ class RealtimeSection(Options):
         None, ge=1, le=99, description="SCHED_FIFO priority of the ticking thread; none = normal scheduling."
     )
     lock_memory: bool = Field(False, description="mlockall(): no page faults on the tick (process-wide).")
-    cpus: list[int] | None = Field(None, description="CPUs the ticking thread may run on.")
+    cpus: list[Annotated[int, Field(ge=0, le=4095)]] | None = Field(
+        None, min_length=1, description="CPUs the ticking thread may run on."
+    )
     timer_slack_ns: int | None = Field(
-        1, ge=1, description="Timer slack of the ticking thread (Linux default 50 µs); none = leave it."
+        1, ge=1, le=1_000_000_000, description="Timer slack of the ticking thread (Linux default 50 µs); none = leave it."
     )
     spin_guard_us: float = Field(
         0.0, ge=0, description="Precision mode: wake this early and spin to the deadline (≤ half the period)."
@@ -89,20 +91,20 @@ def apply(settings: RealtimeSection) -> RealtimeState:
             state._slack = timer_slack_ns()
             _libc_call("prctl", PR_SET_TIMERSLACK, settings.timer_slack_ns)
             state.applied["timer_slack_ns"] = settings.timer_slack_ns
-        except (OSError, AttributeError, ValueError) as exc:
+        except (OSError, AttributeError, ValueError, OverflowError) as exc:
             failed(f"set the timer slack to {settings.timer_slack_ns} ns", exc)
     if settings.cpus:
         try:
             state._affinity = os.sched_getaffinity(0)
             os.sched_setaffinity(0, settings.cpus)
             state.applied["cpus"] = sorted(settings.cpus)
-        except (OSError, AttributeError, ValueError) as exc:
+        except (OSError, AttributeError, ValueError, OverflowError) as exc:
             failed(f"pin the loop to CPUs {settings.cpus}", exc)
     if settings.lock_memory:
         try:
             _libc_call("mlockall", MCL_CURRENT | MCL_FUTURE)
             state.applied["memory_locked"] = True
-        except (OSError, AttributeError) as exc:
+        except (OSError, AttributeError, OverflowError) as exc:
             failed("lock memory (mlockall)", exc)
     if settings.priority is not None:
         try:

@@ -91,12 +91,12 @@ CASES: list[BadConfig] = [
     BadConfig(
         "rate-zero",
         _replace("rate_hz = 1000", "rate_hz = 0"),
-        ("loop.rate_hz: input should be greater than 0 (got 0)",),
+        ("loop.rate_hz: input should be greater than or equal to 0.1 (got 0)",),
     ),
     BadConfig(
         "rate-negative",
         _replace("rate_hz = 1000", "rate_hz = -250.0"),
-        ("loop.rate_hz: input should be greater than 0 (got -250.0)",),
+        ("loop.rate_hz: input should be greater than or equal to 0.1 (got -250.0)",),
     ),
     BadConfig(
         "bad-overrun",
@@ -213,7 +213,7 @@ MANY = BadConfig(
     + '\n[driver.options]\nfoo = 1\n\n[controller]\ntype = "nope"\n\n[extra]\n',
     (
         "extra: unknown section",
-        "loop.rate_hz: input should be greater than 0 (got -1)",
+        "loop.rate_hz: input should be greater than or equal to 0.1 (got -1)",
         "loop.clock: input should be 'auto', 'timerfd', 'sleep' or 'virtual' (got 'wall')",
         'loop.rat_hz: unknown key (did you mean "rate_hz"?)',
         "joints.j1.position: must be [min, max] with min < max (got [2.0, -2.0])",

@@ -127,7 +127,7 @@ def test_negative_rate_exits_2_naming_loop_rate_hz(tmp_path):
     assert proc.stderr.splitlines()[0] == "configs/mock_arm.toml: invalid configuration (1 error(s)):"
     (line,) = issue_lines(proc.stderr)
     assert line.startswith("loop.rate_hz (command line): ")
-    assert "greater than 0" in line
+    assert "greater than or equal to 0.1" in line
     assert not report.exists()
 
 
