@@ -54,6 +54,11 @@ class LoopSection(Options):
     max_feedback_age: int = Field(
         50, ge=1, description="Ticks after which a joint's feedback is stale and the robot holds."
     )
+    gc: Literal["freeze", "default"] = Field(
+        "freeze",
+        description="freeze: collect once and freeze every object alive before the first tick, so "
+        "collections during the run only scan what the run allocates; default: leave gc alone.",
+    )
     stall_timeout_ms: float = Field(
         500.0, ge=0, description="No tick for this long: emergency stop and end the run (0 = never)."
     )

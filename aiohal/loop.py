@@ -17,6 +17,7 @@ the fault is recorded with its name.
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import threading
 import time
@@ -363,6 +364,9 @@ class ControlLoop:
                 self.realtime.warnings.append("virtual clock: real-time settings not applied")
             else:
                 self.realtime = apply_realtime(self.config.realtime)
+            if self.config.loop.gc == "freeze":
+                gc.collect()  # before the first tick, never during the run
+                gc.freeze()
             watchdog = StallWatchdog(self, self.config.loop.stall_timeout_ms / 1e3)
             with watchdog:
                 try:
@@ -375,6 +379,8 @@ class ControlLoop:
             self.stats.end()
             self.ticker.close()
             restore_realtime(self.realtime)
+            if self.config.loop.gc == "freeze":
+                gc.unfreeze()
             if self.state == "running":
                 self.state = "active"
             self._run_finished.set()

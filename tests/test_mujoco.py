@@ -163,7 +163,8 @@ async def test_real_time_keeps_one_step_per_tick(step):
     config = parse_config(raw, base_dir=CONFIGS).with_loop(clock="timerfd")
     loop = ControlLoop(config)
     async with loop:
-        report = await loop.run(ticks=300)
+        await loop.run(ticks=300)
+    report = loop.report()  # after close: a threaded step still in flight has finished
     sim = report["drivers"]["sim"]
     assert sim["time_mode"] == "realtime" and sim["step"] == step
     # the physics kept pace: one step per tick, started at activation

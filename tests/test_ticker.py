@@ -169,6 +169,6 @@ async def test_precision_mode_spins_to_the_deadline_and_never_early():
         pytest.skip("timerfd is Linux only")
     ticker, lateness = await _run_real(TimerfdTickSource(guard_ns=200_000), 0.3)
     assert min(lateness) >= 0
-    # the wake is armed 200 µs early and spins: the median lateness is the spin's exit, far
-    # below the ~40 µs wake-up latency of this kind of machine (loose: a shared VM)
-    assert sorted(lateness)[len(lateness) // 2] < 20_000
+    # the wake is armed 200 µs early and spins to the deadline: typically well under a µs late;
+    # the bound is loose because a shared VM may wake later than the guard (then it cannot spin)
+    assert sorted(lateness)[len(lateness) // 2] < 200_000
