@@ -59,6 +59,9 @@ class LoopSection(Options):
         description="freeze: collect once and freeze every object alive before the first tick, so "
         "collections during the run only scan what the run allocates; default: leave gc alone.",
     )
+    close_timeout_ms: float = Field(
+        2000.0, gt=0, description="A driver's close() that takes longer is abandoned (after its estop)."
+    )
     stall_timeout_ms: float = Field(
         500.0, ge=0, description="No tick for this long: emergency stop and end the run (0 = never)."
     )

@@ -212,18 +212,22 @@ class ControlLoop:
         self.state = "closed"
 
     async def _close_drivers(self) -> None:
+        timeout = self.config.loop.close_timeout_ms / 1e3
         for slot in reversed(self.slots):
-            if slot.status == "closed":
+            if slot.status in ("closed", "abandoned"):
                 continue
             try:
-                await slot.driver.close()
-            except Exception as exc:
+                await asyncio.wait_for(slot.driver.close(), timeout)
+            except Exception as exc:  # includes TimeoutError: a close() that hangs
+                if isinstance(exc, TimeoutError):
+                    exc = TimeoutError(f"close() did not return within {timeout:g} s")
                 self.record_fault(f"driver:{slot.name}", "close", exc)
                 try:
                     slot.driver.estop()
                 except Exception:
                     pass
-            if slot.status != "failed":
+                slot.status = "abandoned" if isinstance(exc, TimeoutError) else slot.status
+            if slot.status not in ("failed", "abandoned"):
                 slot.status = "closed"
 
     async def __aenter__(self) -> ControlLoop:
