@@ -3,10 +3,10 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-dev
-CONFIG ?= configs/mock_arm.toml
-ARGS ?= --duration 5
+CONFIG ?= configs/kuka_lwr_sim.toml
+ARGS ?= --duration 10
 
-.PHONY: run test check bench clean
+.PHONY: run test check figures clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,10 @@ test: $(STAMP)
 
 check: $(STAMP)
 	$(PY) -m aiohal check $(CONFIG)
+
+figures: $(STAMP)
+	$(PY) -m pip install -q -e '.[plot]'
+	$(PY) examples/plot_circles.py docs/img/circles.png
 
 clean:
 	rm -rf $(VENV) build *.egg-info
