@@ -146,6 +146,10 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
         log.error("bring-up failed: %s", exc)
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    except asyncio.CancelledError:  # a second signal while a driver was still opening
+        control.estop()
+        print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
+        return 1
     log.info("running%s; Ctrl-C or SIGTERM stops safely",
              f" for {args.duration:g} s" if args.duration is not None else "")
     try:
@@ -153,6 +157,7 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
             await control.run(args.duration)
     except asyncio.CancelledError:
         control.stop_reason = "forced by a second signal"
+        control.record_fault("runtime", "run", "forced by a second signal: drivers emergency-stopped")
     try:
         await control.deactivate()
     except asyncio.CancelledError:
