@@ -34,3 +34,14 @@ def with_changes(raw: dict[str, Any], fn) -> dict[str, Any]:
 def virtual_loop(raw: dict[str, Any], **kwargs: Any) -> ControlLoop:
     config = parse_config(raw)
     return ControlLoop(config, tick_source=VirtualTickSource(), **kwargs)
+
+
+def register_driver(monkeypatch, name: str, target: str) -> None:
+    """Make ``target`` ("module:Class") loadable as driver ``name`` for one test only: the
+    table entry and a fresh plugin cache are both undone by monkeypatch at teardown."""
+    import functools
+
+    from aiohal import plugins
+
+    monkeypatch.setitem(plugins.BUILTIN["driver"], name, (target, None))
+    monkeypatch.setattr(plugins, "load", functools.lru_cache(maxsize=None)(plugins.load.__wrapped__))

@@ -13,7 +13,7 @@ from aiohal.hal import Controller, Driver
 from aiohal.loop import ControlLoop
 from aiohal.robot import Mode
 from aiohal.safety import SafetyLevel
-from helpers import arm_raw, virtual_loop
+from helpers import arm_raw, register_driver, virtual_loop
 
 
 def spy_writes(loop):
@@ -147,19 +147,13 @@ class Stuck(Driver):
 
 @pytest.mark.asyncio
 async def test_a_read_that_never_returns_trips_the_watchdog(monkeypatch):
-    from aiohal import plugins
-
-    monkeypatch.setitem(plugins.BUILTIN["driver"], "stuck", (f"{__name__}:Stuck", None))
-    plugins.load.cache_clear()
+    register_driver(monkeypatch, "stuck", f"{__name__}:Stuck")
     raw = arm_raw(1)
     raw["driver"][0]["type"] = "stuck"
     raw["loop"] = {"rate_hz": 1000, "clock": "timerfd", "stall_timeout_ms": 100}
-    try:
-        loop = ControlLoop(parse_config(raw))
-        async with loop:
-            report = await asyncio.wait_for(loop.run(ticks=10_000), timeout=10)
-    finally:
-        plugins.load.cache_clear()
+    loop = ControlLoop(parse_config(raw))
+    async with loop:
+        report = await asyncio.wait_for(loop.run(ticks=10_000), timeout=10)
     assert report["stop_reason"] == "stalled"
     assert loop.slots[0].driver.estopped >= 1
     assert any(f["phase"] == "tick" and "no tick for 100 ms" in f["error"] for f in report["faults"])
@@ -219,18 +213,12 @@ class NanAtStart(Driver):
 
 @pytest.mark.asyncio
 async def test_non_finite_feedback_at_activation_fails_the_driver(monkeypatch):
-    from aiohal import plugins
-
-    monkeypatch.setitem(plugins.BUILTIN["driver"], "nanbus", (f"{__name__}:NanAtStart", None))
-    plugins.load.cache_clear()
+    register_driver(monkeypatch, "nanbus", f"{__name__}:NanAtStart")
     raw = arm_raw(1)
     raw["driver"][0]["type"] = "nanbus"
-    try:
-        loop = virtual_loop(raw)
-        with pytest.raises(DriverError, match="not finite"):
-            await loop.activate()
-    finally:
-        plugins.load.cache_clear()
+    loop = virtual_loop(raw)
+    with pytest.raises(DriverError, match="not finite"):
+        await loop.activate()
     assert loop.state == "closed"
 
 
