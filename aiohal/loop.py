@@ -185,10 +185,8 @@ class ControlLoop:
         try:
             await step()
         except Exception as exc:
-            record = FaultRecord(f"driver:{slot.name}", phase, 0, f"{type(exc).__name__}: {exc}")
-            self.faults.append(record)
+            self.record_fault(f"driver:{slot.name}", phase, exc)
             slot.status = "failed"
-            log.error("driver %s failed in %s: %s", slot.name, phase, exc)
             raise DriverError(slot.name, phase, f"{type(exc).__name__}: {exc}") from exc
         if phase == "open":
             slot.status = "open"
