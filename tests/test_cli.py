@@ -176,6 +176,8 @@ def test_short_real_clock_run_on_uvloop(tmp_path):
     assert_no_traceback(proc)
     assert proc.stdout == ""  # --quiet
     report = json.loads(report_path.read_text())
-    assert 400 <= report["ticks"] <= 501, report["ticks"]
+    # every one of the 500 deadlines was served or counted as missed (a shared VM may stall)
+    assert report["ticks"] + report["missed_ticks"] in (500, 501), report
+    assert report["ticks"] > 0
     assert report["clock"] != "virtual"
     assert report["faults"] == []
