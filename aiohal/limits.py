@@ -27,9 +27,15 @@ from .robot import JOINT_COMMAND_FIELDS, Mode, Robot
 
 _ROW = {name: i for i, name in enumerate(JOINT_COMMAND_FIELDS)}
 POS, VEL = _ROW["position"], _ROW["velocity"]
+assert (POS, VEL) == (0, 1)  # the two rows whose bounds move are adjacent: one slice
+#: Stiffness and damping have no configured limit; this cap keeps every sum finite.
+GAIN_CAP = 1e12
 
 
 class CommandLimiter:
+    """Per tick: 2 calls move the bounds of position and velocity, 2 intersect them with the
+    fixed limits, 2 clamp the whole command block, 1 checks it is finite, 2 remember it."""
+
     def __init__(self, robot: Robot, period_s: float) -> None:
         self.cmd = robot.command
         self.state = robot.state
@@ -37,10 +43,7 @@ class CommandLimiter:
         self.period_s = period_s
         self.position_min = robot.position_min
         self.position_max = robot.position_max
-        self.max_step = robot.velocity_limit * period_s
-        self.max_velocity_change = robot.acceleration_limit * period_s
         self.velocity_limit = robot.velocity_limit
-        self.limit_acceleration = bool(np.isfinite(robot.acceleration_limit).any())
         lower = np.empty((len(JOINT_COMMAND_FIELDS), n))
         upper = np.empty_like(lower)
         for name, i in _ROW.items():
@@ -48,12 +51,16 @@ class CommandLimiter:
                 lower[i], upper[i] = -robot.effort_limit, robot.effort_limit
             elif name == "velocity":
                 lower[i], upper[i] = -robot.velocity_limit, robot.velocity_limit
-            else:  # position (recomputed each tick), stiffness, damping
-                lower[i], upper[i] = 0.0, np.inf
+            elif name == "position":
+                lower[i], upper[i] = robot.position_min, robot.position_max
+            else:  # stiffness, damping
+                lower[i], upper[i] = 0.0, GAIN_CAP
+        self.fixed_lower, self.fixed_upper = lower[:2].copy(), upper[:2].copy()
         self.lower, self.upper = lower, upper
-        self.last_position = np.zeros(n)
-        self.previous_position = np.zeros(n)
-        self.last_velocity = np.zeros(n)
+        # rows [position, velocity]: how far each may move from the last command in one tick
+        self.step = np.vstack([robot.velocity_limit * period_s, robot.acceleration_limit * period_s])
+        self.last = np.zeros((2, n))  # [position, velocity] sent last tick
+        self._before = np.zeros((2, n))  # the same, one tick earlier (the buffers swap)
         self._outside = False  # a joint's last command lies outside its range
         self.sent = np.zeros_like(lower)  # the command block sent last tick
         self._finite = np.zeros(lower.shape, dtype=bool)
@@ -63,17 +70,25 @@ class CommandLimiter:
         self._inside = np.zeros(n, dtype=bool)
         self.refused = 0  # ticks whose command was not finite
 
+    @property
+    def last_position(self) -> np.ndarray:
+        return self.last[0]
+
+    @property
+    def previous_position(self) -> np.ndarray:
+        return self._before[0]
+
     def reset(self, position: np.ndarray) -> None:
         """Start limiting from a known position at rest (activation, re-arm)."""
-        np.copyto(self.last_position, position)
+        np.copyto(self.last[0], position)
         np.copyto(self.previous_position, position)
-        self.last_velocity[:] = 0.0
+        self.last[1] = 0.0
         np.copyto(self.sent, self.cmd.block)
         self._outside = bool(((position < self.position_min) | (position > self.position_max)).any())
 
     def last_rate(self, out: np.ndarray) -> np.ndarray:
         """The rate of the last position command sent (per second)."""
-        np.subtract(self.last_position, self.previous_position, out=out)
+        np.subtract(self.last[0], self.previous_position, out=out)
         out /= self.period_s
         return out
 
@@ -83,7 +98,7 @@ class CommandLimiter:
         ``hold`` starts from this and brakes to rest within the acceleration limits.
         """
         cmd = self.cmd
-        np.copyto(cmd.position, self.last_position)
+        np.copyto(cmd.position, self.last[0])
         self.last_rate(cmd.velocity)
         cmd.effort[:] = 0.0
         cmd.feedforward[:] = 0.0
@@ -93,40 +108,26 @@ class CommandLimiter:
         velocity- or effort-mode controller, whose position command meant nothing)."""
         measured = self.state.position
         ok = rows & np.isfinite(measured)
-        np.copyto(self.last_position, measured, where=ok)
+        np.copyto(self.last[0], measured, where=ok)
         np.copyto(self.previous_position, measured - velocity * self.period_s, where=ok)
+        self._outside = bool(((self.last[0] < self.position_min) | (self.last[0] > self.position_max)).any())
 
     def apply(self) -> bool:
         """Clamp the command in place. False if some entry was not finite (it was replaced by
-        the value sent last tick before clamping)."""
+        the value sent last tick, then clamped)."""
         cmd = self.cmd
         block = cmd.block
-        refused = False
-        with np.errstate(over="ignore", invalid="ignore"):  # inf - inf, overflow: checked below
-            total = np.add.reduce(block, axis=None)
-        if not math.isfinite(total):  # rare: find which entries
-            finite = np.isfinite(block, out=self._finite)
-            if not finite.all():
-                np.copyto(block, self.sent, where=~finite)
-                self.refused += 1
-                refused = True
-        lower, upper = self.lower, self.upper
-        last = self.last_position
-        lo, hi = lower[POS], upper[POS]
-        np.subtract(last, self.max_step, out=lo)
-        np.add(last, self.max_step, out=hi)
-        if self._outside:  # window ∩ range, or the window's edge nearest the range
-            np.maximum(lo, np.minimum(self.position_min, hi), out=lo)
-            np.minimum(hi, np.maximum(self.position_max, lo), out=hi)
+        lower, upper, last = self.lower, self.upper, self.last
+        moving_lower, moving_upper = lower[:2], upper[:2]
+        # position within a rate step of the last one, velocity within an acceleration step
+        np.subtract(last, self.step, out=moving_lower)
+        np.add(last, self.step, out=moving_upper)
+        if self._outside:  # the rate limit wins: move back into the range at the allowed rate
+            np.maximum(moving_lower, np.minimum(self.fixed_lower, moving_upper), out=moving_lower)
+            np.minimum(moving_upper, np.maximum(self.fixed_upper, moving_lower), out=moving_upper)
         else:
-            np.maximum(lo, self.position_min, out=lo)
-            np.minimum(hi, self.position_max, out=hi)
-        if self.limit_acceleration:
-            last_v = self.last_velocity
-            np.subtract(last_v, self.max_velocity_change, out=lower[VEL])
-            np.maximum(lower[VEL], -self.velocity_limit, out=lower[VEL])
-            np.add(last_v, self.max_velocity_change, out=upper[VEL])
-            np.minimum(upper[VEL], self.velocity_limit, out=upper[VEL])
+            np.maximum(moving_lower, self.fixed_lower, out=moving_lower)
+            np.minimum(moving_upper, self.fixed_upper, out=moving_upper)
         modes = cmd.mode.tobytes()
         if modes != self._modes:
             self._modes = modes
@@ -138,20 +139,20 @@ class CommandLimiter:
             np.minimum(upper[VEL], 0.0, out=upper[VEL], where=rows & ~inside)
             np.greater(position, self.position_min, out=inside)
             np.maximum(lower[VEL], 0.0, out=lower[VEL], where=rows & ~inside)
+        # NaN passes through maximum/minimum; ±inf does not (every bound is finite)
         np.maximum(block, lower, out=block)
         np.minimum(block, upper, out=block)
+        refused = not math.isfinite(np.add.reduce(block, axis=None))
+        if refused:  # rare: replace what is not finite by what was sent, clamp again
+            finite = np.isfinite(block, out=self._finite)
+            np.copyto(block, self.sent, where=~finite)
+            np.maximum(block, lower, out=block)
+            np.minimum(block, upper, out=block)
+            self.refused += 1
         np.copyto(self.sent, block)
-        if self.limit_acceleration:
-            np.copyto(self.last_velocity, cmd.velocity)
-        # the previous buffer becomes the last one: no copy of the history
-        self.previous_position, self.last_position = last, self.previous_position
-        np.copyto(self.last_position, cmd.position)
+        self._before, self.last = last, self._before  # swap: no copy of the history
+        np.copyto(self.last, block[:2])
         if self._outside:
-            self._outside = bool(
-                ((cmd.position < self.position_min) | (cmd.position > self.position_max)).any()
-            )
-        if self._any_velocity_mode and not self.limit_acceleration:
-            # the velocity rows' bounds were narrowed for this tick only: restore them
-            np.copyto(lower[VEL], -self.velocity_limit)
-            np.copyto(upper[VEL], self.velocity_limit)
+            p = cmd.position
+            self._outside = bool(((p < self.position_min) | (p > self.position_max)).any())
         return not refused
