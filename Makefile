@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed-dev
 CONFIG ?= configs/kuka_lwr_sim.toml
 ARGS ?= --duration 10
 
-.PHONY: run test check figures clean
+.PHONY: run test check figures bench clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,14 @@ test: $(STAMP)
 
 check: $(STAMP)
 	$(PY) -m aiohal check $(CONFIG)
+
+bench: $(STAMP)
+	mkdir -p bench-results
+	$(PY) -m benchmarks.tick --json bench-results/tick.json
+	$(PY) -m benchmarks.breakdown --json bench-results/breakdown.json
+	$(PY) -m benchmarks.scaling --json bench-results/scaling.json
+	$(PY) -m benchmarks.overhead --json bench-results/overhead.json
+	$(PY) -m benchmarks.robots --json bench-results/robots.json
 
 figures: $(STAMP)
 	$(PY) -m pip install -q -e '.[plot]'

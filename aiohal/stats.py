@@ -20,7 +20,7 @@ def _pow2(n: int) -> int:
 
 def percentiles_us(samples_ns: np.ndarray) -> dict[str, float]:
     if samples_ns.size == 0:
-        return {"p50": float("nan"), "p99": float("nan"), "p999": float("nan"), "max": float("nan")}
+        return {key: float("nan") for key in ("min", "p50", "p99", "p999", "max")}
     p50, p99, p999 = np.percentile(samples_ns, (50, 99, 99.9)) / 1e3
     return {
         "min": round(float(samples_ns.min()) / 1e3, 2),
