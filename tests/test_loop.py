@@ -67,7 +67,8 @@ async def test_run_stops_on_request_from_another_task():
         report = await loop.run()  # no duration: runs until the request
         await task
     assert report["stop_reason"] == "test"
-    assert 42 <= report["ticks"] <= 43
+    # the other task runs when the virtual clock yields (at least every ms of wall time)
+    assert 42 <= report["ticks"] < 42 + 1000
 
 
 @pytest.mark.asyncio
