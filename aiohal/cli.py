@@ -80,6 +80,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--clock", choices=("auto", "timerfd", "sleep", "virtual"), default=None,
                    help="wake source (overrides loop.clock)")
     p.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio", help="event loop implementation")
+    p.add_argument("--spin-guard-us", type=float, default=None, metavar="US",
+                   help="precision mode: wake US early and spin to each deadline (overrides realtime.spin_guard_us)")
     p.add_argument("--log-format", choices=("auto", "console", "json"), default="auto")
     p.add_argument("--report-json", type=Path, default=None, metavar="PATH", help="write the run report as JSON")
     p.add_argument("--quiet", action="store_true", help="do not print the report")
@@ -93,6 +95,12 @@ def _apply_overrides(config: Config, args: argparse.Namespace) -> Config:
         changes["rate_hz"] = args.rate
     if args.clock is not None:
         changes["clock"] = args.clock
+    if args.spin_guard_us is not None:
+        try:
+            config = config.with_realtime(spin_guard_us=args.spin_guard_us)
+        except ValueError as exc:  # pydantic's ValidationError is a ValueError too
+            raise ConfigError([ConfigIssue("realtime.spin_guard_us (command line)", str(exc).splitlines()[0])],
+                              str(args.config)) from None
     if not changes:
         return config
     try:

@@ -170,6 +170,13 @@ class Config:
             raise ValueError(f"realtime.spin_guard_us {self.realtime.spin_guard_us:g} is more than half the new period")
         return replace(self, loop=loop)
 
+    def with_realtime(self, **changes: Any) -> Config:
+        """A copy with real-time settings changed (e.g. the CLI's --spin-guard-us), validated again."""
+        realtime = RealtimeSection.model_validate({**self.realtime.model_dump(), **changes})
+        if realtime.spin_guard_us > 1e6 / self.loop.rate_hz / 2:
+            raise ValueError(f"realtime.spin_guard_us {realtime.spin_guard_us:g} is more than half the period")
+        return replace(self, realtime=realtime)
+
     def build_robot(self) -> Robot:
         return Robot(
             self.robot.name, self.joints, period_ns=self.period_ns, devices=self.devices, model_path=self.robot.model

@@ -181,3 +181,18 @@ def test_short_real_clock_run_on_uvloop(tmp_path):
     assert report["ticks"] > 0
     assert report["clock"] != "virtual"
     assert report["faults"] == []
+
+
+def test_spin_guard_from_the_command_line(tmp_path):
+    report_path = tmp_path / "report.json"
+    proc = run_cli("configs/mock_arm.toml", "--duration", "0.2", "--spin-guard-us", "200", "--quiet",
+                   "--report-json", report_path)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(report_path.read_text())
+    assert report["ticks"] + report["missed_ticks"] in (200, 201)
+    assert report["lateness_us"]["min"] >= 0  # spins to the deadline, never early
+
+    proc = run_cli("configs/mock_arm.toml", "--duration", "0.2", "--spin-guard-us", "800")
+    assert proc.returncode == 2
+    assert "realtime.spin_guard_us (command line)" in proc.stderr
+    assert_no_traceback(proc)
