@@ -13,8 +13,9 @@ tick (the acceleration limit). Position commands are not acceleration-clamped: a
 cannot see where a target stops turns a step into an overshooting oscillation; smooth position
 references are the controller's job, and ``hold`` brakes within the limit. Joints in velocity
 mode are stopped at the ends of their range (no velocity pushing further out). Non-finite
-entries of a command are refused: each is replaced by the value sent last tick, and the result
-is clamped like any other command.
+entries of a command are refused: a position or velocity is replaced by the value sent last
+tick, an effort, feed-forward, stiffness or damping by 0, and the result is clamped like any
+other command.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ GAIN_CAP = 1e12
 
 class CommandLimiter:
     """Per tick: 2 calls move the bounds of position and velocity, 2 intersect them with the
-    fixed limits, 2 clamp the whole command block, 1 checks it is finite, 2 remember it."""
+    fixed limits, 2 clamp the whole command block, 1 checks it is finite, 1 remembers it."""
 
     def __init__(self, robot: Robot, period_s: float) -> None:
         self.cmd = robot.command
@@ -57,12 +58,12 @@ class CommandLimiter:
                 lower[i], upper[i] = 0.0, GAIN_CAP
         self.fixed_lower, self.fixed_upper = lower[:2].copy(), upper[:2].copy()
         self.lower, self.upper = lower, upper
+        self._moving_lower, self._moving_upper = lower[:2], upper[:2]  # views, made once
         # rows [position, velocity]: how far each may move from the last command in one tick
         self.step = np.vstack([robot.velocity_limit * period_s, robot.acceleration_limit * period_s])
         self.last = np.zeros((2, n))  # [position, velocity] sent last tick
         self._before = np.zeros((2, n))  # the same, one tick earlier (the buffers swap)
         self._outside = False  # a joint's last command lies outside its range
-        self.sent = np.zeros_like(lower)  # the command block sent last tick
         self._finite = np.zeros(lower.shape, dtype=bool)
         self._modes = b""
         self._velocity_rows = np.zeros(n, dtype=bool)
@@ -83,7 +84,6 @@ class CommandLimiter:
         np.copyto(self.last[0], position)
         np.copyto(self.previous_position, position)
         self.last[1] = 0.0
-        np.copyto(self.sent, self.cmd.block)
         self._outside = bool(((position < self.position_min) | (position > self.position_max)).any())
 
     def last_rate(self, out: np.ndarray) -> np.ndarray:
@@ -113,12 +113,12 @@ class CommandLimiter:
         self._outside = bool(((self.last[0] < self.position_min) | (self.last[0] > self.position_max)).any())
 
     def apply(self) -> bool:
-        """Clamp the command in place. False if some entry was not finite (it was replaced by
-        the value sent last tick, then clamped)."""
+        """Clamp the command in place. False if some entry was not finite (it was replaced, see
+        the module's docstring, then clamped)."""
         cmd = self.cmd
         block = cmd.block
         lower, upper, last = self.lower, self.upper, self.last
-        moving_lower, moving_upper = lower[:2], upper[:2]
+        moving_lower, moving_upper = self._moving_lower, self._moving_upper
         # position within a rate step of the last one, velocity within an acceleration step
         np.subtract(last, self.step, out=moving_lower)
         np.add(last, self.step, out=moving_upper)
@@ -143,13 +143,13 @@ class CommandLimiter:
         np.maximum(block, lower, out=block)
         np.minimum(block, upper, out=block)
         refused = not math.isfinite(np.add.reduce(block, axis=None))
-        if refused:  # rare: replace what is not finite by what was sent, clamp again
+        if refused:  # rare: position and velocity fall back to what was sent, the rest to 0
             finite = np.isfinite(block, out=self._finite)
-            np.copyto(block, self.sent, where=~finite)
+            np.copyto(block[:2], last, where=~finite[:2])
+            np.copyto(block[2:], 0.0, where=~finite[2:])
             np.maximum(block, lower, out=block)
             np.minimum(block, upper, out=block)
             self.refused += 1
-        np.copyto(self.sent, block)
         self._before, self.last = last, self._before  # swap: no copy of the history
         np.copyto(self.last, block[:2])
         if self._outside:
