@@ -483,9 +483,10 @@ def json_schema() -> dict[str, Any]:
     props["driver"]["minItems"] = 1
     for kind, section_key, field_name in (("driver", "DriverSection", "options"), ("controller", "ControllerSection", "params")):
         clauses = []
-        for name, (spec, error) in {s.name: (s, e) for s, e in plugins.describe(kind)}.items():
+        for spec, error in plugins.describe(kind):
             if error is not None:
                 continue
+            name = spec.name
             cls = plugins.load(kind, name)
             model = cls.Options if kind == "driver" else cls.Params
             sub = model.model_json_schema(ref_template="#/$defs/{model}")

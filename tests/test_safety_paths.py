@@ -12,7 +12,6 @@ from aiohal.errors import ConfigError, DriverError
 from aiohal.hal import Controller, Driver
 from aiohal.loop import ControlLoop
 from aiohal.robot import Mode
-from aiohal.safety import SafetyLevel
 from helpers import arm_raw, register_driver, virtual_loop
 
 
