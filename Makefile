@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.scaling --json bench-results/scaling.json
 	$(PY) -m benchmarks.overhead --json bench-results/overhead.json
 	$(PY) -m benchmarks.robots --json bench-results/robots.json
+	$(PY) -m benchmarks.gc_pauses --json bench-results/gc_pauses.json
 
 figures: $(STAMP)
 	$(PY) -m pip install -q -e '.[plot]'
