@@ -14,7 +14,6 @@ from .errors import (
     LifecycleError,
     MissingDependencyError,
     PluginError,
-    TickTimeoutError,
 )
 from .hal import Controller, Driver, Options
 from .loop import ControlLoop
@@ -40,7 +39,6 @@ __all__ = [
     "PluginError",
     "Robot",
     "SafetyLevel",
-    "TickTimeoutError",
     "__version__",
     "load_config",
     "parse_config",

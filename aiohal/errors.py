@@ -59,9 +59,5 @@ class ControllerError(AiohalError, RuntimeError):
         super().__init__(f"controller {controller!r} failed in {phase}: {reason}")
 
 
-class TickTimeoutError(AiohalError, TimeoutError):
-    """Waiting for a tick took longer than allowed (e.g. the loop stalled or stopped)."""
-
-
 class LifecycleError(AiohalError, RuntimeError):
     """A lifecycle method was called in a state that does not allow it."""

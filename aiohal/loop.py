@@ -95,7 +95,6 @@ class ControlLoop:
         self._stop = False
         self.stop_reason = ""
         self.state = "created"
-        self.ticks_run = 0
         self._k_start = 0
         self._last_update_k = 0
         self._stale_drivers: set[str] = set()
@@ -505,7 +504,6 @@ class ControlLoop:
             stats.count = count
             if stop_k is not None and k >= stop_k:
                 break
-        self.ticks_run = stats.count
         if not self.stop_reason:
             self.stop_reason = "stop requested" if self._stop else "duration reached"
 

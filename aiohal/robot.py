@@ -82,27 +82,27 @@ class _Rows:
         for i, field in enumerate(self._fields):
             setattr(self, field, self.block[i])
 
-    def view(self, rows: slice):
+    def _derived(self, transform):
+        """The same record type with every array replaced by ``transform(name, array)``."""
         other = object.__new__(type(self))
         for name, value in vars(self).items():
-            if isinstance(value, np.ndarray) and name not in self._fields:
-                setattr(other, name, value[..., rows] if name == "block" else value[rows])
-            elif not isinstance(value, np.ndarray):
+            if not isinstance(value, np.ndarray):
                 setattr(other, name, value)
+            elif name not in self._fields:  # field rows are rebound from the new block
+                setattr(other, name, transform(name, value))
         other._bind_fields()
         return other
 
+    def view(self, rows: slice):
+        return self._derived(lambda name, a: a[..., rows] if name == "block" else a[rows])
+
     def readonly(self):
-        other = object.__new__(type(self))
-        for name, value in vars(self).items():
-            if isinstance(value, np.ndarray) and name not in self._fields:
-                ro = value.view()
-                ro.flags.writeable = False
-                setattr(other, name, ro)
-            elif not isinstance(value, np.ndarray):
-                setattr(other, name, value)
-        other._bind_fields()
-        return other
+        def frozen(name: str, a: np.ndarray) -> np.ndarray:
+            ro = a.view()
+            ro.flags.writeable = False
+            return ro
+
+        return self._derived(frozen)
 
     def mark_fresh(self, tick: int, stamp_ns: int) -> None:
         """Record that every row of this view was measured now (drivers call this after a read)."""
@@ -146,6 +146,18 @@ class JointCommand(_Rows):
         self.mode = np.zeros(n, dtype=np.int8)
 
 
+def per_joint(values: float | dict[str, float] | Sequence[float], names: Sequence[str], default: float = 0.0) -> np.ndarray:
+    """An array over ``names`` from a scalar, a {joint: value} map (others get ``default``) or a list."""
+    if isinstance(values, dict):
+        return np.array([float(values.get(name, default)) for name in names])
+    if isinstance(values, (int, float)):
+        return np.full(len(names), float(values))
+    out = np.array(values, dtype=np.float64)
+    if out.shape != (len(names),):
+        raise ValueError(f"expected {len(names)} values, got {out.shape}")
+    return out
+
+
 # ---------------------------------------------------------------- devices besides joints
 
 
@@ -170,9 +182,6 @@ class DeviceRecord:
     @property
     def fault(self) -> int:
         return int(self._group.fault[self.index])
-
-    def set_fault(self, bits: int) -> None:
-        self._group.fault[self.index] = bits
 
 
 class DeviceGroup:
@@ -311,18 +320,7 @@ class Robot:
         return np.array([self._joint_index[n] for n in names], dtype=np.intp)
 
     def per_joint(self, values: float | dict[str, float] | Sequence[float], default: float = 0.0) -> np.ndarray:
-        """An array over all joints from a scalar, a {joint: value} map (others get ``default``) or a list."""
-        if isinstance(values, dict):
-            out = np.full(self.dof, default, dtype=np.float64)
-            for name, value in values.items():
-                out[self._joint_index[name]] = value
-            return out
-        if isinstance(values, (int, float)):
-            return np.full(self.dof, float(values))
-        out = np.asarray(values, dtype=np.float64)
-        if out.shape != (self.dof,):
-            raise ValueError(f"expected {self.dof} values, got {out.shape}")
-        return out.copy()
+        return per_joint(values, self.joint_names, default)
 
     def device(self, name: str) -> DeviceRecord:
         for group in self.device_groups.values():
@@ -378,6 +376,10 @@ class DriverView:
         self.devices = {name: robot.device(name) for name in devices}
         self.device_kinds = {name: robot.device_kind(name) for name in devices}
         self.fresh_tick = -1  # the last tick this driver's joints were all measured
+
+    def per_joint(self, values: float | dict[str, float] | Sequence[float], default: float = 0.0) -> np.ndarray:
+        """An array over this driver's joints (options given as a scalar or a {joint: value} map)."""
+        return per_joint(values, self.joint_names, default)
 
     def devices_of(self, kind: str) -> list[DeviceRecord]:
         return [rec for name, rec in self.devices.items() if self.device_kinds[name] == kind]

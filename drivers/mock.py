@@ -61,10 +61,7 @@ class MockDriver(Driver):
             raise OSError(errno.ENODEV, "injected open error")
         view = self.view
         n = view.dof
-        start = np.zeros(n)
-        init = opts.initial_position
-        for i, name in enumerate(view.joint_names):
-            start[i] = init.get(name, 0.0) if isinstance(init, dict) else init
+        start = view.per_joint(opts.initial_position)
         np.clip(start, view.position_min, view.position_max, out=start)
         faults = opts.faults
         # without delay or lost feedback the simulated joints *are* the state rows: no copy

@@ -119,8 +119,8 @@ class MujocoDriver(Driver):
                 f"({self.model.opt.timestep * 1e3:g} ms)"
             )
         n = view.dof
-        self.kp = self._per_joint(opts.kp)
-        self.kd = self._per_joint(opts.kd)
+        self.kp = view.per_joint(opts.kp)
+        self.kd = view.per_joint(opts.kd)
         lo = self.model.actuator_ctrlrange[self.actuators, 0]
         hi = self.model.actuator_ctrlrange[self.actuators, 1]
         limited = self.model.actuator_ctrllimited[self.actuators].astype(bool)
@@ -133,7 +133,7 @@ class MujocoDriver(Driver):
         self._modes = b""
         self._impedance = np.zeros(n, dtype=bool)
         self._any_impedance = False
-        start = np.clip(self._per_joint(opts.initial_position), view.position_min, view.position_max)
+        start = np.clip(view.per_joint(opts.initial_position), view.position_min, view.position_max)
         self.data.qpos[self.qpos_adr] = start
         mujoco.mj_forward(self.model, self.data)
         self._sensors = []  # (target array view, sensordata slice)
@@ -151,12 +151,6 @@ class MujocoDriver(Driver):
         self.step_ns = 0
         self._estopped = False
         self._viewer = self._open_viewer() if opts.viewer else None
-
-    def _per_joint(self, values) -> np.ndarray:
-        names = self.view.joint_names
-        if isinstance(values, dict):
-            return np.array([float(values.get(j, 0.0)) for j in names])
-        return np.full(len(names), float(values))
 
     def _open_viewer(self):
         if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):

@@ -26,7 +26,6 @@ class ModelNames:
     sites: frozenset[str]
     sensors: dict[str, int]  # name -> dimension
     actuated_joints: frozenset[str]
-    free_base: bool
 
 
 @lru_cache(maxsize=16)
@@ -52,7 +51,6 @@ def model_names(path: str) -> ModelNames:
         sites=frozenset(names(mujoco.mjtObj.mjOBJ_SITE, model.nsite)),
         sensors={n: int(model.sensor_dim[i]) for i, n in enumerate(sensor_names)},
         actuated_joints=frozenset(actuated),
-        free_base=bool((model.jnt_type == int(mujoco.mjtJoint.mjJNT_FREE)).any()),
     )
 
 
