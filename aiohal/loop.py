@@ -17,6 +17,7 @@ the fault is recorded with its name.
 from __future__ import annotations
 
 import asyncio
+import functools
 import gc
 import logging
 import threading
@@ -111,6 +112,7 @@ class ControlLoop:
             raise LifecycleError(f"configure() in state {self.state!r}")
         for dc in self.config.drivers:
             view = self.robot.driver_view(dc.joints, dc.devices)
+            view.report_fault = functools.partial(self.record_fault, f"driver:{dc.name}")
             try:
                 driver = dc.cls(dc.name, view, dc.options)
             except Exception as exc:

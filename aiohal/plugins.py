@@ -24,12 +24,14 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
     "driver": {
         "mock": ("aiohal.drivers.mock:MockDriver", None),
         "mujoco": ("aiohal.drivers.mujoco:MujocoDriver", "sim"),
+        "nrt_hand": ("aiohal.drivers.nrt_hand:NrtHandDriver", None),
     },
     "controller": {
         "hold": ("aiohal.controllers.hold:HoldController", None),
         "homing": ("aiohal.controllers.homing:HomingController", None),
         "sine": ("aiohal.controllers.sine:SineController", None),
         "circle": ("aiohal.controllers.circle:CircleController", "sim"),
+        "sequence": ("aiohal.controllers.sequence:SequenceController", None),
     },
 }
 

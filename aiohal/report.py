@@ -18,6 +18,10 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
+# the loop's own per-driver figures; anything else a driver's health() added is printed after them
+_DRIVER_KEYS = {"type", "status", "joints", "read_us_mean", "write_us_mean", "read_us_max", "write_us_max"}
+
+
 def format_report(report: dict[str, Any]) -> str:
     lat, work = report["lateness_us"], report["work_us"]
     target, achieved = report["rate_hz_target"], report["rate_hz_achieved"]
@@ -46,6 +50,9 @@ def format_report(report: dict[str, Any]) -> str:
             f"  driver       {name} [{d['type']}] {d['status']}, {d['joints']} joints, "
             f"read {_fmt(d['read_us_mean'])} µs, write {_fmt(d['write_us_mean'])} µs (mean)"
         )
+        health = [f"{k} {_fmt(v)}" for k, v in d.items() if k not in _DRIVER_KEYS and not isinstance(v, (dict, list))]
+        if health:
+            lines.append("               " + ", ".join(health))
     ctrl = report["controller"]
     extra = ", ".join(f"{k} {_fmt(v)}" for k, v in ctrl.items() if k != "type")
     lines.append(f"  controller   {ctrl['type']}" + (f": {extra}" if extra else ""))

@@ -7,12 +7,15 @@ Nothing here allocates once the robot is built.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import logging
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 JOINT_STATE_FIELDS = ("position", "velocity", "effort", "motor_position", "motor_velocity", "temperature")
 JOINT_COMMAND_FIELDS = ("position", "velocity", "effort", "stiffness", "damping", "feedforward")
@@ -182,6 +185,10 @@ class DeviceRecord:
     @property
     def fault(self) -> int:
         return int(self._group.fault[self.index])
+
+    def set_fault(self, bits: int) -> None:
+        """Set this device's ``Fault`` bits (0 clears them); the driver owning it decides."""
+        self._group.fault[self.index] = bits
 
 
 class DeviceGroup:
@@ -358,6 +365,10 @@ class Robot:
         return RobotView(self)
 
 
+def _log_fault(phase: str, reason: str) -> None:
+    log.error("device fault in %s: %s", phase, reason)
+
+
 class DriverView:
     """What one driver may touch: its joint rows (state writable, command read) and its devices."""
 
@@ -376,6 +387,9 @@ class DriverView:
         self.devices = {name: robot.device(name) for name in devices}
         self.device_kinds = {name: robot.device_kind(name) for name in devices}
         self.fresh_tick = -1  # the last tick this driver's joints were all measured
+        #: ``report_fault(phase, reason)``: a fault the driver survives (e.g. one device lost);
+        #: the loop installs its recorder so it reaches the run report.
+        self.report_fault: Callable[[str, str], object] = _log_fault
 
     def per_joint(self, values: float | dict[str, float] | Sequence[float], default: float = 0.0) -> np.ndarray:
         """An array over this driver's joints (options given as a scalar or a {joint: value} map)."""

@@ -136,7 +136,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "unknown-driver-type",
         _replace('type = "mock"', 'type = "mok"'),
-        ('driver[0].type: unknown driver "mok" (available: mock, mujoco)',),
+        ('driver[0].type: unknown driver "mok" (available: mock, mujoco, nrt_hand)',),
     ),
     BadConfig(
         "unknown-driver-option",
@@ -179,7 +179,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "unknown-controller-type",
         GOOD + '\n[controller]\ntype = "sin"\n',
-        ('controller.type: unknown controller "sin" (available: circle, hold, homing, sine)',),
+        ('controller.type: unknown controller "sin" (available: circle, hold, homing, sequence, sine)',),
     ),
     BadConfig(
         "driver-unknown-device",
@@ -221,7 +221,7 @@ MANY = BadConfig(
         "driver[0].options.foo: unknown key",
         "joints.j1: no driver owns this joint",
         "joints.j2: no driver owns this joint",
-        'controller.type: unknown controller "nope" (available: circle, hold, homing, sine)',
+        'controller.type: unknown controller "nope" (available: circle, hold, homing, sequence, sine)',
     ),
 )
 

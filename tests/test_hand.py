@@ -1,0 +1,291 @@
+"""The NRT hand: the simulated backend, its service behind the pipe, the ``nrt_hand`` driver in
+the fast loop (subprocess and thread), a hand process killed or stalled mid-run, and the
+``sequence`` controller that moves, grasps and moves again."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+from aiohal.config import parse_config
+from aiohal.errors import ConfigError, DriverError
+from aiohal.loop import ControlLoop
+from aiohal.pipe import NrtPeer
+from aiohal.robot import Fault
+from aiohal.drivers.hands.base import FAULT_BACKEND, HandError
+from aiohal.drivers.hands.messages import HandCommandMsg, HandStateMsg
+from aiohal.drivers.hands.sim import SimHand
+
+from conftest import require_module
+from helpers import arm_raw
+
+SERVICE = "aiohal.drivers.hands.service:serve"
+
+
+def _wait_for(condition, timeout_s: float, poll_s: float = 0.005):
+    """Poll ``condition`` until it returns something truthy, at most ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(poll_s)
+    return condition()
+
+
+def test_sim_hand_closes_on_an_object_and_opens_again():
+    hand = SimHand(stroke_time_s=0.2, object_at=0.6, io_time_s=(0.0, 0.0), activation_s=0.0)
+    hand.open()
+    hand.command(1.0, 1.0, 0.5)
+    status = _wait_for(lambda: (s := hand.read()).object_detected and s, 2.0)
+    assert status.ready and status.position == pytest.approx(0.6)
+    assert status.effort == pytest.approx(0.5)
+    hand.command(0.0, 1.0, 0.5)
+    status = _wait_for(lambda: (s := hand.read()).position < 1e-9 and s, 2.0)
+    assert not status.object_detected and status.effort == 0.0
+
+
+def test_sim_hand_speed_sets_the_closing_rate():
+    hand = SimHand(stroke_time_s=1.0, io_time_s=(0.0, 0.0), activation_s=0.0)
+    hand.open()
+    hand.command(1.0, 0.5, 1.0)
+    t0 = time.monotonic()
+    time.sleep(0.2)
+    moved = hand.read().position
+    elapsed = time.monotonic() - t0
+    assert moved == pytest.approx(0.5 * elapsed, rel=0.05)  # half speed: half a stroke per second
+
+
+def test_sim_hand_activation_failure_is_a_hand_error():
+    with pytest.raises(HandError) as info:
+        SimHand(fail_open=True).open()
+    assert info.value.code == FAULT_BACKEND and "activation" in info.value.reason
+
+
+@pytest.mark.parametrize("mode", ["thread", "subprocess"])
+def test_service_answers_commands_through_the_pipe(mode):
+    options = {"backend_options": {"object_at": 0.4, "stroke_time_s": 0.2}, "rate_hz": 100}
+    peer = NrtPeer.start(SERVICE, options, mode=mode)
+    try:
+        fast = peer.fast
+        assert _wait_for(lambda: isinstance(fast.receive_latest(), HandStateMsg), 5.0)
+        command = HandCommandMsg(grasp=1.0, speed=1.0, force=0.7)
+        assert fast.send(command)
+
+        def grasped():
+            msg = fast.receive_latest()
+            return isinstance(msg, HandStateMsg) and msg.object_detected and msg
+
+        state = _wait_for(grasped, 3.0)
+        assert state, "the hand never reported the object"
+        assert state.position == pytest.approx(0.4) and state.effort == pytest.approx(0.7)
+        assert state.command_seq == command.seq and state.ready and state.fault == 0
+        rate_window = fast.counters["received"]
+        time.sleep(0.2)
+        fast.receive_latest()
+        received = fast.counters["received"] - rate_window
+        assert 8 <= received <= 40  # about 100 Hz: a slow loop, not a busy one
+    finally:
+        peer.stop(2.0)
+    assert not peer.alive()
+
+
+# ---------------------------------------------------------------- in the fast loop
+
+
+def hand_raw(mode: str = "subprocess", steps=None, **options) -> dict:
+    """A 2-joint mock arm plus a hand joint served by ``nrt_hand``, on the real clock."""
+    raw = arm_raw(2)
+    raw["loop"] = {"rate_hz": 500, "clock": "auto", "max_feedback_age": 20}
+    raw["joints"]["gripper"] = {"position": [0.0, 1.0], "velocity": 2.0, "effort": 1.0}
+    raw["devices"] = {"gripper": {"type": "hand", "joint": "gripper"}}
+    hand_options = {
+        "mode": mode,
+        "rate_hz": 100,
+        "backend_options": {"object_at": 0.5, "stroke_time_s": 0.2, "io_time_s": [0.001, 0.004]},
+        "stale_after_ms": 60,
+        "dead_after_ms": 150,
+        **options,
+    }
+    raw["driver"].append(
+        {"type": "nrt_hand", "name": "hand", "joints": ["gripper"], "devices": ["gripper"], "options": hand_options}
+    )
+    raw["controller"] = {
+        "type": "sequence",
+        "params": {
+            "steps": steps
+            or [
+                {"pose": {"j0": 0.3}, "duration": 0.2},
+                {"hand": "gripper", "grasp": 1.0, "speed": 1.0, "force": 0.6, "timeout": 2.0},
+                {"pose": {"j1": -0.3}, "duration": 0.2},
+            ]
+        },
+    }
+    return raw
+
+
+class FaultWatch:
+    """A publisher that records, per tick, the hand's fault bits (and can act at a tick)."""
+
+    def __init__(self, at_tick: int | None = None, action=None) -> None:
+        self.at_tick, self.action = at_tick, action
+        self.acted_tick = None
+        self.first = {}  # fault bit -> first tick seen
+        self.first_ns = {}  # fault bit -> time.monotonic_ns() when first seen
+
+    def __call__(self, loop: ControlLoop) -> None:
+        tick = loop.robot.clock.tick
+        if self.at_tick is not None and self.acted_tick is None and tick >= self.at_tick:
+            self.action(loop)
+            self.acted_tick = tick
+        bits = int(loop.robot.hand.fault[0])
+        for bit in (Fault.STALE, Fault.HARDWARE):
+            if bits & bit and bit not in self.first:
+                self.first[bit] = tick
+                self.first_ns[bit] = time.monotonic_ns()
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("mode", ["subprocess", "thread"])
+async def test_arm_moves_grasps_and_moves_again(mode):
+    async with ControlLoop(parse_config(hand_raw(mode))) as loop:
+        report = await loop.run(duration=1.6)
+    ctrl = report["controller"]
+    assert ctrl["steps_done"] == 3, ctrl
+    (grasp,) = ctrl["hand_steps"]
+    assert grasp["outcome"] == "object" and grasp["position"] == pytest.approx(0.5, abs=0.02)
+    assert report["faults"] == [] and report["safety_level"] == "run"
+    assert report["drivers"]["hand"]["hand"] == "ok" and report["drivers"]["hand"]["mode"] == mode
+    state = loop.robot.state
+    assert state.position[0] == pytest.approx(0.3) and state.position[1] == pytest.approx(-0.3)
+    assert state.position[2] == pytest.approx(0.5, abs=0.02)  # the hand joint shows the hand
+
+
+@pytest.mark.asyncio
+async def test_killing_the_hand_process_faults_the_hand_and_the_run_goes_on():
+    raw = hand_raw(steps=[{"pose": {"j0": 0.5}, "duration": 1.0}])
+    watch = FaultWatch(at_tick=150, action=lambda loop: loop.slots[1].driver.peer.kill())
+    async with ControlLoop(parse_config(raw)) as loop:
+        loop.add_publisher(watch)
+        report = await loop.run(ticks=500)
+        level_during = loop.level
+    assert report["ticks"] + report["missed_ticks"] >= 500  # the run went on to its end
+    assert level_during.name == "RUN"  # the arm was not held for its hand
+    assert loop.robot.state.position[0] == pytest.approx(0.5)  # and finished its move
+    # peer death is seen at once (EOF), well within dead_after_ms = 150 ms = 75 ticks
+    assert watch.first[Fault.HARDWARE] - watch.acted_tick <= 75
+    (fault,) = report["faults"]
+    assert fault["source"] == "driver:hand" and "exited (code -9)" in fault["error"]
+    assert report["drivers"]["hand"]["hand"].startswith("lost:")
+    assert report["drivers"]["hand"]["exitcode"] == -9
+
+
+@pytest.mark.asyncio
+async def test_a_stalled_hand_goes_stale_then_faulted_in_the_configured_time():
+    raw = hand_raw(steps=[{"pose": {"j0": 0.2}, "duration": 0.5}], stall_after_s=0.3)
+    watch = FaultWatch()
+    async with ControlLoop(parse_config(raw)) as loop:
+        loop.add_publisher(watch)
+        report = await loop.run(ticks=600)
+        driver = loop.slots[1].driver
+        last_state_ns = driver.pipe.last_receive_ns
+    # ages count from the last state received; the tick that sees them runs every 2 ms
+    stale_ms = (watch.first_ns[Fault.STALE] - last_state_ns) / 1e6
+    dead_ms = (watch.first_ns[Fault.HARDWARE] - last_state_ns) / 1e6
+    assert 60 <= stale_ms <= 60 + 25, stale_ms
+    assert 150 <= dead_ms <= 150 + 25, dead_ms
+    assert report["ticks"] + report["missed_ticks"] >= 600  # the run went on
+    (fault,) = report["faults"]
+    assert "no state from the hand" in fault["error"]
+
+
+@pytest.mark.asyncio
+async def test_a_hand_that_cannot_start_fails_open_with_its_reason():
+    raw = hand_raw(mode="thread", backend="no_such_module:Hand", start_timeout_s=2.0)
+    loop = ControlLoop(parse_config(raw))
+    loop.configure()
+    with pytest.raises(DriverError) as info:
+        await loop.activate()
+    assert "did not start" in str(info.value) and "no_such_module" in str(info.value)
+    await loop.deactivate()
+
+
+@pytest.mark.asyncio
+async def test_a_non_finite_grasp_is_never_sent():
+    steps = [{"hand": "gripper", "grasp": 0.8, "timeout": 0.5}]
+    async with ControlLoop(parse_config(hand_raw(mode="thread", steps=steps))) as loop:
+        hand = loop.robot.hand["gripper"]
+        driver = loop.slots[1].driver
+
+        def poison(loop):
+            hand.grasp[...] = np.nan
+
+        watch = FaultWatch(at_tick=50, action=poison)
+        loop.add_publisher(watch)
+        await loop.run(ticks=150)
+    assert driver._sent[0] == pytest.approx(0.8)
+
+
+@pytest.mark.parametrize(
+    "change, path",
+    [
+        (lambda raw: raw["driver"][1].update(devices=[]), "driver[1].devices"),
+        (lambda raw: raw["driver"][1]["options"].update(dead_after_ms=10), "driver[1].options.dead_after_ms"),
+        (lambda raw: raw["controller"]["params"]["steps"][0].pop("duration"), "controller.params.steps[0]"),
+        (lambda raw: raw["controller"]["params"]["steps"][1].update(hand="j9"), "controller.params.steps[1].hand"),
+    ],
+)
+def test_bad_hand_configs_name_the_key(change, path):
+    raw = hand_raw()
+    change(raw)
+    with pytest.raises(ConfigError) as info:
+        parse_config(raw)
+    assert path in [issue.path for issue in info.value.issues], info.value.issues
+
+
+# ---------------------------------------------------------------- the Modbus gripper in the loop
+
+
+@pytest.mark.asyncio
+async def test_robotiq_gripper_in_the_loop_grasps_then_reports_a_fault_and_a_lost_link():
+    require_module("pymodbus")
+    from aiohal.drivers.hands.robotiq_sim import running_in_process
+
+    # the server in its own process: in a thread it would take the test loop's GIL per request
+    with running_in_process(host="127.0.0.1", port=0, activation_time_s=0.05, object_position=0.5) as server:
+        steps = [{"hand": "gripper", "grasp": 1.0, "speed": 1.0, "force": 0.5, "timeout": 2.0}]
+        raw = hand_raw(
+            mode="subprocess",
+            steps=steps,
+            backend="robotiq",
+            backend_options={"host": "127.0.0.1", "port": server.port, "timeout_s": 0.5},
+            stale_after_ms=100,
+            dead_after_ms=400,
+        )
+        watch = FaultWatch()
+
+        async def break_things(loop):
+            """At tick 600 the gripper faults; at tick 900 its server goes away (off the tick:
+            the server's calls block)."""
+            for at_tick, call in ((600, lambda: server.inject_fault(0xE)), (900, server.stop)):
+                while loop.robot.clock.tick < at_tick:
+                    await asyncio.sleep(0.005)
+                await asyncio.to_thread(call)
+
+        async with ControlLoop(parse_config(raw)) as loop:
+            loop.add_publisher(watch)
+            breaker = asyncio.create_task(break_things(loop))
+            report = await loop.run(ticks=1200)
+            await asyncio.wait_for(breaker, 5.0)
+            final_fault = loop.robot.hand["gripper"].fault
+    (grasp,) = report["controller"]["hand_steps"]
+    assert grasp["outcome"] == "object" and grasp["position"] == pytest.approx(0.5, abs=0.01)
+    errors = [f["error"] for f in report["faults"]]
+    assert any("reports fault code 0x10e" in e for e in errors), errors  # VENDOR_FAULT_BASE + 0xE
+    assert any("reports fault code 0x2" in e for e in errors), errors  # FAULT_COMMUNICATION: link lost
+    assert final_fault & Fault.HARDWARE
+    assert watch.first[Fault.HARDWARE] >= 600  # no fault before the injected one
+    assert report["ticks"] + report["missed_ticks"] >= 1200  # the run went on
