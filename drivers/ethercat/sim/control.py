@@ -1,0 +1,135 @@
+"""Control commands (one JSON object each) for a running segment: fault injection and status.
+
+Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and of pysoem's
+``master.slaves``). Codes may be given as integers or as strings such as ``"0x2310"``.
+
+=================  ==========================================================================
+``cmd``            fields
+=================  ==========================================================================
+``ping``           -
+``status``         - (counters, per-command counts, faults, every slave's state and model)
+``drop``           ``prob`` (0..1) and/or ``count`` (next N frames); ``where``: ``"before"``
+                   (default: lost on the way out, no effect on the slaves) or ``"after"``
+``delay``          ``ms`` (0 = off); ``count`` (next N frames, default: until cleared)
+``wkc``            ``count`` (next N frames); ``delta`` (default -1); ``scope``: ``"pd"``
+                   (default: frames with LRD/LWR/LRW) or ``"all"``
+``break``          ``slave``: cable break in front of this slave (it and all after it vanish)
+``repair``         - (undo ``break``)
+``al_error``       ``slave``, ``code`` (AL status code): SAFEOP (from OP) + error flag
+``drive_fault``    ``slave``, ``code`` (CiA 402 error code, e.g. 0x2310 over-current)
+``device``         ``slave`` + device settings (imu: quat/gyro/acc/noise/valid; ft: wrench/
+                   noise/force_limit/torque_limit; dio: pattern; drive: load/inertia/viscous/
+                   coulomb/csp_hz/csv_tau/max_speed/position/fault)
+``power_cycle``    ``slave`` (default: all): back to the power-on state (registers, SII,
+                   object dictionary values, device model)
+``clear``          - (drop, delay, wkc faults off; cable repaired)
+``reset_counters`` -
+=================  ==========================================================================
+
+Every answer is a JSON object with ``"ok": true`` (plus data) or ``"ok": false, "error": ...``.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from .segment import Segment
+
+
+def _int(value: Any, name: str) -> int:
+    if isinstance(value, bool):
+        raise ValueError(f"{name}: expected an integer")
+    if isinstance(value, int):
+        return value
+    if isinstance(value, str):
+        return int(value, 0)
+    raise ValueError(f"{name}: expected an integer, got {value!r}")
+
+
+def apply(segment: Segment, command: dict[str, Any]) -> dict[str, Any]:
+    """Run one command; never raises for a bad command (the error goes into the answer)."""
+    try:
+        return {"ok": True, **(_apply(segment, dict(command)) or {})}
+    except (ValueError, KeyError, TypeError) as exc:
+        return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
+    cmd = c.pop("cmd", None)
+    f = seg.faults
+    if cmd == "ping":
+        return {"pong": True}
+    if cmd == "status":
+        return seg.status()
+    if cmd == "drop":
+        if "prob" in c:
+            p = float(c["prob"])
+            if not 0.0 <= p <= 1.0:
+                raise ValueError("prob must be within 0..1")
+            f.drop_prob = p
+        if "count" in c:
+            f.drop_next = max(0, _int(c["count"], "count"))
+        where = c.get("where", "before")
+        if where not in ("before", "after"):
+            raise ValueError("where: 'before' or 'after'")
+        f.drop_after = where == "after"
+        return {"faults": f.as_dict()}
+    if cmd == "delay":
+        ms = float(c.get("ms", 0))
+        if ms < 0:
+            raise ValueError("ms must be >= 0")
+        f.delay_ns = int(ms * 1e6)
+        f.delay_count = _int(c["count"], "count") if "count" in c else -1
+        return {"faults": f.as_dict()}
+    if cmd == "wkc":
+        f.wkc_next = max(0, _int(c.get("count", 1), "count"))
+        f.wkc_delta = _int(c.get("delta", -1), "delta")
+        scope = c.get("scope", "pd")
+        if scope not in ("pd", "all"):
+            raise ValueError("scope: 'pd' or 'all'")
+        f.wkc_all = scope == "all"
+        return {"faults": f.as_dict()}
+    if cmd == "break":
+        seg.break_before(_int(c["slave"], "slave"))
+        return {"break_at": seg.break_at}
+    if cmd == "repair":
+        seg.break_before(None)
+        return {"break_at": None}
+    if cmd == "al_error":
+        seg.al_error(_int(c["slave"], "slave"), _int(c.get("code", 0x0001), "code"))
+        return {"states": seg.states()}
+    if cmd == "drive_fault":
+        seg.drive_fault(_int(c["slave"], "slave"), _int(c.get("code", 0x2310), "code"))
+        return None
+    if cmd == "device":
+        k = _int(c.pop("slave"), "slave")
+        return {"device": seg.slave(k).device.configure(**c)}
+    if cmd == "power_cycle":
+        if "slave" in c:
+            seg.power_cycle(_int(c["slave"], "slave"))
+        else:
+            for k in range(len(seg.slaves)):
+                seg.power_cycle(k)
+        return None
+    if cmd == "clear":
+        f.clear()
+        seg.break_before(None)
+        return None
+    if cmd == "reset_counters":
+        seg.reset_counters()
+        return None
+    raise ValueError(f"unknown command {cmd!r}")
+
+
+def apply_line(segment: Segment, line: bytes | str) -> bytes:
+    """One request line (JSON) -> one answer line (JSON + newline)."""
+    try:
+        command = json.loads(line)
+        if not isinstance(command, dict):
+            raise ValueError("a JSON object is expected")
+    except ValueError as exc:
+        answer: dict[str, Any] = {"ok": False, "error": f"bad request: {exc}"}
+    else:
+        answer = apply(segment, command)
+    return (json.dumps(answer) + "\n").encode()

@@ -1,0 +1,462 @@
+"""A CiA 402 servo drive (Elmo-like) with simple motor dynamics.
+
+State machine (statusword 0x6041 from controlword 0x6040, CiA 402 / IEC 61800-7-201):
+
+    Not ready to switch on -> Switch on disabled       (automatic, at start-up)
+    Switch on disabled     -> Ready to switch on       shutdown      (cw & 0x87 == 0x06)
+    Ready to switch on     -> Switched on              switch on     (cw & 0x8F == 0x07)
+    Ready to switch on     -> Operation enabled        switch on + enable (cw & 0x8F == 0x0F)
+    Switched on            -> Operation enabled        enable operation   (cw & 0x8F == 0x0F)
+    Operation enabled      -> Switched on              disable operation  (cw & 0x8F == 0x07)
+    Switched on / OE       -> Ready to switch on       shutdown
+    any enabled state      -> Switch on disabled       disable voltage (cw & 0x82 == 0x00)
+    Operation enabled      -> Quick stop active        quick stop (cw & 0x86 == 0x02)
+    Quick stop active      -> Switch on disabled       after the 0x6085 ramp (0x605A = 1..4), at
+                                                       once (0); 5, 6: stays until disabled
+    any                    -> Fault reaction active    internal or injected fault
+    Fault reaction active  -> Fault                    motor stopped (torque off)
+    Fault                  -> Switch on disabled       0 -> 1 edge of controlword bit 7
+
+Modes (0x6060, display 0x6061): 8 CSP, 9 CSV, 10 CST (another value written through the PDO
+keeps the previous mode; with no supported mode yet, Operation enabled gives no torque).
+Dynamics, integrated over the time since the previous exchange in sub-steps of at most 1 ms:
+
+* CSP: a second-order position loop (natural frequency ``csp_hz``, damping 1) on a setpoint
+  interpolated linearly from the previous target to the new one, velocity feed-forward from
+  their slope and 0x60B1, torque limited by 0x6072;
+* CSV: first-order velocity tracking (time constant ``csv_tau``), acceleration limited by the
+  available torque;
+* CST: torque (0x6071 + 0x60B2, per mille of 0x6076) drives an inertia with viscous and Coulomb
+  friction plus an optional external load torque.
+
+When the slave leaves OP, the abort connection option code 0x6007 decides: 0 nothing,
+1 fault 0x8130, 2 disable voltage (default: the drive disables), 3 quick stop.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from . import od as odm
+from .devices import Device
+from .od import RW, ObjectDictionary, SdoAbort
+
+# states
+NOT_READY = "not_ready_to_switch_on"
+SWITCH_ON_DISABLED = "switch_on_disabled"
+READY = "ready_to_switch_on"
+SWITCHED_ON = "switched_on"
+OPERATION_ENABLED = "operation_enabled"
+QUICK_STOP = "quick_stop_active"
+FAULT_REACTION = "fault_reaction_active"
+FAULT = "fault"
+
+_STATUS_BITS = {
+    NOT_READY: 0x0000,
+    SWITCH_ON_DISABLED: 0x0040,
+    READY: 0x0021,
+    SWITCHED_ON: 0x0023,
+    OPERATION_ENABLED: 0x0027,
+    QUICK_STOP: 0x0007,
+    FAULT_REACTION: 0x000F,
+    FAULT: 0x0008,
+}
+_VOLTAGE = {READY, SWITCHED_ON, OPERATION_ENABLED, QUICK_STOP, FAULT_REACTION}
+# statusword per state: state bits, bit 4 voltage enabled, bit 9 remote
+_STATUS_WORD = {st: bits | (0x0010 if st in _VOLTAGE else 0) | 0x0200 for st, bits in _STATUS_BITS.items()}
+
+CSP, CSV, CST = 8, 9, 10
+SUPPORTED_MODES = (CSP, CSV, CST)
+FAULT_COMMUNICATION = 0x8130
+MAX_SUBSTEP = 0.001
+MAX_GAP = 0.1  # longest interval integrated at once (s); beyond it the model just holds
+
+
+def _wrap32(x: float) -> int:
+    return ((round(x) + (1 << 31)) & 0xFFFFFFFF) - (1 << 31)
+
+
+def _clamp(x: float, lo: float, hi: float) -> float:
+    return lo if x < lo else hi if x > hi else x
+
+
+class Drive(Device):
+    kind = "drive"
+    name = "AIOHAL-Drive"
+    product = 0x00000402
+    device_type = 0x00020192  # CiA 402, servo drive
+    ds402_channels = 1
+    rx_pdos = {
+        0x1600: [(0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8)],
+        0x1601: [(0x6040, 0, 16), (0x607A, 0, 32)],
+    }
+    tx_pdos = {
+        0x1A00: [(0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16), (0x6061, 0, 8),
+                 (0x603F, 0, 16)],
+        0x1A01: [(0x6041, 0, 16), (0x6064, 0, 32)],
+    }
+    rx_assign = [0x1600]
+    tx_assign = [0x1A00]
+
+    # model parameters (SI units; settable through configure())
+    inertia = 2e-5  # kg m^2 at the motor
+    viscous = 5e-4  # N m s / rad
+    coulomb = 2e-3  # N m
+    csp_hz = 40.0
+    csv_tau = 0.005  # s
+    max_speed = 1000.0  # rad/s
+
+    def build(self, od: ObjectDictionary) -> None:
+        def check_mode(entry, value):
+            if value not in SUPPORTED_MODES:
+                raise SdoAbort(odm.ABORT_VALUE_RANGE, f"mode {value} not supported")
+
+        self.e_error_register = od.var(0x1001, "Error register", odm.UINT8, 0, mappable="tx")
+        self.e_abort_option = od.var(0x6007, "Abort connection option code", odm.INT16, 2, RW,
+                                     low=0, high=3)
+        self.e_error_code = od.var(0x603F, "Error code", odm.UINT16, 0, mappable="tx")
+        self.e_cw = od.var(0x6040, "Controlword", odm.UINT16, 0, RW, mappable="rx")
+        self.e_sw = od.var(0x6041, "Statusword", odm.UINT16, 0, mappable="tx")
+        self.e_qs_option = od.var(0x605A, "Quick stop option code", odm.INT16, 2, RW, low=0, high=6)
+        self.e_mode = od.var(0x6060, "Modes of operation", odm.INT8, 0, RW, mappable="rx",
+                             on_write=check_mode)
+        self.e_mode_display = od.var(0x6061, "Modes of operation display", odm.INT8, 0, mappable="tx")
+        self.e_pos = od.var(0x6064, "Position actual value", odm.INT32, 0, mappable="tx")
+        self.e_ferr_window = od.var(0x6065, "Following error window", odm.UINT32, 100000, RW)
+        self.e_vel = od.var(0x606C, "Velocity actual value", odm.INT32, 0, mappable="tx")
+        self.e_target_torque = od.var(0x6071, "Target torque", odm.INT16, 0, RW, mappable="rx")
+        self.e_max_torque = od.var(0x6072, "Max torque", odm.UINT16, 1000, RW, mappable="rx")
+        self.e_rated_torque = od.var(0x6076, "Motor rated torque", odm.UINT32, 1000, RW, low=1)
+        self.e_torque = od.var(0x6077, "Torque actual value", odm.INT16, 0, mappable="tx")
+        self.e_target_pos = od.var(0x607A, "Target position", odm.INT32, 0, RW, mappable="rx")
+        self.e_qs_decel = od.var(0x6085, "Quick stop deceleration", odm.UINT32, 131072 * 20, RW, low=1)
+        self.e_encoder = od.record(0x608F, "Position encoder resolution", [
+            ("Encoder increments", odm.UINT32, 131072, RW),
+            ("Motor revolutions", odm.UINT32, 1, RW),
+        ])
+        od.record(0x6091, "Gear ratio", [
+            ("Motor revolutions", odm.UINT32, 1, RW),
+            ("Shaft revolutions", odm.UINT32, 1, RW),
+        ])
+        self.e_vel_offset = od.var(0x60B1, "Velocity offset", odm.INT32, 0, RW, mappable="rx")
+        self.e_torque_offset = od.var(0x60B2, "Torque offset", odm.INT16, 0, RW, mappable="rx")
+        self.e_ferr = od.var(0x60F4, "Following error actual value", odm.INT32, 0, mappable="tx")
+        self.e_target_vel = od.var(0x60FF, "Target velocity", odm.INT32, 0, RW, mappable="rx")
+        od.var(0x6502, "Supported drive modes", odm.UINT32, (1 << 7) | (1 << 8) | (1 << 9))
+        for e in (self.e_encoder[0], self.e_encoder[1]):
+            e.low = 1
+        for e in (self.e_encoder[0], self.e_encoder[1], self.e_rated_torque):
+            e.on_write = self._mark_params
+
+    def power_on(self) -> None:
+        self.state = NOT_READY
+        self.pos = 0.0  # counts
+        self.vel = 0.0  # counts/s
+        self.torque = 0.0  # N m
+        self.load = 0.0  # external load torque, N m
+        self.mode = 0
+        self._last_cw = 0
+        self._last_ns: int | None = None
+        self._last_target: int | None = None
+        self._target_slope = 0.0
+        self._fault_pending: int | None = None
+        self._qs_ramp = False
+        self.saturated = False
+        self.faults = 0
+        self._cw_state = None
+        self._params_dirty = True
+        self.e_error_code.value = 0
+        self.e_error_register.value = 0
+        self.e_cw.value = 0
+        self._publish()
+
+    # ------------------------------------------------------------------ control interface
+    def inject_fault(self, code: int) -> None:
+        """An internal drive fault (e.g. 0x2310 over-current): fault reaction, then Fault."""
+        self._fault_pending = code & 0xFFFF
+
+    def _enter_fault(self, code: int) -> None:
+        self.faults += 1
+        self.e_error_code.value = code
+        reg = 0x01
+        group = code >> 12
+        if group == 0x2:
+            reg |= 0x02  # current
+        elif group == 0x3:
+            reg |= 0x04  # voltage
+        elif group == 0x4:
+            reg |= 0x08  # temperature
+        elif group == 0x8:
+            reg |= 0x10  # communication
+        self.e_error_register.value = reg
+        self.state = FAULT_REACTION
+        self.emergency(code, reg)
+
+    def outputs_lost(self, now_ns: int) -> None:
+        option = int(self.e_abort_option.value)
+        if self.state not in (READY, SWITCHED_ON, OPERATION_ENABLED, QUICK_STOP):
+            return
+        if option == 1:
+            self._enter_fault(FAULT_COMMUNICATION)
+        elif option == 2:
+            self.state = SWITCH_ON_DISABLED
+        elif option == 3:
+            if self.state == OPERATION_ENABLED:
+                self.state = QUICK_STOP
+            else:
+                self.state = SWITCH_ON_DISABLED
+        self._publish()
+
+    def state_changed(self, old: int, new: int, now_ns: int) -> None:
+        if new >= 2 and self.state == NOT_READY:
+            self.state = SWITCH_ON_DISABLED  # self-test done
+            self._publish()
+
+    def configure(self, **kw: Any) -> dict:
+        for key, value in kw.items():
+            if key == "fault":
+                self.inject_fault(int(value, 0) if isinstance(value, str) else int(value))
+            elif key == "load":
+                self.load = float(value)
+            elif key in ("inertia", "viscous", "coulomb", "csp_hz", "csv_tau", "max_speed"):
+                v = float(value)
+                if v <= 0 and key not in ("viscous", "coulomb"):
+                    raise ValueError(f"drive: {key} must be > 0")
+                setattr(self, key, v)
+            elif key == "position":
+                self.pos = float(value)
+                self._publish()
+            else:
+                raise ValueError(f"drive: unknown setting {key!r}")
+        return self.status()
+
+    def status(self) -> dict:
+        return {"state": self.state, "mode": self.mode, "position": self.pos, "velocity": self.vel,
+                "torque": self.torque, "error_code": int(self.e_error_code.value),
+                "faults": self.faults}
+
+    # ------------------------------------------------------------------ cycle
+    def _refresh_params(self) -> None:
+        inc = int(self.e_encoder[0].value) or 1
+        revs = int(self.e_encoder[1].value) or 1
+        self._cpr = inc / revs / (2.0 * math.pi)
+        self._rated_nm = int(self.e_rated_torque.value) / 1000.0
+        self._params_dirty = False
+
+    def _mark_params(self, entry, value) -> None:
+        self._params_dirty = True
+
+    def step(self, now_ns: int, outputs_valid: bool) -> None:
+        last = self._last_ns
+        self._last_ns = now_ns
+        dt = (now_ns - last) * 1e-9 if last is not None else 0.0
+        if self._fault_pending is not None or self.state in (NOT_READY, FAULT_REACTION):
+            self._pending_transitions()
+        if outputs_valid:
+            cw = self.e_cw.value
+            if cw != self._last_cw or self.state is not self._cw_state:
+                self._controlword(cw)
+                self._cw_state = self.state
+            mode = self.e_mode.value
+            if mode != self.mode and mode in SUPPORTED_MODES:
+                self.mode = mode
+                self._last_target = None
+            target = self.e_target_pos.value
+            last_target = self._last_target
+            if last_target is None or dt <= 0.0:
+                self._target_slope = 0.0
+            else:
+                self._target_slope = (((target - last_target + 0x80000000) & 0xFFFFFFFF)
+                                      - 0x80000000) / dt
+            self._last_target = target
+        else:
+            self._target_slope = 0.0
+            self._last_target = None
+        if dt > 0.0:
+            self._integrate(dt if dt < MAX_GAP else MAX_GAP)
+        self._publish()
+
+    def _pending_transitions(self) -> None:
+        if self.state == NOT_READY:
+            self.state = SWITCH_ON_DISABLED
+        if self._fault_pending is not None:
+            code, self._fault_pending = self._fault_pending, None
+            if self.state not in (FAULT, FAULT_REACTION):
+                self._enter_fault(code)
+        elif self.state == FAULT_REACTION:
+            self.state = FAULT  # the reaction (torque off) takes one cycle here
+
+    def _controlword(self, cw: int) -> None:
+        s = self.state
+        edge7 = cw & 0x80 and not self._last_cw & 0x80
+        self._last_cw = cw
+        if s in (FAULT_REACTION, NOT_READY):
+            return
+        if s == FAULT:
+            if edge7:
+                self.state = SWITCH_ON_DISABLED
+                self.e_error_code.value = 0
+                self.e_error_register.value = 0
+                self.emergency(0x0000, 0)
+            return
+        if cw & 0x80:
+            return  # fault reset bit set outside Fault: no other command
+        disable_voltage = not cw & 0x02
+        quick_stop = (cw & 0x06) == 0x02
+        shutdown = (cw & 0x07) == 0x06
+        switch_on = (cw & 0x0F) == 0x07
+        enable = (cw & 0x0F) == 0x0F
+        if s == SWITCH_ON_DISABLED:
+            if shutdown:
+                self.state = READY
+        elif s == READY:
+            if disable_voltage or quick_stop:
+                self.state = SWITCH_ON_DISABLED
+            elif switch_on:
+                self.state = SWITCHED_ON
+            elif enable:
+                self._enable()
+        elif s == SWITCHED_ON:
+            if disable_voltage or quick_stop:
+                self.state = SWITCH_ON_DISABLED
+            elif shutdown:
+                self.state = READY
+            elif enable:
+                self._enable()
+        elif s == OPERATION_ENABLED:
+            if disable_voltage:
+                self.state = SWITCH_ON_DISABLED
+            elif quick_stop:
+                self.state = QUICK_STOP
+                if int(self.e_qs_option.value) == 0:
+                    self.state = SWITCH_ON_DISABLED
+            elif shutdown:
+                self.state = READY
+            elif switch_on:
+                self.state = SWITCHED_ON
+        elif s == QUICK_STOP:
+            if disable_voltage:
+                self.state = SWITCH_ON_DISABLED
+            elif enable and int(self.e_qs_option.value) in (5, 6) and self.vel == 0.0:
+                self._enable()
+
+    def _enable(self) -> None:
+        self.state = OPERATION_ENABLED
+        self._last_target = None
+
+    def _integrate(self, dt: float) -> None:
+        if self._params_dirty:
+            self._refresh_params()
+        state = self.state
+        mode = self.mode
+        enabled = state == OPERATION_ENABLED and mode in SUPPORTED_MODES
+        quick = state == QUICK_STOP
+        cpr = self._cpr
+        load = self.load
+        self.saturated = False
+        if not enabled and not quick and self.vel == 0.0 and abs(load) <= self.coulomb:
+            self.torque = 0.0  # idle and at rest: nothing moves
+            return
+        n = 1 if dt <= MAX_SUBSTEP else math.ceil(dt / MAX_SUBSTEP - 1e-9)
+        h = dt / n
+        J = self.inertia
+        visc = self.viscous
+        coul = self.coulomb
+        tmax = self.e_max_torque.value * 0.001 * self._rated_nm  # 0x6072 may be in a PDO
+        wmax = self.max_speed
+        wn = 2.0 * math.pi * self.csp_hz
+        vel_off = self.e_vel_offset.value / cpr
+        target = slope = vt = tt = decel = step = 0.0
+        if enabled:
+            if mode == CSP:
+                p_now = self.pos
+                err0 = ((self.e_target_pos.value - int(p_now) + 0x80000000) & 0xFFFFFFFF) - 0x80000000
+                # the i32 target unwrapped around the position; the setpoint moves linearly
+                # from the previous target to this one over the interval being integrated
+                step = self._target_slope * h
+                target = p_now + err0 - self._target_slope * dt
+                slope = self._target_slope / cpr + vel_off  # velocity feed-forward, rad/s
+            elif mode == CSV:
+                vt = (self.e_target_vel.value) / cpr + vel_off
+            else:
+                tt = (self.e_target_torque.value + self.e_torque_offset.value) / 1000.0 * self._rated_nm
+                tt = -tmax if tt < -tmax else tmax if tt > tmax else tt
+        elif quick:
+            decel = self.e_qs_decel.value / cpr
+        w = self.vel / cpr
+        pos = self.pos
+        tau = 0.0
+        for _ in range(n):
+            friction = visc * w + (coul if w > 0.0 else -coul if w < 0.0 else 0.0)
+            if enabled:
+                if mode == CSP:
+                    acc = wn * wn * (target - pos) / cpr + 2.0 * wn * (slope - w)
+                    tau = J * acc + friction - load
+                    target += step
+                elif mode == CSV:
+                    tau = J * (vt - w) / self.csv_tau + friction - load
+                else:
+                    tau = tt
+            elif quick:
+                a = w / h
+                a = decel if a > decel else -decel if a < -decel else a
+                tau = -J * a + friction - load
+            else:
+                tau = 0.0  # no torque: the motor coasts
+            if tau > tmax:
+                tau = tmax
+                self.saturated = True
+            elif tau < -tmax:
+                tau = -tmax
+                self.saturated = True
+            drive = tau + load
+            w_new = w + (drive - friction) / J * h
+            if ((w > 0.0) != (w_new > 0.0) or w == 0.0) and abs(drive) <= coul:
+                w_new = 0.0  # static friction holds (no reversal through zero)
+            if -1e-6 < w_new < 1e-6:
+                w_new = 0.0  # below any encoder resolution: at rest
+            if w_new > wmax:
+                w_new = wmax
+            elif w_new < -wmax:
+                w_new = -wmax
+            pos += 0.5 * (w + w_new) * h * cpr
+            w = w_new
+        self.pos = pos
+        self.vel = w * cpr
+        self.torque = tau
+        if quick and w == 0.0 and int(self.e_qs_option.value) in (0, 1, 2, 3, 4):
+            self.state = SWITCH_ON_DISABLED
+
+    def _publish(self) -> None:
+        state = self.state
+        sw = _STATUS_WORD[state]
+        mode = self.mode
+        pos = ((int(self.pos) + 0x80000000) & 0xFFFFFFFF) - 0x80000000
+        if state == OPERATION_ENABLED and mode in SUPPORTED_MODES:
+            sw |= 0x1000  # the drive follows the command value
+            if mode == CSP:
+                ferr = ((self.e_target_pos.value - pos + 0x80000000) & 0xFFFFFFFF) - 0x80000000
+                self.e_ferr.value = ferr
+                if -100 <= ferr <= 100:
+                    sw |= 0x0400
+                if abs(ferr) > self.e_ferr_window.value:
+                    sw |= 0x2000
+            elif mode == CSV:
+                if abs(self.e_target_vel.value - self.vel) <= 100:
+                    sw |= 0x0400
+            else:
+                sw |= 0x0400
+        else:
+            self.e_ferr.value = 0
+        if self.saturated:
+            sw |= 0x0800
+        self.e_sw.value = sw
+        self.e_mode_display.value = mode
+        self.e_pos.value = pos
+        v = self.vel
+        self.e_vel.value = 2147483647 if v >= 2147483647 else -2147483648 if v <= -2147483648 else int(v)
+        if self._params_dirty:
+            self._refresh_params()
+        t = int(self.torque / (self._rated_nm or 1.0) * 1000.0)
+        self.e_torque.value = 32767 if t > 32767 else -32768 if t < -32768 else t
