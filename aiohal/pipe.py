@@ -382,7 +382,6 @@ class FastEnd(_End):
         return out
 
 
-
 class NrtEnd(_End):
     """The NRT side's end: blocking calls with timeouts, or awaitables for asyncio code.
 
@@ -399,22 +398,33 @@ class NrtEnd(_End):
         timeout = None if deadline is None else max(0.0, (deadline - time.monotonic()) * 1e3)
         return bool(self._poll.poll(timeout))
 
+    def _try_send(self, data: bytes | bytearray) -> bool:
+        """One non-blocking send: False if the pipe is full; :class:`PeerGone` if the fast end is gone."""
+        try:
+            self._sock.send(data, _SEND_FLAGS)
+        except BlockingIOError:
+            return False
+        except OSError as exc:
+            if exc.errno in _GONE_ERRNOS:
+                raise PeerGone("the fast end of the pipe is gone") from exc
+            raise
+        self.counters["sent"] += 1
+        return True
+
     def _send_datagram(self, data: bytes | bytearray, deadline: float | None) -> None:
-        while True:
-            try:
-                self._sock.send(data, _SEND_FLAGS)
-            except BlockingIOError:
-                # POLLOUT comes once the fast side has read 3/4 of the queue (unix_writable)
-                if not self._wait(select.POLLOUT, deadline):
-                    self.counters["dropped_full"] += 1
-                    raise PipeTimeout("the pipe stayed full: the fast side is not reading") from None
-                continue
-            except OSError as exc:
-                if exc.errno in _GONE_ERRNOS:
-                    raise PeerGone("the fast end of the pipe is gone") from exc
-                raise
-            self.counters["sent"] += 1
-            return
+        # POLLOUT comes once the fast side has read 3/4 of the queue (unix_writable), not at once
+        while not self._try_send(data):
+            if not self._wait(select.POLLOUT, deadline):
+                self.counters["dropped_full"] += 1
+                raise PipeTimeout("the pipe stayed full: the fast side is not reading")
+
+    def _take_one(self) -> Message | None:
+        """The next valid pending message, malformed ones skipped; None if none is pending."""
+        while (data := self._recv_datagram()) is not None:
+            cls = self._accept(data)
+            if cls is not None:
+                return self._decoded(data, cls)
+        return None
 
     def send(self, msg: Message, timeout: float | None = None) -> None:
         """Stamp and send ``msg``, waiting while the pipe is full (:class:`PipeTimeout` after ``timeout`` s)."""
@@ -426,15 +436,10 @@ class NrtEnd(_End):
         """The next valid message, waiting up to ``timeout`` s (None: for ever); None on timeout."""
         self._check_open()
         deadline = None if timeout is None else time.monotonic() + timeout
-        while True:
-            data = self._recv_datagram()
-            if data is None:
-                if not self._wait(select.POLLIN, deadline):
-                    return None
-                continue
-            cls = self._accept(data)
-            if cls is not None:
-                return self._decoded(data, cls)
+        while (msg := self._take_one()) is None:
+            if not self._wait(select.POLLIN, deadline):
+                return None
+        return msg
 
     def receive_latest(self, timeout: float | None = None) -> Message | None:
         """Wait up to ``timeout`` s for a message, then drain the rest; the newest, or None."""
@@ -450,31 +455,16 @@ class NrtEnd(_End):
     async def areceive(self) -> Message:
         """The next valid message, awaiting readability on the running loop; PeerGone at EOF."""
         self._check_open()
-        while True:
-            data = self._recv_datagram()
-            if data is None:
-                await self._ready(writable=False)
-                continue
-            cls = self._accept(data)
-            if cls is not None:
-                return self._decoded(data, cls)
+        while (msg := self._take_one()) is None:
+            await self._ready(writable=False)
+        return msg
 
     async def asend(self, msg: Message) -> None:
         """Stamp and send ``msg``, awaiting room while the pipe is full (cancel to give up)."""
         self._check_open()
         data = self._stamp(msg)
-        while True:
-            try:
-                self._sock.send(data, _SEND_FLAGS)
-            except BlockingIOError:
-                await self._ready(writable=True)
-                continue
-            except OSError as exc:
-                if exc.errno in _GONE_ERRNOS:
-                    raise PeerGone("the fast end of the pipe is gone") from exc
-                raise
-            self.counters["sent"] += 1
-            return
+        while not self._try_send(data):
+            await self._ready(writable=True)
 
     async def _ready(self, writable: bool) -> None:
         loop = asyncio.get_running_loop()
