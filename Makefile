@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.robots --json bench-results/robots.json
 	$(PY) -m benchmarks.gc_pauses --json bench-results/gc_pauses.json
 	$(PY) -m benchmarks.isolated --json bench-results/isolated.json
+	$(PY) -m benchmarks.pipe --json bench-results/pipe.json
 
 figures: $(STAMP)
 	$(PY) -m pip install -q -e '.[plot]'
