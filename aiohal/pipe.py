@@ -42,6 +42,7 @@ import sys
 import termios
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any, Callable, ClassVar
 
 from .errors import AiohalError
@@ -304,23 +305,27 @@ class _End:
         self.counters["lost"] += gap
         self._expect_seq = (seq + 1) & _SEQ_MASK
 
-    def _drain(self, limit: int) -> tuple[tuple[bytes, type[Message]] | None, int]:
-        """Read up to ``limit`` pending datagrams: the newest valid one and how many were valid.
-
-        Only the newest is decoded (by the caller). EOF ends the drain and clears ``peer_alive``.
-        """
-        newest, valid = None, 0
+    def _pending(self, limit: int) -> Iterator[tuple[bytes, type[Message]]]:
+        """The valid datagrams pending, oldest first, reading at most ``limit``; malformed ones
+        are counted and skipped. EOF ends it and clears ``peer_alive``."""
         for _ in range(limit):
             try:
                 data = self._recv_datagram()
             except PeerGone:
                 self.peer_alive = False
-                break
+                return
             if data is None:
-                break
+                return
             cls = self._accept(data)
             if cls is not None:
-                newest, valid = (data, cls), valid + 1
+                yield data, cls
+
+    def _drain(self, limit: int) -> tuple[tuple[bytes, type[Message]] | None, int]:
+        """Read up to ``limit`` pending datagrams: the newest valid one and how many were valid.
+        Only the newest is decoded (by the caller)."""
+        newest, valid = None, 0
+        for newest in self._pending(limit):
+            valid += 1
         return newest, valid
 
     def _decoded(self, data: bytes, cls: type[Message]) -> Message:
@@ -365,9 +370,9 @@ class FastEnd(_End):
 
     def receive_all(self, limit: int = DRAIN_LIMIT) -> list[Message]:
         """Every valid message pending (at most ``limit`` datagrams read), oldest first."""
-        out: list[Message] = []
         if self._closed:
-            return out
+            return []
+        return [self._decoded(data, cls) for data, cls in self._pending(limit)]
         for _ in range(limit):
             try:
                 data = self._recv_datagram()
