@@ -218,3 +218,26 @@ async def test_skipped_ticks_give_controller_the_real_dt():
     assert dts[3] == (6, 0.006, 0.003)  # t counts from activation (tick 0)
     assert report["missed_ticks"] == 2
     assert report["ticks"] == 6
+
+
+@pytest.mark.asyncio
+async def test_a_stall_past_the_last_deadline_counts_only_the_runs_own_deadlines():
+    import time
+
+    from aiohal.config import parse_config
+    from aiohal.loop import ControlLoop
+
+    raw = arm_raw(2)
+    raw["loop"]["clock"] = "auto"  # a real clock, where a stall skips deadlines
+    stalled = []
+
+    def stall_once(loop):
+        if not stalled:
+            stalled.append(loop.robot.clock.tick)
+            time.sleep(0.03)  # 30 periods at 1 kHz: past the end of a 10-tick run
+
+    async with ControlLoop(parse_config(raw)) as loop:
+        loop.add_publisher(stall_once)
+        report = await loop.run(ticks=10)
+    assert report["ticks"] + report["missed_ticks"] == 10  # every deadline of the run, no more
+    assert report["missed_ticks"] >= 1

@@ -170,5 +170,6 @@ async def test_precision_mode_spins_to_the_deadline_and_never_early():
     ticker, lateness = await _run_real(TimerfdTickSource(guard_ns=200_000), 0.3)
     assert min(lateness) >= 0
     # the wake is armed 200 µs early and spins to the deadline: typically well under a µs late;
-    # the bound is loose because a shared VM may wake later than the guard (then it cannot spin)
-    assert sorted(lateness)[len(lateness) // 2] < 200_000
+    # the bound is loose and on a low percentile because a shared VM under load may wake later
+    # than the guard (then there is nothing left to spin) for most ticks of a short run
+    assert sorted(lateness)[len(lateness) // 10] < 50_000
