@@ -64,7 +64,6 @@ class NrtHandDriver(Driver):
     async def open(self) -> None:
         opts = self.options
         (self.hand,) = self.view.devices.values()
-        self._period_ns = self.view.clock.period_ns
         self._stale_ns = int(opts.stale_after_ms * 1e6)
         self._dead_ns = int(opts.dead_after_ms * 1e6)
         self._resend_ns = int(opts.resend_ms * 1e6)
