@@ -290,3 +290,28 @@ async def test_robotiq_gripper_in_the_loop_grasps_then_reports_a_fault_and_a_los
     assert final_fault & Fault.HARDWARE
     assert watch.first[Fault.HARDWARE] >= 600  # no fault before the injected one
     assert report["ticks"] + report["missed_ticks"] == 1200  # the run went on
+
+
+def test_shipped_arm_and_hand_config_moves_grasps_and_moves_again(tmp_path):
+    """configs/kuka_lwr_hand_sim.toml as a user runs it: MuJoCo arm in the loop, hand in a subprocess
+    (its steps take about 5.4 s; 9 s leaves room for a hand step that waits up to its timeout)."""
+    import json
+    import subprocess
+    import sys
+
+    from conftest import CONFIGS
+
+    require_module("mujoco")
+    report_path = tmp_path / "report.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "aiohal", str(CONFIGS / "kuka_lwr_hand_sim.toml"), "--duration", "9",
+         "--quiet", "--report-json", str(report_path)],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    report = json.loads(report_path.read_text())
+    ctrl = report["controller"]
+    assert ctrl["steps_done"] == 3, ctrl
+    (grasp,) = ctrl["hand_steps"]
+    assert grasp["outcome"] == "object" and grasp["position"] == pytest.approx(0.6, abs=0.02)
+    assert report["faults"] == [] and report["drivers"]["hand"]["hand"] == "ok"
