@@ -5,6 +5,7 @@ the fast loop (subprocess and thread), a hand process killed or stalled mid-run,
 from __future__ import annotations
 
 import asyncio
+import re
 import time
 
 import numpy as np
@@ -178,7 +179,10 @@ async def test_killing_the_hand_process_faults_the_hand_and_the_run_goes_on():
     # peer death is seen at once (EOF), well within dead_after_ms = 150 ms = 75 ticks
     assert watch.first[Fault.HARDWARE] - watch.acted_tick <= 75
     (fault,) = report["faults"]
-    assert fault["source"] == "driver:hand" and "exited (code -9)" in fault["error"]
+    assert fault["source"] == "driver:hand"
+    # EOF can come before the kernel has made the killed process a zombie: then the reason
+    # says the pipe closed, and the exit code shows in the driver's health line below
+    assert re.search(r"hand subprocess (exited \(code -9\)|closed its end of the pipe)", fault["error"])
     assert report["drivers"]["hand"]["hand"].startswith("lost:")
     assert report["drivers"]["hand"]["exitcode"] == -9
 
