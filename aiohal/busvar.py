@@ -31,6 +31,7 @@ from __future__ import annotations
 import difflib
 import itertools
 import re
+import struct
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -772,6 +773,23 @@ class ProcessImage:
                                     f"{offsets}), so it has no single view; list the slaves in image order or allow gather")
         return Gather(f"{name} of {len(slaves)} slaves", buf, offsets, dt, element, writable)
 
+    def codec(self, slave: str, names: Sequence[str], *, writable: bool = False) -> RecordCodec:
+        """Several byte-aligned variables of one slave (all inputs or all outputs), read or
+        written with one ``struct`` call: per value, far cheaper than a numpy call when a
+        loop visits a few slaves (numpy's fixed cost per call dominates arrays of 7)."""
+        variables = [self.variable(f"{slave}.{name}") for name in names]
+        for var in variables:
+            self._check_writable(var, writable)
+            if not var.byte_aligned:
+                raise VariableTypeError(f'"{var.full_name}" is not whole bytes on a byte boundary: no struct codec')
+            if var.direction != variables[0].direction:
+                raise VariableTypeError(f'"{var.full_name}" is an {var.direction}, "{variables[0].full_name}" an '
+                                        f"{variables[0].direction}: a codec reads or writes one direction")
+        if writable and variables[0].direction == "input":
+            raise ReadOnlyVariableError(f'"{variables[0].full_name}" is an input (slave to master): it is read-only')
+        buf = self.outputs if variables[0].direction == "output" else self.inputs
+        return RecordCodec(variables, buf)
+
     @staticmethod
     def _check_writable(var: Variable, writable: bool) -> None:
         if writable and var.direction == "input":
@@ -796,3 +814,83 @@ class ProcessImage:
 
 def _kind(var: Variable) -> str:
     return f"{var.type}{list(var.shape) if var.shape else ''} ({var.direction})"
+
+
+STRUCT_CODES = {"i8": "b", "u8": "B", "i16": "h", "u16": "H", "i32": "i", "u32": "I", "i64": "q", "u64": "Q",
+                "f32": "f", "f64": "d"}
+
+
+class RecordCodec:
+    """Byte-aligned variables of one slave as one little-endian ``struct`` over their bytes.
+
+    ``unpack()`` returns the values in the order the variables were given (a group, e.g. an
+    object's subindices, gives a tuple), ``pack(*values)`` takes them in that order. The
+    buffer is the process image's (``inputs`` or ``outputs``): no copy of the image is made.
+    """
+
+    def __init__(self, variables: Sequence[Variable], buf: np.ndarray) -> None:
+        self.names = tuple(v.full_name for v in variables)
+        self.buf = buf
+        by_offset = sorted(range(len(variables)), key=lambda i: variables[i].bit_offset)
+        start = variables[by_offset[0]].bit_offset // 8
+        fmt, at, slots = "<", start, [None] * len(variables)
+        position = 0
+        for i in by_offset:
+            var = variables[i]
+            offset = var.bit_offset // 8
+            if offset < at:
+                raise VariableTypeError(f'"{var.full_name}" overlaps another variable of the codec')
+            fmt += "x" * (offset - at)
+            count = len(var.entries)
+            fmt += f"{count}{STRUCT_CODES[var.type]}" if var.group else STRUCT_CODES[var.type]
+            slots[i] = slice(position, position + count) if var.group else position
+            position += count
+            at = offset + var.bits // 8
+        self.offset = start
+        self.struct = struct.Struct(fmt)
+        self._slots = tuple(slots)
+        self._scalars = all(isinstance(s, int) for s in slots)
+        self._in_order = self._scalars and tuple(slots) == tuple(range(len(slots)))
+        self._count = position
+
+    @property
+    def unpack_from(self) -> Any:
+        """``f(buf, offset) -> values`` in the order the variables were given: ``struct``'s own
+        function when that is the bytes' order (the fast path of per-cycle loops)."""
+        if self._in_order:
+            return self.struct.unpack_from
+        slots, unpack = self._slots, self.struct.unpack_from
+
+        def reordered(buf: Any, offset: int) -> tuple:
+            raw = unpack(buf, offset)
+            return tuple(raw[s] for s in slots)
+        return reordered
+
+    @property
+    def pack_into(self) -> Any:
+        """``f(buf, offset, *values)``, values in the order the variables were given."""
+        if self._in_order:
+            return self.struct.pack_into
+        slots, pack, count = self._slots, self.struct.pack_into, self._count
+
+        def reordered(buf: Any, offset: int, *values: Any) -> None:
+            raw: list[Any] = [0] * count
+            for value, slot in zip(values, slots, strict=True):
+                raw[slot] = value
+            pack(buf, offset, *raw)
+        return reordered
+
+    def unpack(self) -> tuple:
+        raw = self.struct.unpack_from(self.buf, self.offset)
+        if self._in_order:
+            return raw
+        return tuple(raw[s] if isinstance(s, int) else raw[s] for s in self._slots)
+
+    def pack(self, *values: Any) -> None:
+        if self._in_order:
+            self.struct.pack_into(self.buf, self.offset, *values)
+            return
+        raw: list[Any] = [0] * self._count
+        for value, slot in zip(values, self._slots, strict=True):
+            raw[slot] = value
+        self.struct.pack_into(self.buf, self.offset, *raw)

@@ -113,6 +113,8 @@ class ControlLoop:
         for dc in self.config.drivers:
             view = self.robot.driver_view(dc.joints, dc.devices)
             view.report_fault = functools.partial(self.record_fault, f"driver:{dc.name}")
+            view.request_hold = functools.partial(self._hold_for_driver, dc.name)
+            view.resync = functools.partial(self.resync_joints, view.rows)
             try:
                 driver = dc.cls(dc.name, view, dc.options)
             except Exception as exc:
@@ -317,6 +319,27 @@ class ControlLoop:
         self.controller_type = "hold"
         # the last command was sent one period ago: hold's motion starts there
         self._hold.start((self.robot.clock.tick - self._k_start - 1) * self.period_s)
+
+    def _hold_for_driver(self, name: str, reason: str) -> None:
+        if self.level > SafetyLevel.HOLD:
+            self.enter_hold(f"driver {name}: {reason}")
+
+    def resync_joints(self, rows: slice, mask: np.ndarray) -> None:
+        """Joints ``mask`` of the driver rows ``rows`` were (re-)enabled where they stand: their
+        command continues from the measured position at rest, so nothing jumps. Under ``hold``
+        every joint's hold restarts from its current command (the others continue braking)."""
+        cmd, measured = self.robot.command, self.robot.state.position
+        n = self.robot.dof
+        which = np.zeros(n, dtype=bool)
+        which[rows] = mask
+        which &= np.isfinite(measured)
+        if not which.any():
+            return
+        np.copyto(cmd.position, measured, where=which)
+        cmd.velocity[which] = 0.0
+        self.limiter.follow_measured(which, np.zeros(n))
+        if self.controller is self._hold and self.state in ("active", "running"):
+            self._hold.start((self.robot.clock.tick - self._k_start) * self.period_s)
 
     def _check_feedback(self, k: int, max_age: int) -> None:
         """Some driver's feedback is older than ``max_age`` ticks: flag it, hold, report once."""

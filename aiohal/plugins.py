@@ -25,6 +25,7 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "mock": ("aiohal.drivers.mock:MockDriver", None),
         "mujoco": ("aiohal.drivers.mujoco:MujocoDriver", "sim"),
         "nrt_hand": ("aiohal.drivers.nrt_hand:NrtHandDriver", None),
+        "ethercat": ("aiohal.drivers.ethercat.driver:EthercatDriver", "ethercat"),
     },
     "controller": {
         "hold": ("aiohal.controllers.hold:HoldController", None),

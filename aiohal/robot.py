@@ -369,6 +369,14 @@ def _log_fault(phase: str, reason: str) -> None:
     log.error("device fault in %s: %s", phase, reason)
 
 
+def _log_hold(reason: str) -> None:
+    log.error("hold requested (no loop installed): %s", reason)
+
+
+def _ignore_resync(rows: np.ndarray) -> None:
+    pass
+
+
 class DriverView:
     """What one driver may touch: its joint rows (state writable, command read) and its devices."""
 
@@ -390,6 +398,12 @@ class DriverView:
         #: ``report_fault(phase, reason)``: a fault the driver survives (e.g. one device lost);
         #: the loop installs its recorder so it reaches the run report.
         self.report_fault: Callable[[str, str], object] = _log_fault
+        #: ``request_hold(reason)``: a fault of this driver's hardware that the rest of the robot
+        #: must not move through (e.g. one drive faulted); the loop installs its hold.
+        self.request_hold: Callable[[str], object] = _log_hold
+        #: ``resync(rows)``: these of the driver's joints (a bool mask) were re-enabled where they
+        #: stand; the loop makes their command continue from the measured position (bumpless).
+        self.resync: Callable[[np.ndarray], object] = _ignore_resync
 
     def per_joint(self, values: float | dict[str, float] | Sequence[float], default: float = 0.0) -> np.ndarray:
         """An array over this driver's joints (options given as a scalar or a {joint: value} map)."""

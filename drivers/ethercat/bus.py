@@ -1,0 +1,268 @@
+"""One pysoem master on one interface: bring-up, the cyclic frame, states, SDOs, shutdown.
+
+Only blocking work lives here; :mod:`.driver` decides when it runs (a dedicated thread for
+bring-up, SDOs and shutdown; the tick for the cyclic frame). A SOEM context is used by at most
+one thread at a time for the same kind of traffic: the cyclic frame from the tick (or the
+keep-alive thread before the first tick), mailbox traffic from the bus thread. SOEM matches
+replies by datagram index, so the two may overlap.
+
+pysoem releases the GIL only in ``config_init``, the process-data calls and SDOs (we always
+ask it to). ``config_map``, ``config_dc``, ``read_state``, ``write_state``, ``state_check``,
+``recover`` and ``reconfig`` hold it: while they run, no other Python thread runs, the event
+loop included. They are used at bring-up, shutdown and after a bus error only.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import struct
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from aiohal.busvar import LayoutError, PdoLayout, names_for
+from aiohal.errors import AiohalError
+
+log = logging.getLogger(__name__)
+
+INIT, PREOP, BOOT, SAFEOP, OP = 0x01, 0x02, 0x03, 0x04, 0x08
+STATE_ERROR, STATE_ACK = 0x10, 0x10
+_STATE_NAMES = {0: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP", OP: "OP"}
+
+
+class EthercatError(AiohalError, RuntimeError):
+    """Base of the EtherCAT driver's errors."""
+
+
+class BringUpError(EthercatError):
+    """The bus did not come up as configured; the message names the slave and the reason."""
+
+
+class SdoAbortError(EthercatError):
+    """An SDO transfer was aborted by the slave (``abort_code``) or failed in the mailbox."""
+
+    def __init__(self, where: str, abort_code: int | None, reason: str) -> None:
+        self.abort_code = abort_code
+        code = f" abort 0x{abort_code:08X}" if abort_code is not None else ""
+        super().__init__(f"{where}:{code} {reason}")
+
+
+def state_name(state: int) -> str:
+    name = _STATE_NAMES.get(state & 0x0F, f"0x{state & 0x0F:X}")
+    return name + ("+ERROR" if state & STATE_ERROR else "")
+
+
+@dataclass
+class SlaveInfo:
+    """What bring-up found at one bus position."""
+
+    position: int
+    name: str  # the configured name (bus variables are "<name>.<variable>")
+    device_name: str  # what the slave calls itself (SII string 1)
+    vendor_id: int
+    product_code: int
+    revision: int
+    layout: PdoLayout
+    output_bytes: int
+    input_bytes: int
+
+    @property
+    def wkc(self) -> int:
+        """This slave's share of the process-data working counter: +2 outputs written, +1 inputs read."""
+        return 2 * (self.output_bytes > 0) + (self.input_bytes > 0)
+
+
+class Bus:
+    """A pysoem ``Master`` opened on exactly one named interface."""
+
+    def __init__(self, pysoem: Any, ifname: str, *, overlap: bool = False) -> None:
+        self.pysoem = pysoem
+        self.ifname = ifname
+        self.overlap = overlap
+        self.master: Any = None
+        self.slaves: list[Any] = []  # pysoem slave objects, made once (each access makes a new one)
+        self.is_open = False
+
+    # ------------------------------------------------------------ bring-up
+
+    def open(self) -> int:
+        """Open the interface and find the slaves; their number."""
+        try:
+            socket.if_nametoindex(self.ifname)
+        except OSError:
+            raise BringUpError(f"network interface {self.ifname!r} does not exist (options.interface)") from None
+        self.master = self.pysoem.Master()
+        try:
+            self.master.open(self.ifname)
+        except Exception as exc:  # pysoem raises ConnectionError without root or CAP_NET_RAW
+            raise BringUpError(f"cannot open {self.ifname!r} for EtherCAT (root or CAP_NET_RAW needed): {exc}") from exc
+        self.is_open = True
+        found = self.master.config_init(release_gil=True)
+        if found < 0:
+            raise BringUpError(f"no EtherCAT frame came back on {self.ifname!r}: nothing connected, or the link is down")
+        self.slaves = list(self.master.slaves)
+        return len(self.slaves)
+
+    def read_layout(self, position: int, names_overrides: dict | None = None) -> PdoLayout:
+        """The slave's PDO layout from its CoE PDO assignment (0x1C12/0x1C13 and the mapping
+        objects), named from its name table; in PREOP, before the master maps it."""
+        slave = self.slaves[position]
+        where = f"slave {position} ({slave.name})"
+        try:
+            rx_assign = self._assignment(slave, 0x1C12)
+            tx_assign = self._assignment(slave, 0x1C13)
+            mappings = {pdo: self._mapping(slave, pdo) for pdo in (*rx_assign, *tx_assign)}
+        except self.pysoem.SdoError as exc:
+            raise LayoutError(f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}") from exc
+        except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError) as exc:
+            raise LayoutError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc}); "
+                              "slaves without CoE are not supported by this driver") from exc
+        device_type = None
+        try:
+            device_type = struct.unpack("<I", slave.sdo_read(0x1000, 0, release_gil=True)[:4])[0]
+        except Exception:
+            pass
+        names = names_for(slave.man, slave.id, device_type=device_type, overrides=names_overrides)
+        return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
+
+    @staticmethod
+    def _assignment(slave: Any, index: int) -> list[int]:
+        count = slave.sdo_read(index, 0, release_gil=True)[0]
+        return [struct.unpack("<H", slave.sdo_read(index, sub, release_gil=True)[:2])[0] for sub in range(1, count + 1)]
+
+    @staticmethod
+    def _mapping(slave: Any, index: int) -> list[int]:
+        count = slave.sdo_read(index, 0, release_gil=True)[0]
+        return [struct.unpack("<I", slave.sdo_read(index, sub, release_gil=True)[:4])[0] for sub in range(1, count + 1)]
+
+    def map(self, dc: bool) -> int:
+        """Map the process data (the masters's IO map), set DC up, reach SAFEOP; the map's size."""
+        try:
+            size = self.master.config_overlap_map() if self.overlap else self.master.config_map()
+        except self.pysoem.ConfigMapError as exc:
+            raise BringUpError(f"mapping process data failed: {exc}") from exc
+        if dc:
+            self.master.config_dc()
+        if self.master.state_check(SAFEOP, 50_000) != SAFEOP:
+            self.master.read_state()
+            raise BringUpError("slaves did not reach SAFEOP: " + self.describe_not_in(SAFEOP))
+        return size
+
+    def request_op(self, exchange: Any, timeout_s: float, period_s: float) -> None:
+        """SAFEOP → OP, with process data cycling (``exchange()``) before and during the request."""
+        for _ in range(3):
+            exchange()
+            time.sleep(period_s)
+        self.master.state = OP
+        self.master.write_state()
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            exchange()
+            if self.master.state_check(OP, 1000) == OP:
+                return
+            time.sleep(period_s)
+        self.master.read_state()
+        raise BringUpError(f"slaves did not reach OP within {timeout_s:g} s: " + self.describe_not_in(OP))
+
+    def describe_not_in(self, state: int) -> str:
+        """The slaves not in ``state`` with their state and AL status code (after read_state)."""
+        bad = []
+        for i, s in enumerate(self.slaves):
+            if s.state != state:
+                code = s.al_status
+                bad.append(f"slave {i} ({s.name}) in {state_name(s.state)}, AL status 0x{code:04X} "
+                           f"({self.pysoem.al_status_code_to_string(code)})")
+        return "; ".join(bad) or "(all there now)"
+
+    # ------------------------------------------------------------ the cyclic frame
+
+    def send(self) -> None:
+        if self.overlap:
+            self.master.send_overlap_processdata(release_gil=True)
+        else:
+            self.master.send_processdata(release_gil=True)
+
+    def receive(self, timeout_us: int) -> int:
+        return self.master.receive_processdata(timeout_us, release_gil=True)
+
+    # ------------------------------------------------------------ after a bus error
+
+    def states(self) -> list[int]:
+        """Every slave's AL state, read now (holds the GIL for a frame or two)."""
+        self.master.read_state()
+        return [s.state for s in self.slaves]
+
+    def recover_step(self, position: int) -> bool:
+        """One step of bringing a slave that dropped out back to OP (as SOEM's examples do);
+        True once it is in OP."""
+        slave = self.slaves[position]
+        slave.state_check(OP, 1000)
+        state = slave.state
+        if state == OP:
+            slave.is_lost = False
+            return True
+        if state == SAFEOP | STATE_ERROR:
+            slave.state = SAFEOP | STATE_ACK
+            slave.write_state()
+        elif state == SAFEOP:
+            slave.state = OP
+            slave.write_state()
+        elif state > 0:
+            if slave.reconfig(500) >= SAFEOP:
+                slave.is_lost = False
+        else:
+            slave.is_lost = True
+            if slave.recover(500) > 0:
+                slave.is_lost = False
+        return False
+
+    # ------------------------------------------------------------ SDO
+
+    def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
+        slave = self.slaves[position]
+        try:
+            return slave.sdo_read(index, subindex, size, release_gil=True)
+        except self.pysoem.SdoError as exc:
+            raise SdoAbortError(f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}", exc.abort_code, exc.desc) from exc
+        except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError) as exc:
+            raise SdoAbortError(f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}", None,
+                                f"{type(exc).__name__}: {exc}") from exc
+
+    def sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
+        slave = self.slaves[position]
+        try:
+            slave.sdo_write(index, subindex, bytes(data), release_gil=True)
+        except self.pysoem.SdoError as exc:
+            raise SdoAbortError(f"SDO write 0x{index:04X}:{subindex:02X} of {slave.name}", exc.abort_code, exc.desc) from exc
+        except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError) as exc:
+            raise SdoAbortError(f"SDO write 0x{index:04X}:{subindex:02X} of {slave.name}", None,
+                                f"{type(exc).__name__}: {exc}") from exc
+
+    # ------------------------------------------------------------ shutdown
+
+    def close(self) -> None:
+        """Every slave to INIT (best effort), then release the interface. Idempotent."""
+        if not self.is_open:
+            return
+        self.is_open = False
+        try:
+            if self.slaves:
+                self.master.state = INIT
+                self.master.write_state()
+        except Exception as exc:  # the bus may be gone: closing must still release the socket
+            log.warning("ethercat %s: writing INIT failed: %s", self.ifname, exc)
+        self.master.close()
+
+
+def check_identity(info: SlaveInfo, vendor_id: int | None, product_code: int | None) -> None:
+    """The slave at a position must be the configured device, when the config says which."""
+    for what, want, got in (("vendor id", vendor_id, info.vendor_id), ("product code", product_code, info.product_code)):
+        if want is not None and want != got:
+            raise BringUpError(f"slave {info.position} ({info.device_name}): {what} 0x{got:08X}, "
+                               f"but the config expects 0x{want:08X} for {info.name!r}")
+
+
+def expected_wkc(infos: Sequence[SlaveInfo], lost: set[int]) -> int:
+    return sum(info.wkc for info in infos if info.position not in lost)

@@ -1,0 +1,255 @@
+"""Device classes on bus variables (LOLA): CiA 402 drives, IMUs and force/torque sensors.
+
+Each class links the variables it needs by name at bring-up (errors name the slave and the
+variable, types are checked) and then moves values between the process image and the
+robot's records once per cycle. A per-slave :class:`~aiohal.busvar.RecordCodec` reads or
+writes a slave's variables with one ``struct`` call: for the handful of drives of a robot
+this is several times cheaper than numpy, whose fixed cost per call (a few µs for a cast of
+7 values on this kind of machine) would be paid a dozen times per cycle.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from aiohal.busvar import ProcessImage, VariableTypeError
+from aiohal.cia402 import CSP, CST, CSV, Cia402Drive, DriveEvent, DriveUnits, Target
+from aiohal.robot import DeviceRecord, Fault, Mode
+
+#: joint command mode → CiA 402 mode of operation (impedance runs as CSP: the drive's own loop)
+MODE_OF_OPERATION = {int(Mode.NONE): int(CSP), int(Mode.POSITION): int(CSP), int(Mode.IMPEDANCE): int(CSP),
+                     int(Mode.VELOCITY): int(CSV), int(Mode.EFFORT): int(CST)}
+DRIVE_INPUTS = ("Statusword", "Position actual value", "Velocity actual value", "Torque actual value", "Error code")
+DRIVE_INPUT_TYPES = ("u16", "i32", "i32", "i16", "u16")
+DRIVE_OUTPUTS = ("Controlword", "Target position", "Target velocity", "Target torque", "Modes of operation")
+DRIVE_OUTPUT_TYPES = ("u16", "i32", "i32", "i16", "i8")
+_I32, _I16 = 1 << 31, 1 << 15
+
+
+@dataclass(frozen=True)
+class DriveSpec:
+    """One drive: its slave name, the joint row it serves (in the driver's rows) and its units."""
+
+    slave: str
+    joint: str
+    row: int
+    units: DriveUnits
+    position_offset: float = 0.0  # rad added to the drive's position (joint zero ≠ encoder zero)
+
+
+def _check_types(image: ProcessImage, slave: str, names: Sequence[str], types: Sequence[str]) -> None:
+    for name, want in zip(names, types, strict=True):
+        var = image.variable(f"{slave}.{name}")
+        if var.type != want or var.shape != ():
+            raise VariableTypeError(f'"{var.full_name}" is {var.type}{list(var.shape) or ""}, a CiA 402 drive '
+                                    f"maps it as {want}")
+
+
+class DriveGroup:
+    """Every CiA 402 drive of one bus: state machines, bumpless enable, unit conversion."""
+
+    def __init__(self, image: ProcessImage, specs: Sequence[DriveSpec], *, stuck_after: int) -> None:
+        self.specs = list(specs)
+        self.inputs, self.outputs = [], []
+        for s in specs:
+            _check_types(image, s.slave, DRIVE_INPUTS, DRIVE_INPUT_TYPES)
+            _check_types(image, s.slave, DRIVE_OUTPUTS, DRIVE_OUTPUT_TYPES)
+            self.inputs.append(image.codec(s.slave, DRIVE_INPUTS))
+            self.outputs.append(image.codec(s.slave, DRIVE_OUTPUTS, writable=True))
+        self.rows = [s.row for s in specs]
+        self._rows_index = np.array(self.rows)
+        consecutive = self.rows == list(range(self.rows[0], self.rows[0] + len(self.rows)))
+        self._rows: slice | np.ndarray = slice(self.rows[0], self.rows[0] + len(self.rows)) if consecutive \
+            else self._rows_index
+        # per-drive constants as Python floats (a loop over a few drives)
+        self.rad_per_count = [float(s.units.rad_per_count) for s in specs]
+        self.counts_per_rad = [float(s.units.counts_per_rad) for s in specs]
+        self.motor_rad_per_count = [2.0 * math.pi / float(s.units.counts_per_rev) for s in specs]
+        self.nm_per_per_mille = [float(s.units.nm_per_per_mille) for s in specs]
+        self.per_mille_per_nm = [float(s.units.per_mille_per_nm) for s in specs]
+        self.offset = [s.position_offset for s in specs]
+        self.machines = [Cia402Drive(s.slave, target=Target.ENABLED, stuck_after=stuck_after) for s in specs]
+        n = len(specs)
+        self.hold = [True] * n  # target = actual: the drive does not follow the command (yet)
+        self.controlwords = [0] * n
+        self.statuswords = [0] * n
+        self.error_codes = [0] * n
+        self.raw_position = [0] * n  # the drive's int32 counts, as last read
+        self.counts = [0] * n  # multi-turn counts (unwrapped)
+        self._started = False
+        self._last_status: list[int] = []
+        self._steady = False  # every drive enabled, following, nothing pending
+        self._decoded: tuple[list[float], ...] = ([0.0] * n,) * 4  # position, motor position, velocity, effort
+        # what the per-cycle loops need, bound once: (struct function, buffer, offset) and constants
+        self._decode_plan = tuple(((c.unpack_from, c.buf, c.offset), rad, motor_rad, nm, off) for c, rad, motor_rad, nm, off
+                                  in zip(self.inputs, self.rad_per_count, self.motor_rad_per_count,
+                                         self.nm_per_per_mille, self.offset, strict=True))
+        self._encode_plan = tuple(((c.pack_into, c.buf, c.offset), k, off, per_mille) for c, k, off, per_mille
+                                  in zip(self.outputs, self.counts_per_rad, self.offset, self.per_mille_per_nm, strict=True))
+
+    def __len__(self) -> int:
+        return len(self.specs)
+
+    # ------------------------------------------------------------ per cycle
+
+    def decode(self) -> None:
+        """Unpack every drive's inputs; unwrap the positions; convert to SI units."""
+        pos, motor, vel, eff = [], [], [], []
+        counts, raw_position, statuswords, error_codes = self.counts, self.raw_position, self.statuswords, self.error_codes
+        started = self._started
+        i = 0
+        for (unpack, buf, offset), rad, motor_rad, nm, off in self._decode_plan:
+            sw, raw, v, t, err = unpack(buf, offset)
+            statuswords[i] = sw
+            error_codes[i] = err
+            c = counts[i] + ((raw - raw_position[i] + _I32) & 0xFFFFFFFF) - _I32 if started else raw
+            counts[i] = c
+            raw_position[i] = raw
+            pos.append(c * rad + off)
+            motor.append(c * motor_rad)
+            vel.append(v * rad)
+            eff.append(t * nm)
+            i += 1
+        self._started = True
+        self._decoded = (pos, motor, vel, eff)
+
+    def read(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray,
+             motor_position: np.ndarray) -> None:
+        """The decoded values → the driver's state rows (rad, rad/s, N·m; motor side in rad)."""
+        rows = self._rows
+        pos, motor, vel, eff = self._decoded
+        position[rows] = pos
+        motor_position[rows] = motor
+        velocity[rows] = vel
+        effort[rows] = eff
+
+    def update_machines(self, on_event: Callable[[int, DriveEvent], None]) -> None:
+        """Run the state machines when a statusword changed or a drive is not steadily enabled;
+        their controlwords and hold flags are used by :meth:`write`."""
+        status = self.statuswords
+        if self._steady and status == self._last_status:
+            return
+        self._last_status = list(status)
+        steady = True
+        for i, machine in enumerate(self.machines):
+            self.controlwords[i] = machine.update(status[i], self.error_codes[i])
+            self.hold[i] = machine.hold_target
+            for event in machine.events:
+                on_event(i, event)
+            if machine.hold_target or machine.target is not Target.ENABLED or machine.controlword & 0x80:
+                steady = False
+        self._steady = steady
+
+    def invalidate(self) -> None:
+        """Run the machines next cycle whatever the statuswords (after a request)."""
+        self._steady = False
+
+    def write(self, cmd_position: np.ndarray, cmd_velocity: np.ndarray, cmd_effort: np.ndarray,
+              cmd_feedforward: np.ndarray, cmd_mode: np.ndarray) -> None:
+        """Commands → targets, modes and controlwords; a drive in ``hold`` gets target = actual."""
+        rows = self._rows
+        cp = cmd_position[rows].tolist()
+        cv = cmd_velocity[rows].tolist()
+        ce = (cmd_effort[rows] + cmd_feedforward[rows]).tolist()
+        cm = cmd_mode[rows].tolist()
+        modes, hold, controlwords, raw_position = MODE_OF_OPERATION, self.hold, self.controlwords, self.raw_position
+        i = 0
+        for (pack, buf, offset), k, off, per_mille in self._encode_plan:
+            if hold[i]:
+                pack(buf, offset, controlwords[i], raw_position[i], 0, 0, CSP)
+            else:
+                velocity = round(cv[i] * k)
+                torque = round(ce[i] * per_mille)
+                pack(buf, offset, controlwords[i],
+                     ((round((cp[i] - off) * k) + _I32) & 0xFFFFFFFF) - _I32,  # wraps as the drive counts
+                     velocity if -_I32 <= velocity < _I32 else (_I32 - 1 if velocity > 0 else -_I32),
+                     torque if -_I16 <= torque < _I16 else (_I16 - 1 if torque > 0 else -_I16),
+                     modes.get(cm[i], CSP))
+            i += 1
+
+    def write_holding(self) -> None:
+        """Every drive: its controlword, target = actual (before the first tick, and in a stop)."""
+        for (pack, buf, offset), controlword, raw in zip((p[0] for p in self._encode_plan), self.controlwords,
+                                                         self.raw_position):
+            pack(buf, offset, controlword, raw, 0, 0, CSP)
+
+    def request(self, target: Target) -> None:
+        for machine in self.machines:
+            machine.target = target
+        self.invalidate()
+
+    def reset_faults(self) -> list[str]:
+        """Grant one fault reset to every drive in fault; their names."""
+        reset = []
+        for machine in self.machines:
+            if machine.faulted:
+                machine.reset_fault()
+                reset.append(machine.name)
+        self.invalidate()
+        return reset
+
+    def all_enabled(self) -> bool:
+        return all(m.enabled and not m.hold_target for m in self.machines)
+
+
+class ImuDevice:
+    """An IMU slave → an ``imu`` record (quaternion w, x, y, z; rad/s; m/s²); status bit 0 = valid."""
+
+    def __init__(self, image: ProcessImage, slave: str, record: DeviceRecord, variables: dict[str, str]) -> None:
+        self.slave = slave
+        self.record = record
+        names = [variables["quaternion"], variables["angular_velocity"], variables["linear_acceleration"]]
+        for name, n in zip(names, (4, 3, 3), strict=True):
+            _check_group(image, slave, name, n)
+        self.has_status = bool(variables.get("status"))
+        self.codec = image.codec(slave, names + ([variables["status"]] if self.has_status else []))
+
+    def read(self, tick: int, now_ns: int, lost: bool) -> None:
+        rec = self.record
+        if lost:
+            rec.set_fault(Fault.HARDWARE)
+            return
+        values = self.codec.unpack()
+        if self.has_status and not values[3] & 1:
+            rec.set_fault(Fault.HARDWARE)
+            return
+        rec.quaternion[:] = values[0]
+        rec.angular_velocity[:] = values[1]
+        rec.linear_acceleration[:] = values[2]
+        rec.mark_fresh(tick, now_ns)
+        rec.set_fault(0)
+
+
+class ForceTorqueDevice:
+    """A force/torque slave → a ``force_torque`` record (N, N·m); status bit 0 valid, bit 1 overload."""
+
+    def __init__(self, image: ProcessImage, slave: str, record: DeviceRecord, variables: dict[str, str]) -> None:
+        self.slave = slave
+        self.record = record
+        _check_group(image, slave, variables["wrench"], 6)
+        self.has_status = bool(variables.get("status"))
+        self.codec = image.codec(slave, [variables["wrench"]] + ([variables["status"]] if self.has_status else []))
+
+    def read(self, tick: int, now_ns: int, lost: bool) -> None:
+        rec = self.record
+        if lost:
+            rec.set_fault(Fault.HARDWARE)
+            return
+        values = self.codec.unpack()
+        wrench = values[0]
+        rec.force[:] = wrench[:3]
+        rec.torque[:] = wrench[3:]
+        rec.mark_fresh(tick, now_ns)
+        status = values[1] if self.has_status else 1
+        rec.set_fault(0 if status & 1 and not status & 2 else Fault.HARDWARE)
+
+
+def _check_group(image: ProcessImage, slave: str, name: str, n: int) -> None:
+    var = image.variable(f"{slave}.{name}")
+    if var.shape != (n,) or not var.byte_aligned:
+        raise VariableTypeError(f'"{var.full_name}" must be {n} contiguous values, it is '
+                                f"{var.type}{list(var.shape) or ''}")

@@ -1,0 +1,569 @@
+"""``ethercat``: an EtherCAT master on pysoem, with CiA 402 drives, IMUs and F/T sensors.
+
+Bring-up runs off the tick, in the driver's own thread: find the slaves, read each one's PDO
+mapping over CoE, map the process data, set DC up, SAFEOP, a valid process-data cycle, OP,
+then enable the drives with target = actual (bumpless). Until the first tick a keep-alive
+thread cycles the bus so that no slave's watchdog trips.
+
+Each tick, one frame carries every slave's process data. With ``exchange = "split"`` (the
+default) ``write`` sends the frame with this tick's outputs and the next tick's ``read``
+receives it: the frame has a whole period to come back and nobody waits for it. With
+``"immediate"``, ``read`` sends the outputs of the previous tick and waits for the frame (the
+inputs are as fresh as they can be; the tick pays the round trip, which is measured).
+
+The working counter is checked every cycle against the driver's own sum (2 per slave with
+outputs, 1 per slave with inputs, leaving out slaves known to be lost). A bad cycle keeps the
+last inputs and does not refresh the joints. ``wkc_error_limit`` bad cycles in a row read
+every slave's state: a drive that left OP fails the driver (the loop sends every driver its
+emergency stop and the robot to its safe state); a lost sensor faults its device, the run goes
+on without it, and it is brought back to OP step by step every ``recover_interval_s``.
+
+A drive fault (CiA 402) faults its joint, is reported, and asks the loop to hold the robot;
+:meth:`EthercatDriver.reset_faults` grants one fault reset, and the drive is re-enabled where
+it stands (target = actual, the joint's command resynchronised by the loop).
+
+SDOs (:meth:`sdo_read`, :meth:`sdo_write`) are awaitables that run in the driver's thread,
+never on the tick. The driver opens only ``options.interface`` (SOEM sends raw broadcast
+frames and sets the interface promiscuous).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Literal
+
+import numpy as np
+import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
+from pydantic import Field
+
+from aiohal.busvar import ProcessImage
+from aiohal.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
+from aiohal.hal import Driver, FiniteFloat, Options
+from aiohal.logutil import RateLimitedLogger
+from aiohal.robot import Fault
+
+from .bus import OP, BringUpError, Bus, EthercatError, SlaveInfo, check_identity, expected_wkc, state_name
+from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
+
+log = logging.getLogger(__name__)
+
+RING = 1 << 14  # per-cycle timings kept for the report (the last 16 s at 1 kHz)
+IMU_VARIABLES = {"quaternion": "Orientation", "angular_velocity": "Angular velocity",
+                 "linear_acceleration": "Linear acceleration", "status": "Status"}
+FT_VARIABLES = {"wrench": "Wrench", "status": "Status"}
+
+
+class DriveUnitOptions(Options):
+    counts_per_rev: FiniteFloat = Field(131072, gt=0, description="Encoder increments per motor revolution (0x608F).")
+    gear_ratio: FiniteFloat = Field(1.0, gt=0, description="Motor revolutions per joint revolution.")
+    rated_torque: FiniteFloat = Field(1.0, gt=0, description="Motor rated torque in N·m (0x6076 / 1000).")
+
+
+class SlaveOptions(Options):
+    name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_ -]*$", description="Bus variables are '<name>.<variable>'.")
+    kind: Literal["cia402", "imu", "force_torque", "other"] = "other"
+    joint: str | None = Field(None, description="cia402: the joint this drive moves.")
+    device: str | None = Field(None, description="imu / force_torque: the robot device it fills.")
+    vendor_id: int | None = Field(None, ge=0, description="Checked at bring-up when given.")
+    product_code: int | None = Field(None, ge=0, description="Checked at bring-up when given.")
+    counts_per_rev: FiniteFloat | None = Field(None, gt=0)
+    gear_ratio: FiniteFloat | None = Field(None, gt=0)
+    rated_torque: FiniteFloat | None = Field(None, gt=0)
+    position_offset: FiniteFloat = Field(0.0, description="rad added to the drive's position.")
+    names: dict[str, str | list[str]] = Field(default_factory=dict, description="Bus variable names by address.")
+    variables: dict[str, str] = Field(default_factory=dict, description="imu / force_torque: which variables to read.")
+
+
+class EthercatOptions(Options):
+    interface: str = Field(min_length=1, description="The one network interface the master opens.")
+    slaves: list[SlaveOptions] = Field(min_length=1, description="Every slave, in bus order.")
+    drive_defaults: DriveUnitOptions = Field(default_factory=DriveUnitOptions)
+    exchange: Literal["split", "immediate"] = "split"
+    receive_timeout_us: int = Field(200, ge=10, le=100_000, description="Wait for the cyclic frame in read().")
+    bringup_receive_timeout_us: int = Field(50_000, ge=1000, le=1_000_000)
+    frame_timeout_us: int | None = Field(None, ge=500, le=100_000,
+                                         description="pysoem.settings.timeouts.ret (process-wide) for bring-up frames.")
+    overlap_map: bool = Field(False, description="config_overlap_map (inputs and outputs share logical addresses).")
+    dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
+    wkc_error_limit: int = Field(10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read.")
+    recover_interval_s: FiniteFloat = Field(1.0, gt=0, description="Between two recovery steps of a lost sensor.")
+    enable_on_open: bool = True
+    enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
+    op_timeout_s: FiniteFloat = Field(5.0, gt=0)
+    stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
+
+
+class EthercatDriver(Driver):
+    Options = EthercatOptions
+    device_kinds = frozenset({"imu", "force_torque"})
+    options: EthercatOptions
+
+    @classmethod
+    def check_config(cls, options, joints, devices, robot):
+        issues: list[tuple[str, str]] = []
+        seen: dict[str, int] = {}
+        drives_for: dict[str, int] = {}
+        for i, s in enumerate(options.slaves):
+            where = f"options.slaves[{i}]"
+            key = s.name.strip().lower().replace(" ", "_")
+            if key in seen:
+                issues.append((f"{where}.name", f"{s.name!r} is also the name of slaves[{seen[key]}]"))
+            seen[key] = i
+            if s.kind == "cia402":
+                if s.joint is None:
+                    issues.append((f"{where}.joint", "a cia402 drive needs the joint it moves"))
+                elif s.joint not in joints:
+                    issues.append((f"{where}.joint", f'"{s.joint}" is not one of this driver\'s joints {joints}'))
+                elif s.joint in drives_for:
+                    issues.append((f"{where}.joint", f'"{s.joint}" is already moved by slaves[{drives_for[s.joint]}]'))
+                else:
+                    drives_for[s.joint] = i
+            elif s.joint is not None:
+                issues.append((f"{where}.joint", f"only a cia402 drive moves a joint, this slave is {s.kind!r}"))
+            if s.kind in ("imu", "force_torque"):
+                if s.device is None:
+                    issues.append((f"{where}.device", f"an {s.kind} slave needs the device it fills"))
+                elif devices.get(s.device) != s.kind:
+                    issues.append((f"{where}.device", f'"{s.device}" is not an {s.kind} device of this driver'))
+                allowed = IMU_VARIABLES if s.kind == "imu" else FT_VARIABLES
+                for key in s.variables:
+                    if key not in allowed:
+                        issues.append((f"{where}.variables.{key}", f"unknown; expected one of {sorted(allowed)}"))
+            elif s.device is not None:
+                issues.append((f"{where}.device", f"a {s.kind} slave fills no device"))
+        for joint in joints:
+            if joint not in drives_for:
+                issues.append(("joints", f'joint "{joint}" has no cia402 drive in options.slaves'))
+        served = {s.device for s in options.slaves}
+        for name in devices:
+            if name not in served:
+                issues.append(("devices", f'device "{name}" has no slave in options.slaves'))
+        return issues
+
+    # ------------------------------------------------------------ lifecycle
+
+    async def open(self) -> None:
+        opts = self.options
+        if opts.frame_timeout_us is not None:
+            pysoem.settings.timeouts.ret = opts.frame_timeout_us
+        self._pysoem = pysoem
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"ethercat-{self.name}")
+        self._init_state()
+        self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map)
+        loop = asyncio.get_running_loop()
+        try:
+            await loop.run_in_executor(self._executor, self._bring_up)
+        except BaseException:
+            await loop.run_in_executor(self._executor, self._shutdown)
+            raise
+
+    def _init_state(self) -> None:
+        self._running = False  # the loop ticks (first read done)
+        self._estopped = False
+        self._outstanding = False  # a cyclic frame was sent and not yet received
+        self._written = False  # write() packed this tick's outputs (the loop skips write in ESTOP)
+        self._lost_slaves: set[Any] = set()
+        self._keepalive: threading.Thread | None = None
+        self._keepalive_stop = threading.Event()
+        self._keepalive_error: BaseException | None = None
+        self.infos: list[SlaveInfo] = []
+        self.image: ProcessImage | None = None
+        self.drives: DriveGroup | None = None
+        self.sensors: list[tuple[int, ImuDevice | ForceTorqueDevice]] = []
+        self.lost: set[int] = set()
+        self._expected = 0
+        self._bad_run = 0
+        self._next_recover = 0.0
+        self.cycles = 0
+        self.wkc_errors = 0
+        self.diagnoses = 0
+        self.recovered = 0
+        self.drive_faults = 0
+        self._rtt_ns = np.zeros(RING, dtype=np.int64)
+        self._cpu_ns = np.zeros(RING, dtype=np.int64)
+        self._read_cpu = 0
+        self._warn = RateLimitedLogger(log)
+
+    def _bring_up(self) -> None:
+        """Blocking: from nothing to OP with the drives enabled; runs in the driver's thread."""
+        opts, bus = self.options, self.bus
+        found = bus.open()
+        if found != len(opts.slaves):
+            names = ", ".join(f"{i}: {s.name}" for i, s in enumerate(bus.slaves)) or "none"
+            raise BringUpError(f"found {found} slave(s) on {opts.interface!r} ({names}), "
+                               f"options.slaves lists {len(opts.slaves)}")
+        layouts = [bus.read_layout(i, s.names) for i, s in enumerate(opts.slaves)]
+        bus.map(opts.dc)
+        for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
+            info = SlaveInfo(i, s.name, slave.name, slave.man, slave.id, slave.rev, layout,
+                             len(slave.output), len(slave.input))
+            check_identity(info, s.vendor_id, s.product_code)
+            self.infos.append(info)
+        self.image = image = ProcessImage([(s.name, layout) for s, layout in zip(opts.slaves, layouts, strict=True)])
+        for info in self.infos:
+            image.slave(info.name).check_sizes(info.output_bytes, info.input_bytes)
+        self._link_devices()
+        self._expected = expected_wkc(self.infos, set())
+        if self._expected != self.bus.master.expected_wkc:
+            log.info("ethercat %s: expected working counter %d (pysoem says %d)", self.name, self._expected,
+                     self.bus.master.expected_wkc)
+        # inputs are copied in image order with one join; outputs sliced per slave
+        by_input = sorted((i for i in self.infos if i.input_bytes), key=lambda i: image.slave(i.name).input_offset)
+        self._in_order = [bus.slaves[i.position] for i in by_input]
+        self._in_parts = [(bus.slaves[i.position], image.slave(i.name)) for i in by_input]
+        self._contiguous_inputs = sum(i.input_bytes for i in by_input) == len(image.inputs)
+        self._out_parts = [(bus.slaves[i.position], image.slave(i.name).output_offset,
+                            image.slave(i.name).output_offset + i.output_bytes) for i in self.infos if i.output_bytes]
+        period_s = self.view.clock.period_ns * 1e-9
+        bus.request_op(self._bringup_cycle, opts.op_timeout_s, period_s)
+        log.info("ethercat %s: %d slave(s) in OP on %s, %d B out / %d B in", self.name, len(self.infos),
+                 opts.interface, len(image.outputs), len(image.inputs))
+        self._start_keepalive(period_s)
+        if self.drives is not None and opts.enable_on_open:
+            self._wait_enabled(opts.enable_timeout_s)
+
+    def _link_devices(self) -> None:
+        opts, image, view = self.options, self.image, self.view
+        assert image is not None
+        specs = []
+        defaults = opts.drive_defaults
+        for i, s in enumerate(opts.slaves):
+            if s.kind == "cia402":
+                units = DriveUnits(s.counts_per_rev or defaults.counts_per_rev, s.gear_ratio or defaults.gear_ratio,
+                                   s.rated_torque or defaults.rated_torque)
+                specs.append(DriveSpec(s.name, s.joint, view.joint_names.index(s.joint), units, s.position_offset))
+            elif s.kind == "imu":
+                self.sensors.append((i, ImuDevice(image, s.name, view.devices[s.device], {**IMU_VARIABLES, **s.variables})))
+            elif s.kind == "force_torque":
+                self.sensors.append((i, ForceTorqueDevice(image, s.name, view.devices[s.device],
+                                                          {**FT_VARIABLES, **s.variables})))
+        if specs:
+            stuck = max(1, round(opts.stuck_after_ms * 1e6 / self.view.clock.period_ns))
+            self.drives = DriveGroup(image, specs, stuck_after=stuck)
+            self._drive_mask = np.zeros(view.dof, dtype=bool)
+
+    # ------------------------------------------------------------ bring-up cycling (driver's threads)
+
+    def _bringup_cycle(self) -> None:
+        """One blocking exchange with hold targets (drives follow nothing yet)."""
+        self._pack_outputs_holding()
+        self.bus.send()
+        wkc = self.bus.receive(self.options.bringup_receive_timeout_us)
+        if wkc == self._expected:
+            self._load_inputs()
+            if self.drives is not None:
+                self.drives.decode()
+                self.drives.update_machines(self._on_drive_event)
+
+    def _pack_outputs_holding(self) -> None:
+        if self.drives is not None:
+            self.drives.write_holding()
+        self._write_outputs()
+
+    def _start_keepalive(self, period_s: float) -> None:
+        self._keepalive_stop.clear()
+        ready = threading.Event()
+
+        def run() -> None:
+            try:
+                deadline = time.monotonic()
+                while not self._keepalive_stop.is_set():
+                    self._bringup_cycle()
+                    ready.set()
+                    deadline += period_s
+                    time.sleep(max(0.0, deadline - time.monotonic()))
+            except BaseException as exc:  # reported by the first read or by open
+                self._keepalive_error = exc
+                ready.set()
+
+        self._keepalive = threading.Thread(target=run, name=f"ethercat-{self.name}-keepalive", daemon=True)
+        self._keepalive.start()
+        ready.wait(5.0)
+
+    def _stop_keepalive(self) -> None:
+        thread, self._keepalive = self._keepalive, None
+        if thread is not None:
+            self._keepalive_stop.set()
+            thread.join(2.0)
+        if self._keepalive_error is not None:
+            exc, self._keepalive_error = self._keepalive_error, None
+            raise EthercatError(f"cycling the bus before the first tick failed: {exc}") from exc
+
+    def _wait_enabled(self, timeout_s: float) -> None:
+        drives = self.drives
+        assert drives is not None
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and self._keepalive_error is None:
+            if drives.all_enabled():
+                return
+            time.sleep(0.005)
+        self._stop_keepalive()
+        states = ", ".join(f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")
+                           for m in drives.machines if not m.enabled)
+        raise BringUpError(f"drives not enabled within {timeout_s:g} s: {states}")
+
+    # ------------------------------------------------------------ the tick
+
+    async def read(self) -> None:
+        t0 = time.perf_counter_ns()
+        if not self._running:
+            self._stop_keepalive()
+            self._running = True
+        bus = self.bus
+        if not self._outstanding:
+            if not self._written:  # first tick, or the loop commands nothing (emergency stop)
+                self._pack_outputs_holding()
+            bus.send()
+        self._written = False
+        sent = time.perf_counter_ns()
+        wkc = bus.receive(self.options.receive_timeout_us)
+        received = time.perf_counter_ns()
+        self._outstanding = False
+        self.cycles += 1
+        # immediate: the round trip; split: what was left of it after a whole tick
+        self._rtt_ns[self.cycles & (RING - 1)] = received - sent
+        if wkc == self._expected:
+            if self._bad_run:
+                self._bad_run = 0
+            self._load_inputs()
+            view = self.view
+            clock = view.clock
+            drives = self.drives
+            if drives is not None:
+                drives.decode()
+                drives.update_machines(self._on_drive_event)
+                state = view.state
+                drives.read(state.position, state.velocity, state.effort, state.motor_position)
+            for position, sensor in self.sensors:
+                sensor.read(clock.tick, clock.now_ns, position in self.lost)
+            view.mark_fresh()
+        else:
+            self.wkc_errors += 1
+            self._bad_run += 1
+            if self._bad_run >= self.options.wkc_error_limit:
+                self._diagnose(wkc)
+        if self.lost and time.monotonic() >= self._next_recover:
+            self._recover_lost()
+        self._read_cpu = (time.perf_counter_ns() - t0) - (received - sent)
+
+    def _load_inputs(self) -> None:
+        image = self.image
+        if self._contiguous_inputs and not self.lost:
+            image.inputs[:] = np.frombuffer(b"".join([s.input for s in self._in_order]), dtype=np.uint8)
+            return
+        lost = self.lost
+        for info_slave, part in self._in_parts:
+            if not lost or info_slave not in self._lost_slaves:
+                part.load_inputs(info_slave.input)
+
+    async def write(self) -> None:
+        t0 = time.perf_counter_ns()
+        drives = self.drives
+        if drives is not None:
+            cmd = self.view.command
+            drives.write(cmd.position, cmd.velocity, cmd.effort, cmd.feedforward, cmd.mode)
+        self._write_outputs()
+        self._written = True
+        if self.options.exchange == "split":
+            self.bus.send()
+            self._outstanding = True
+        self._cpu_ns[self.cycles & (RING - 1)] = self._read_cpu + time.perf_counter_ns() - t0
+
+    def _write_outputs(self) -> None:
+        out = self.image.outputs.tobytes()
+        for slave, start, end in self._out_parts:
+            slave.output = out[start:end]
+
+    # ------------------------------------------------------------ events and bus errors
+
+    def _on_drive_event(self, i: int, event: DriveEvent) -> None:
+        drives = self.drives
+        spec = drives.specs[i]
+        row = spec.row
+        fault = self.view.state.fault
+        kind = event.kind
+        if not self._running:  # bring-up: open() reports what does not come up
+            log.info("ethercat %s: %s", self.name, event)
+            return
+        if kind is EventKind.FAULT_ENTERED:
+            self.drive_faults += 1
+            fault[row] |= Fault.HARDWARE
+            reason = f"joint {spec.joint}: {event}"
+            self.view.report_fault("read", reason)
+            self.view.request_hold(reason)
+        elif kind is EventKind.LOST_ENABLED and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT) \
+                and drives.machines[i].target is Target.ENABLED:
+            fault[row] |= Fault.HARDWARE
+            reason = f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label})"
+            self.view.report_fault("read", reason)
+            self.view.request_hold(reason)
+        elif kind is EventKind.STUCK:
+            fault[row] |= Fault.HARDWARE
+            self.view.report_fault("read", f"joint {spec.joint}: {event}")
+            self.view.request_hold(str(event))
+        elif kind is EventKind.BECAME_ENABLED and fault[row] & Fault.HARDWARE:
+            fault[row] &= ~np.uint32(Fault.HARDWARE)
+            mask = self._drive_mask
+            mask[:] = False
+            mask[row] = True
+            self.view.resync(mask)
+            log.warning("ethercat %s: joint %s enabled again where it stands", self.name, spec.joint)
+        else:
+            log.info("ethercat %s: %s", self.name, event)
+
+    def _diagnose(self, wkc: int) -> None:
+        """``wkc_error_limit`` bad cycles in a row: which slaves are not in OP?"""
+        self.diagnoses += 1
+        self._bad_run = 0
+        states = self.bus.states()  # holds the GIL for a frame or two
+        lost = {i for i, st in enumerate(states) if st != OP}
+        if not lost:
+            self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
+                               self.name, wkc, self._expected)
+            return
+        describe = [f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
+                    f"{self.bus.slaves[i].al_status:04X}" for i in sorted(lost)]
+        drives_lost = [i for i in sorted(lost) if self.options.slaves[i].kind == "cia402"]
+        if drives_lost:
+            joints = ", ".join(self.options.slaves[i].joint or "?" for i in drives_lost)
+            raise EthercatError(f"working counter {wkc}/{self._expected}: drive(s) of joint(s) {joints} "
+                                f"out of OP: " + "; ".join(describe))
+        for i in sorted(lost - self.lost):
+            self.view.report_fault("read", f"{describe[sorted(lost).index(i)]}: lost; the run goes on without it, "
+                                   f"recovery every {self.options.recover_interval_s:g} s")
+        for i in sorted(self.lost - lost):
+            self._recovered(i)
+        self._set_lost(lost)
+        self._next_recover = time.monotonic() + self.options.recover_interval_s
+
+    def _set_lost(self, lost: set[int]) -> None:
+        self.lost = set(lost)
+        self._lost_slaves = {self.bus.slaves[i] for i in lost}
+        self._expected = expected_wkc(self.infos, self.lost)
+        for position, sensor in self.sensors:
+            if position in lost:
+                sensor.record.set_fault(Fault.HARDWARE)
+
+    def _recover_lost(self) -> None:
+        """One recovery step for each lost slave (holds the GIL for a few frames)."""
+        self._next_recover = time.monotonic() + self.options.recover_interval_s
+        back = [i for i in sorted(self.lost) if self.bus.recover_step(i)]
+        for i in back:
+            self._recovered(i)
+        if back:
+            self._set_lost(self.lost - set(back))
+
+    def _recovered(self, i: int) -> None:
+        self.recovered += 1
+        log.warning("ethercat %s: slave %d (%s) is back in OP", self.name, i, self.infos[i].name)
+
+    # ------------------------------------------------------------ application API
+
+    def reset_faults(self) -> list[str]:
+        """Grant one fault reset to every faulted drive (the drive is re-enabled where it stands);
+        the names of those drives."""
+        if self.drives is None:
+            return []
+        return self.drives.reset_faults()
+
+    def _position(self, slave: str | int) -> int:
+        if isinstance(slave, int):
+            if not 0 <= slave < len(self.infos):
+                raise EthercatError(f"no slave at position {slave} (the bus has {len(self.infos)})")
+            return slave
+        for info in self.infos:
+            if info.name.lower() == slave.lower():
+                return info.position
+        raise EthercatError(f"no slave named {slave!r} (slaves: {', '.join(i.name for i in self.infos)})")
+
+    async def sdo_read(self, slave: str | int, index: int, subindex: int = 0, size: int = 0) -> bytes:
+        """Upload an object over CoE; runs in the driver's thread, not on the tick."""
+        position = self._position(slave)
+        return await asyncio.get_running_loop().run_in_executor(
+            self._executor, self.bus.sdo_read, position, index, subindex, size)
+
+    async def sdo_write(self, slave: str | int, index: int, subindex: int, data: bytes) -> None:
+        """Download an object over CoE; runs in the driver's thread, not on the tick."""
+        position = self._position(slave)
+        await asyncio.get_running_loop().run_in_executor(
+            self._executor, self.bus.sdo_write, position, index, subindex, bytes(data))
+
+    # ------------------------------------------------------------ safety and shutdown
+
+    def estop(self) -> None:
+        """Quick stop every drive now: one frame sent from here; later cycles keep it."""
+        if getattr(self, "_estopped", True):
+            return
+        self._estopped = True
+        drives = self.drives
+        if drives is None or not self.bus.is_open:
+            return
+        drives.request(Target.QUICK_STOP)
+        if self._keepalive is not None or self._outstanding:
+            return  # the keep-alive thread, or the next tick's frame, carries the request
+        try:
+            drives.controlwords[:] = [0x02] * len(drives)  # Quick stop (the machines take over next cycle)
+            self._pack_outputs_holding()
+            self.bus.send()
+            self._outstanding = True
+        except Exception as exc:  # never raise from estop
+            log.error("ethercat %s: sending the quick stop failed: %s", self.name, exc)
+
+    async def close(self) -> None:
+        if not hasattr(self, "bus"):
+            return
+        try:
+            self._stop_keepalive()
+        except EthercatError as exc:
+            log.warning("ethercat %s: %s", self.name, exc)
+        await asyncio.get_running_loop().run_in_executor(self._executor, self._shutdown)
+        self._executor.shutdown(wait=False)
+
+    def _shutdown(self) -> None:
+        """Disable the drives over a few cycles (bounded), then every slave to INIT."""
+        bus, drives = self.bus, self.drives
+        try:
+            if bus.is_open and drives is not None and self.image is not None:
+                drives.request(Target.DISABLED)
+                period_s = self.view.clock.period_ns * 1e-9
+                for _ in range(50):
+                    if self._outstanding:
+                        bus.receive(self.options.bringup_receive_timeout_us)
+                        self._outstanding = False
+                    self._bringup_cycle()
+                    if all(m.state in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT)
+                           for m in drives.machines):
+                        break
+                    time.sleep(period_s)
+        except Exception as exc:
+            log.warning("ethercat %s: disabling the drives failed: %s", self.name, exc)
+        finally:
+            bus.close()
+
+    def health(self) -> dict[str, Any]:
+        if not hasattr(self, "cycles"):
+            return {}
+        n = min(self.cycles, RING)
+        out: dict[str, Any] = {
+            "interface": self.options.interface, "slaves": len(self.infos), "cycles": self.cycles,
+            "wkc_errors": self.wkc_errors, "expected_wkc": self._expected, "exchange": self.options.exchange,
+        }
+        if n:
+            key = "rtt_us" if self.options.exchange == "immediate" else "receive_wait_us"
+            rtt = self._rtt_ns[:n] if self.cycles < RING else self._rtt_ns
+            cpu = self._cpu_ns[:n] if self.cycles < RING else self._cpu_ns
+            out[key] = [round(float(v) / 1e3, 1) for v in np.percentile(rtt, (50, 99))]
+            out["cpu_us"] = [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
+        if self.drives is not None:
+            enabled = sum(m.enabled for m in self.drives.machines)
+            out["drives_enabled"] = f"{enabled}/{len(self.drives)}"
+            out["drive_faults"] = self.drive_faults
+        if self.lost or self.diagnoses:
+            out["lost"] = [self.infos[i].name for i in sorted(self.lost)]
+            out["diagnoses"] = self.diagnoses
+            out["recovered"] = self.recovered
+        return out
