@@ -46,7 +46,7 @@ from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 
-from .bus import OP, BringUpError, Bus, EthercatError, SlaveInfo, check_identity, expected_wkc, state_name
+from .bus import OP, SAFEOP, BringUpError, Bus, EthercatError, SlaveInfo, check_identity, expected_wkc, state_name
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 
 log = logging.getLogger(__name__)
@@ -183,6 +183,7 @@ class EthercatDriver(Driver):
         self.diagnoses = 0
         self.recovered = 0
         self.drive_faults = 0
+        self._enabled_at_close: int | None = None
         self._rtt_ns = np.zeros(RING, dtype=np.int64)
         self._cpu_ns = np.zeros(RING, dtype=np.int64)
         self._read_cpu = 0
@@ -438,12 +439,14 @@ class EthercatDriver(Driver):
         for i in sorted(self.lost - lost):
             self._recovered(i)
         self._set_lost(lost)
+        # a slave in SAFEOP still counts in the working counter (its SyncManagers work; only its
+        # application ignores the outputs), one below SAFEOP or gone does not
+        self._expected = sum(info.wkc for info, st in zip(self.infos, states, strict=True) if st & 0x0F in (SAFEOP, OP))
         self._next_recover = time.monotonic() + self.options.recover_interval_s
 
     def _set_lost(self, lost: set[int]) -> None:
         self.lost = set(lost)
         self._lost_slaves = {self.bus.slaves[i] for i in lost}
-        self._expected = expected_wkc(self.infos, self.lost)
         for position, sensor in self.sensors:
             if position in lost:
                 sensor.record.set_fault(Fault.HARDWARE)
@@ -520,6 +523,8 @@ class EthercatDriver(Driver):
             self._stop_keepalive()
         except EthercatError as exc:
             log.warning("ethercat %s: %s", self.name, exc)
+        if self.drives is not None:  # for the report: how the run left them, not the shutdown
+            self._enabled_at_close = sum(m.enabled for m in self.drives.machines)
         await asyncio.get_running_loop().run_in_executor(self._executor, self._shutdown)
         self._executor.shutdown(wait=False)
 
@@ -559,7 +564,9 @@ class EthercatDriver(Driver):
             out[key] = [round(float(v) / 1e3, 1) for v in np.percentile(rtt, (50, 99))]
             out["cpu_us"] = [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
         if self.drives is not None:
-            enabled = sum(m.enabled for m in self.drives.machines)
+            enabled = getattr(self, "_enabled_at_close", None)
+            if enabled is None:
+                enabled = sum(m.enabled for m in self.drives.machines)
             out["drives_enabled"] = f"{enabled}/{len(self.drives)}"
             out["drive_faults"] = self.drive_faults
         if self.lost or self.diagnoses:
