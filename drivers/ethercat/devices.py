@@ -18,9 +18,10 @@ import numpy as np
 
 from aiohal.busvar import ProcessImage, VariableTypeError
 from aiohal.cia402 import CSP, CST, CSV, Cia402Drive, DriveEvent, DriveUnits, Target
-from aiohal.robot import DeviceRecord, Fault, Mode
+from aiohal.robot import JOINT_STATE_FIELDS, DeviceRecord, Fault, Mode
 
 #: joint command mode → CiA 402 mode of operation (impedance runs as CSP: the drive's own loop)
+CSP = int(CSP)
 MODE_OF_OPERATION = {int(Mode.NONE): int(CSP), int(Mode.POSITION): int(CSP), int(Mode.IMPEDANCE): int(CSP),
                      int(Mode.VELOCITY): int(CSV), int(Mode.EFFORT): int(CST)}
 DRIVE_INPUTS = ("Statusword", "Position actual value", "Velocity actual value", "Torque actual value", "Error code")
@@ -83,6 +84,7 @@ class DriveGroup:
         self._started = False
         self._last_status: list[int] = []
         self._steady = False  # every drive enabled, following, nothing pending
+        self._block: np.ndarray | None = None
         self._decoded: tuple[list[float], ...] = ([0.0] * n,) * 4  # position, motor position, velocity, effort
         # what the per-cycle loops need, bound once: (struct function, buffer, offset) and constants
         self._decode_plan = tuple(((c.unpack_from, c.buf, c.offset), rad, motor_rad, nm, off) for c, rad, motor_rad, nm, off
@@ -117,11 +119,20 @@ class DriveGroup:
         self._started = True
         self._decoded = (pos, motor, vel, eff)
 
+    def bind_state(self, block: np.ndarray) -> None:
+        """Write decoded values with one assignment into the state block's first four rows
+        (position, velocity, effort, motor position: JOINT_STATE_FIELDS' order)."""
+        assert JOINT_STATE_FIELDS[:4] == ("position", "velocity", "effort", "motor_position")
+        self._block = block[:4]
+
     def read(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray,
              motor_position: np.ndarray) -> None:
         """The decoded values → the driver's state rows (rad, rad/s, N·m; motor side in rad)."""
         rows = self._rows
         pos, motor, vel, eff = self._decoded
+        if self._block is not None:  # the state's rows 0-3 are position, velocity, effort, motor position
+            self._block[:, rows] = (pos, vel, eff, motor)
+            return
         position[rows] = pos
         motor_position[rows] = motor
         velocity[rows] = vel
@@ -159,16 +170,18 @@ class DriveGroup:
         modes, hold, controlwords, raw_position = MODE_OF_OPERATION, self.hold, self.controlwords, self.raw_position
         i = 0
         for (pack, buf, offset), k, off, per_mille in self._encode_plan:
+            mode = modes.get(cm[i], CSP)
             if hold[i]:
                 pack(buf, offset, controlwords[i], raw_position[i], 0, 0, CSP)
+            elif mode == CSP:  # the drive reads the position target only
+                pack(buf, offset, controlwords[i], ((round((cp[i] - off) * k) + _I32) & 0xFFFFFFFF) - _I32, 0, 0, CSP)
             else:
                 velocity = round(cv[i] * k)
                 torque = round(ce[i] * per_mille)
                 pack(buf, offset, controlwords[i],
                      ((round((cp[i] - off) * k) + _I32) & 0xFFFFFFFF) - _I32,  # wraps as the drive counts
                      velocity if -_I32 <= velocity < _I32 else (_I32 - 1 if velocity > 0 else -_I32),
-                     torque if -_I16 <= torque < _I16 else (_I16 - 1 if torque > 0 else -_I16),
-                     modes.get(cm[i], CSP))
+                     torque if -_I16 <= torque < _I16 else (_I16 - 1 if torque > 0 else -_I16), mode)
             i += 1
 
     def write_holding(self) -> None:

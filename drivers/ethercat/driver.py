@@ -51,7 +51,7 @@ from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 
 log = logging.getLogger(__name__)
 
-RING = 1 << 14  # per-cycle timings kept for the report (the last 16 s at 1 kHz)
+RING = 1 << 16  # per-cycle timings kept for the report (the last 65 s at 1 kHz)
 IMU_VARIABLES = {"quaternion": "Orientation", "angular_velocity": "Angular velocity",
                  "linear_acceleration": "Linear acceleration", "status": "Status"}
 FT_VARIABLES = {"wrench": "Wrench", "status": "Status"}
@@ -245,6 +245,7 @@ class EthercatDriver(Driver):
         if specs:
             stuck = max(1, round(opts.stuck_after_ms * 1e6 / self.view.clock.period_ns))
             self.drives = DriveGroup(image, specs, stuck_after=stuck)
+            self.drives.bind_state(self.view.state.block)
             self._drive_mask = np.zeros(view.dof, dtype=bool)
 
     # ------------------------------------------------------------ bring-up cycling (driver's threads)
@@ -557,6 +558,8 @@ class EthercatDriver(Driver):
             "interface": self.options.interface, "slaves": len(self.infos), "cycles": self.cycles,
             "wkc_errors": self.wkc_errors, "expected_wkc": self._expected, "exchange": self.options.exchange,
         }
+        if self.image is not None:
+            out["process_data_bytes"] = len(self.image.outputs) + len(self.image.inputs)
         if n:
             key = "rtt_us" if self.options.exchange == "immediate" else "receive_wait_us"
             rtt = self._rtt_ns[:n] if self.cycles < RING else self._rtt_ns
