@@ -209,14 +209,17 @@ class DriveGroup:
         return all(m.enabled and not m.hold_target for m in self.machines)
 
 
-class ImuDevice:
-    """An IMU slave → an ``imu`` record (quaternion w, x, y, z; rad/s; m/s²); status bit 0 = valid."""
+class SensorDevice:
+    """A sensor slave → one device record: its variables (by the keys of ``GROUPS``, with the
+    number of values each must have) and an optional status read with one codec."""
+
+    GROUPS: tuple[tuple[str, int], ...] = ()
 
     def __init__(self, image: ProcessImage, slave: str, record: DeviceRecord, variables: dict[str, str]) -> None:
         self.slave = slave
         self.record = record
-        names = [variables["quaternion"], variables["angular_velocity"], variables["linear_acceleration"]]
-        for name, n in zip(names, (4, 3, 3), strict=True):
+        names = [variables[key] for key, _ in self.GROUPS]
+        for name, (_, n) in zip(names, self.GROUPS, strict=True):
             _check_group(image, slave, name, n)
         self.has_status = bool(variables.get("status"))
         self.codec = image.codec(slave, names + ([variables["status"]] if self.has_status else []))
@@ -227,38 +230,49 @@ class ImuDevice:
             rec.set_fault(Fault.HARDWARE)
             return
         values = self.codec.unpack()
-        if self.has_status and not values[3] & 1:
-            rec.set_fault(Fault.HARDWARE)
-            return
+        status = values[-1] if self.has_status else 1
+        if self.fill(values, status):
+            rec.mark_fresh(tick, now_ns)
+        rec.set_fault(0 if self.valid(status) else Fault.HARDWARE)
+
+    def fill(self, values: tuple, status: int) -> bool:
+        """Copy the values into the record; False if they were not taken (not fresh)."""
+        raise NotImplementedError
+
+    @staticmethod
+    def valid(status: int) -> bool:
+        return bool(status & 1)
+
+
+class ImuDevice(SensorDevice):
+    """An IMU slave → an ``imu`` record (quaternion w, x, y, z; rad/s; m/s²); status bit 0 = valid."""
+
+    GROUPS = (("quaternion", 4), ("angular_velocity", 3), ("linear_acceleration", 3))
+
+    def fill(self, values: tuple, status: int) -> bool:
+        if not self.valid(status):  # an invalid orientation is not copied
+            return False
+        rec = self.record
         rec.quaternion[:] = values[0]
         rec.angular_velocity[:] = values[1]
         rec.linear_acceleration[:] = values[2]
-        rec.mark_fresh(tick, now_ns)
-        rec.set_fault(0)
+        return True
 
 
-class ForceTorqueDevice:
+class ForceTorqueDevice(SensorDevice):
     """A force/torque slave → a ``force_torque`` record (N, N·m); status bit 0 valid, bit 1 overload."""
 
-    def __init__(self, image: ProcessImage, slave: str, record: DeviceRecord, variables: dict[str, str]) -> None:
-        self.slave = slave
-        self.record = record
-        _check_group(image, slave, variables["wrench"], 6)
-        self.has_status = bool(variables.get("status"))
-        self.codec = image.codec(slave, [variables["wrench"]] + ([variables["status"]] if self.has_status else []))
+    GROUPS = (("wrench", 6),)
 
-    def read(self, tick: int, now_ns: int, lost: bool) -> None:
-        rec = self.record
-        if lost:
-            rec.set_fault(Fault.HARDWARE)
-            return
-        values = self.codec.unpack()
+    def fill(self, values: tuple, status: int) -> bool:
         wrench = values[0]
-        rec.force[:] = wrench[:3]
-        rec.torque[:] = wrench[3:]
-        rec.mark_fresh(tick, now_ns)
-        status = values[1] if self.has_status else 1
-        rec.set_fault(0 if status & 1 and not status & 2 else Fault.HARDWARE)
+        self.record.force[:] = wrench[:3]
+        self.record.torque[:] = wrench[3:]
+        return True
+
+    @staticmethod
+    def valid(status: int) -> bool:
+        return bool(status & 1) and not status & 2
 
 
 def _check_group(image: ProcessImage, slave: str, name: str, n: int) -> None:
