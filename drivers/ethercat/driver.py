@@ -214,10 +214,11 @@ class EthercatDriver(Driver):
                      self.bus.master.expected_wkc)
         # inputs are copied in image order with one join; outputs sliced per slave
         by_input = sorted((i for i in self.infos if i.input_bytes), key=lambda i: image.slave(i.name).input_offset)
-        self._in_order = [bus.slaves[i.position] for i in by_input]
+        # pysoem's property getters/setters, bound once: a property lookup per slave per cycle costs more
+        self._in_getters = [bus.slaves[i.position]._get_input for i in by_input]
         self._in_parts = [(bus.slaves[i.position], image.slave(i.name)) for i in by_input]
         self._contiguous_inputs = sum(i.input_bytes for i in by_input) == len(image.inputs)
-        self._out_parts = [(bus.slaves[i.position], image.slave(i.name).output_offset,
+        self._out_parts = [(bus.slaves[i.position]._set_output, image.slave(i.name).output_offset,
                             image.slave(i.name).output_offset + i.output_bytes) for i in self.infos if i.output_bytes]
         period_s = self.view.clock.period_ns * 1e-9
         bus.request_op(self._bringup_cycle, opts.op_timeout_s, period_s)
@@ -355,7 +356,7 @@ class EthercatDriver(Driver):
     def _load_inputs(self) -> None:
         image = self.image
         if self._contiguous_inputs and not self.lost:
-            image.inputs[:] = np.frombuffer(b"".join([s.input for s in self._in_order]), dtype=np.uint8)
+            image.inputs[:] = np.frombuffer(b"".join([get() for get in self._in_getters]), dtype=np.uint8)
             return
         lost = self.lost
         for info_slave, part in self._in_parts:
@@ -377,8 +378,8 @@ class EthercatDriver(Driver):
 
     def _write_outputs(self) -> None:
         out = self.image.outputs.tobytes()
-        for slave, start, end in self._out_parts:
-            slave.output = out[start:end]
+        for set_output, start, end in self._out_parts:
+            set_output(out[start:end])
 
     # ------------------------------------------------------------ events and bus errors
 
