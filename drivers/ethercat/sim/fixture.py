@@ -76,7 +76,7 @@ class SimulatedSegment:
 
     def __init__(self, slaves: str = "drive", *, watchdog_ms: float = 100.0, seed: int = 0,
                  inject: list[dict[str, Any]] | None = None, extra_args: list[str] | None = None,
-                 start_timeout_s: float = 15.0, python: str | None = None, rps_cpus: str | None = None) -> None:
+                 start_timeout_s: float = 15.0, python: str | None = None) -> None:
         self.slaves = slaves
         self.watchdog_ms = watchdog_ms
         self.seed = seed
@@ -84,9 +84,6 @@ class SimulatedSegment:
         self.extra_args = list(extra_args or [])
         self.start_timeout_s = start_timeout_s
         self.python = python or sys.executable
-        # receive packet steering of the simulator's end: frames the master sends are then
-        # processed on these CPUs (hex mask), not inside the master's send call (benchmarks)
-        self.rps_cpus = rps_cpus
         self.ifname = ""
         self.peer = ""
         self.proc: subprocess.Popen[str] | None = None
@@ -139,9 +136,6 @@ class SimulatedSegment:
             if f"pid={self.pid}" not in line:
                 raise SimulatorError(f"simulator pid mismatch: {line!r} vs {self.pid}")
             _ip("link", "add", self.ifname, "type", "veth", "peer", "name", self.peer)
-            if self.rps_cpus:
-                with open(f"/sys/class/net/{self.peer}/queues/rx-0/rps_cpus", "w") as f:
-                    f.write(self.rps_cpus)
             _ip("link", "set", self.peer, "netns", str(self.pid))
             try:
                 with open(f"/proc/sys/net/ipv6/conf/{self.ifname}/disable_ipv6", "w") as f:
