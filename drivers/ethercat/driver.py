@@ -456,7 +456,7 @@ class EthercatDriver(Driver):
     def _recover_lost(self) -> None:
         """One recovery step for each lost slave (holds the GIL for a few frames)."""
         self._next_recover = time.monotonic() + self.options.recover_interval_s
-        back = [i for i in sorted(self.lost) if self.bus.recover_step(i)]
+        back = self.bus.recover_steps(sorted(self.lost))
         for i in back:
             self._recovered(i)
         if back:
