@@ -780,8 +780,9 @@ class ProcessImage:
         variables = [self.variable(f"{slave}.{name}") for name in names]
         for var in variables:
             self._check_writable(var, writable)
-            if not var.byte_aligned:
-                raise VariableTypeError(f'"{var.full_name}" is not whole bytes on a byte boundary: no struct codec')
+            if not var.byte_aligned or var.type not in STRUCT_CODES:
+                raise VariableTypeError(f'"{var.full_name}" ({var.type}, {var.bits} bits) is not a byte-aligned '
+                                        "number: no struct codec")
             if var.direction != variables[0].direction:
                 raise VariableTypeError(f'"{var.full_name}" is an {var.direction}, "{variables[0].full_name}" an '
                                         f"{variables[0].direction}: a codec reads or writes one direction")

@@ -127,15 +127,27 @@ class Bus:
         names = names_for(slave.man, slave.id, device_type=device_type, overrides=names_overrides)
         return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
 
-    @staticmethod
-    def _assignment(slave: Any, index: int) -> list[int]:
-        count = slave.sdo_read(index, 0, release_gil=True)[0]
-        return [struct.unpack("<H", slave.sdo_read(index, sub, release_gil=True)[:2])[0] for sub in range(1, count + 1)]
+    def _sdo_retried(self, slave: Any, index: int, subindex: int, attempts: int = 3) -> bytes:
+        """An SDO read at bring-up, tried again when its mailbox frame was lost (not when the
+        slave aborts it): a lost frame is a normal event on a bus, and on a busy host."""
+        for attempt in range(attempts):
+            try:
+                return slave.sdo_read(index, subindex, release_gil=True)
+            except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError):
+                if attempt == attempts - 1:
+                    raise
+                time.sleep(0.01 * (attempt + 1))
+                log.info("ethercat %s: SDO read 0x%04X:%02X of %s lost, trying again", self.ifname, index,
+                         subindex, slave.name)
+        raise AssertionError("unreachable")
 
-    @staticmethod
-    def _mapping(slave: Any, index: int) -> list[int]:
-        count = slave.sdo_read(index, 0, release_gil=True)[0]
-        return [struct.unpack("<I", slave.sdo_read(index, sub, release_gil=True)[:4])[0] for sub in range(1, count + 1)]
+    def _assignment(self, slave: Any, index: int) -> list[int]:
+        count = self._sdo_retried(slave, index, 0)[0]
+        return [struct.unpack("<H", self._sdo_retried(slave, index, sub)[:2])[0] for sub in range(1, count + 1)]
+
+    def _mapping(self, slave: Any, index: int) -> list[int]:
+        count = self._sdo_retried(slave, index, 0)[0]
+        return [struct.unpack("<I", self._sdo_retried(slave, index, sub)[:4])[0] for sub in range(1, count + 1)]
 
     def map(self, dc: bool) -> int:
         """Map the process data (the masters's IO map), set DC up, reach SAFEOP; the map's size."""
@@ -195,31 +207,26 @@ class Bus:
         return [s.state for s in self.slaves]
 
     def recover_steps(self, positions: Sequence[int]) -> list[int]:
-        """One step toward OP for each slave that dropped out (as SOEM's examples do: ack an
-        error, SAFEOP → OP, reconfigure a slave that lost its configuration, recover one that
-        was gone); the positions already back in OP. One state read for all, then a frame or
-        two per slave: no waiting for a state."""
+        """One quick step toward OP for each slave that dropped out: acknowledge an error, or
+        SAFEOP → OP (one state read for all, then one frame per slave). A slave below SAFEOP
+        (gone, or back after losing power) would need SOEM's reconfig / recover, which wait
+        up to seconds holding the GIL: that is not done here. Returns every slave's state."""
         states = self.states()
-        back = []
         for position in positions:
             slave, state = self.slaves[position], states[position]
-            if state == OP:
-                slave.is_lost = False
-                back.append(position)
-            elif state == SAFEOP | STATE_ERROR:
+            if state == SAFEOP | STATE_ERROR:
                 slave.state = SAFEOP | STATE_ACK
                 slave.write_state()
             elif state == SAFEOP:
                 slave.state = OP
                 slave.write_state()
-            elif state > 0:
-                if slave.reconfig(500) >= SAFEOP:
-                    slave.is_lost = False
-            else:
-                slave.is_lost = True
-                if slave.recover(500) > 0:
-                    slave.is_lost = False
-        return back
+        return states
+
+    def watch_emergencies(self, on_emergency: Any) -> None:
+        """Deliver the slaves' emergency messages (EMCY) to ``on_emergency(position, emcy)``;
+        without a callback pysoem raises them from the next SDO to that slave, even a good one."""
+        for position, slave in enumerate(self.slaves):
+            slave.add_emergency_callback(lambda emcy, position=position: on_emergency(position, emcy))
 
     # ------------------------------------------------------------ SDO
 
@@ -259,13 +266,15 @@ class Bus:
         self.master.close()
 
 
-def check_identity(info: SlaveInfo, vendor_id: int | None, product_code: int | None) -> None:
+def check_identity(position: int, device_name: str, name: str, vendor_id: int, product_code: int,
+                   want_vendor: int | None, want_product: int | None) -> None:
     """The slave at a position must be the configured device, when the config says which."""
-    for what, want, got in (("vendor id", vendor_id, info.vendor_id), ("product code", product_code, info.product_code)):
+    for what, want, got in (("vendor id", want_vendor, vendor_id), ("product code", want_product, product_code)):
         if want is not None and want != got:
-            raise BringUpError(f"slave {info.position} ({info.device_name}): {what} 0x{got:08X}, "
-                               f"but the config expects 0x{want:08X} for {info.name!r}")
+            raise BringUpError(f"slave {position} ({device_name}): {what} 0x{got:08X}, "
+                               f"but the config expects 0x{want:08X} for {name!r}")
 
 
-def expected_wkc(infos: Sequence[SlaveInfo], lost: set[int]) -> int:
-    return sum(info.wkc for info in infos if info.position not in lost)
+def expected_wkc(infos: Sequence[SlaveInfo]) -> int:
+    """Every slave in OP: 2 per slave with outputs, 1 per slave with inputs."""
+    return sum(info.wkc for info in infos)

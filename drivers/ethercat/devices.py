@@ -53,7 +53,8 @@ def _check_types(image: ProcessImage, slave: str, names: Sequence[str], types: S
 class DriveGroup:
     """Every CiA 402 drive of one bus: state machines, bumpless enable, unit conversion."""
 
-    def __init__(self, image: ProcessImage, specs: Sequence[DriveSpec], *, stuck_after: int) -> None:
+    def __init__(self, image: ProcessImage, specs: Sequence[DriveSpec], *, stuck_after: int,
+                 target: Target = Target.ENABLED) -> None:
         self.specs = list(specs)
         self.inputs, self.outputs = [], []
         for s in specs:
@@ -73,7 +74,8 @@ class DriveGroup:
         self.nm_per_per_mille = [float(s.units.nm_per_per_mille) for s in specs]
         self.per_mille_per_nm = [float(s.units.per_mille_per_nm) for s in specs]
         self.offset = [s.position_offset for s in specs]
-        self.machines = [Cia402Drive(s.slave, target=Target.ENABLED, stuck_after=stuck_after) for s in specs]
+        self.machines = [Cia402Drive(s.slave, target=target, stuck_after=stuck_after) for s in specs]
+        self._generation = 0  # bumped by every request: a pass of the machines that saw none may skip the next
         n = len(specs)
         self.hold = [True] * n  # target = actual: the drive does not follow the command (yet)
         self.controlwords = [0] * n
@@ -145,6 +147,7 @@ class DriveGroup:
         if self._steady and status == self._last_status:
             return
         self._last_status = list(status)
+        generation = self._generation
         steady = True
         for i, machine in enumerate(self.machines):
             self.controlwords[i] = machine.update(status[i], self.error_codes[i])
@@ -153,10 +156,11 @@ class DriveGroup:
                 on_event(i, event)
             if machine.hold_target or machine.target is not Target.ENABLED or machine.controlword & 0x80:
                 steady = False
-        self._steady = steady
+        self._steady = steady and generation == self._generation  # a request from another thread meanwhile
 
     def invalidate(self) -> None:
         """Run the machines next cycle whatever the statuswords (after a request)."""
+        self._generation += 1
         self._steady = False
 
     def write(self, cmd_position: np.ndarray, cmd_velocity: np.ndarray, cmd_effort: np.ndarray,

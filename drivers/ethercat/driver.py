@@ -91,7 +91,9 @@ class EthercatOptions(Options):
     dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
     wkc_error_limit: int = Field(10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read.")
     recover_interval_s: FiniteFloat = Field(1.0, gt=0, description="Between two recovery steps of a lost sensor.")
-    enable_on_open: bool = True
+    enable_on_open: bool = Field(True, description="Enable the drives at bring-up; else enable_drives() does.")
+    keepalive_after_ms: FiniteFloat = Field(20.0, gt=0, le=1000,
+                                            description="The driver cycles the bus itself when the loop has not for this long.")
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
     op_timeout_s: FiniteFloat = Field(5.0, gt=0)
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
@@ -150,31 +152,41 @@ class EthercatDriver(Driver):
         opts = self.options
         if opts.frame_timeout_us is not None:
             pysoem.settings.timeouts.ret = opts.frame_timeout_us
-        self._pysoem = pysoem
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"ethercat-{self.name}")
         self._init_state()
         self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map)
         loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
         try:
             await loop.run_in_executor(self._executor, self._bring_up)
         except BaseException:
+            self._stop_keepalive(raise_error=False)
             await loop.run_in_executor(self._executor, self._shutdown)
             raise
 
     def _init_state(self) -> None:
-        self._running = False  # the loop ticks (first read done)
-        self._estopped = False
+        period_ns = self.view.clock.period_ns
+        self._lock = threading.Lock()  # one thread at a time on the cyclic frame and the device state
+        self._activated = False  # the first read (activation) was done
+        self._estop_requested = False
+        self._estop_sent = False
         self._outstanding = False  # a cyclic frame was sent and not yet received
         self._written = False  # write() packed this tick's outputs (the loop skips write in ESTOP)
-        self._lost_slaves: set[Any] = set()
+        self._last_tick_ns = 0  # when a tick last cycled the bus (monotonic)
+        self._keepalive_after_ns = max(int(self.options.keepalive_after_ms * 1e6), 3 * period_ns)
         self._keepalive: threading.Thread | None = None
         self._keepalive_stop = threading.Event()
         self._keepalive_error: BaseException | None = None
+        self._keepalive_cycles = 0
+        self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
+        self._lost_slaves: set[Any] = set()
         self.infos: list[SlaveInfo] = []
         self.image: ProcessImage | None = None
         self.drives: DriveGroup | None = None
         self.sensors: list[tuple[int, ImuDevice | ForceTorqueDevice]] = []
         self.lost: set[int] = set()
+        self._unrecoverable: set[int] = set()  # lost below SAFEOP: reported, not recovered in the tick
+        self._reported: set[int] = set()  # lost slaves already reported
         self._expected = 0
         self._bad_run = 0
         self._next_recover = 0.0
@@ -183,6 +195,7 @@ class EthercatDriver(Driver):
         self.diagnoses = 0
         self.recovered = 0
         self.drive_faults = 0
+        self.emergencies = 0
         self._enabled_at_close: int | None = None
         self._rtt_ns = np.zeros(RING, dtype=np.int64)
         self._cpu_ns = np.zeros(RING, dtype=np.int64)
@@ -197,18 +210,19 @@ class EthercatDriver(Driver):
             names = ", ".join(f"{i}: {s.name}" for i, s in enumerate(bus.slaves)) or "none"
             raise BringUpError(f"found {found} slave(s) on {opts.interface!r} ({names}), "
                                f"options.slaves lists {len(opts.slaves)}")
+        for i, (s, slave) in enumerate(zip(opts.slaves, bus.slaves, strict=True)):  # before any mailbox traffic
+            check_identity(i, slave.name, s.name, slave.man, slave.id, s.vendor_id, s.product_code)
+        bus.watch_emergencies(self._on_emergency)
         layouts = [bus.read_layout(i, s.names) for i, s in enumerate(opts.slaves)]
         bus.map(opts.dc)
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
-            info = SlaveInfo(i, s.name, slave.name, slave.man, slave.id, slave.rev, layout,
-                             len(slave.output), len(slave.input))
-            check_identity(info, s.vendor_id, s.product_code)
-            self.infos.append(info)
+            self.infos.append(SlaveInfo(i, s.name, slave.name, slave.man, slave.id, slave.rev, layout,
+                                        len(slave.output), len(slave.input)))
         self.image = image = ProcessImage([(s.name, layout) for s, layout in zip(opts.slaves, layouts, strict=True)])
         for info in self.infos:
             image.slave(info.name).check_sizes(info.output_bytes, info.input_bytes)
         self._link_devices()
-        self._expected = expected_wkc(self.infos, set())
+        self._expected = expected_wkc(self.infos)
         if self._expected != self.bus.master.expected_wkc:
             log.info("ethercat %s: expected working counter %d (pysoem says %d)", self.name, self._expected,
                      self.bus.master.expected_wkc)
@@ -245,22 +259,31 @@ class EthercatDriver(Driver):
                                                           {**FT_VARIABLES, **s.variables})))
         if specs:
             stuck = max(1, round(opts.stuck_after_ms * 1e6 / self.view.clock.period_ns))
-            self.drives = DriveGroup(image, specs, stuck_after=stuck)
+            target = Target.ENABLED if opts.enable_on_open and not self._estop_requested else Target.DISABLED
+            self.drives = DriveGroup(image, specs, stuck_after=stuck, target=target)
             self.drives.bind_state(self.view.state.block)
             self._drive_mask = np.zeros(view.dof, dtype=bool)
+            if self._estop_requested:
+                self.drives.request(Target.QUICK_STOP)
 
-    # ------------------------------------------------------------ bring-up cycling (driver's threads)
+    # ------------------------------------------------------------ cycling off the tick (driver's threads)
 
-    def _bringup_cycle(self) -> None:
-        """One blocking exchange with hold targets (drives follow nothing yet)."""
+    def _bringup_cycle(self, timeout_us: int | None = None) -> int:
+        """One blocking exchange, every drive held where it stands; the caller holds the lock
+        (or no tick can run yet). Returns the working counter."""
+        bus = self.bus
+        if self._outstanding:  # a frame of the tick's is still out: take it first
+            bus.receive(self.options.receive_timeout_us)
+            self._outstanding = False
         self._pack_outputs_holding()
-        self.bus.send()
-        wkc = self.bus.receive(self.options.bringup_receive_timeout_us)
+        bus.send()
+        wkc = bus.receive(timeout_us or self.options.bringup_receive_timeout_us)
         if wkc == self._expected:
             self._load_inputs()
             if self.drives is not None:
                 self.drives.decode()
                 self.drives.update_machines(self._on_drive_event)
+        return wkc
 
     def _pack_outputs_holding(self) -> None:
         if self.drives is not None:
@@ -268,18 +291,30 @@ class EthercatDriver(Driver):
         self._write_outputs()
 
     def _start_keepalive(self, period_s: float) -> None:
+        """A thread that cycles the bus whenever the loop does not (before the first tick,
+        between runs, in a stall), so that no slave's watchdog trips: every drive is then held
+        where it stands. While the loop ticks it only wakes every ``keepalive_after_ms / 2``."""
         self._keepalive_stop.clear()
         ready = threading.Event()
+        check_s = self._keepalive_after_ns / 2e9
+        running_timeout_us = max(2 * self.view.clock.period_ns // 1000, self.options.receive_timeout_us)
 
         def run() -> None:
             try:
                 deadline = time.monotonic()
                 while not self._keepalive_stop.is_set():
-                    self._bringup_cycle()
+                    if time.monotonic_ns() - self._last_tick_ns < self._keepalive_after_ns:
+                        ready.set()
+                        self._keepalive_stop.wait(check_s)
+                        deadline = time.monotonic()
+                        continue
+                    with self._lock:
+                        self._bringup_cycle(running_timeout_us if self._activated else None)
+                        self._keepalive_cycles += 1
                     ready.set()
                     deadline += period_s
                     time.sleep(max(0.0, deadline - time.monotonic()))
-            except BaseException as exc:  # reported by the first read or by open
+            except BaseException as exc:  # reported by the next read, or by open
                 self._keepalive_error = exc
                 ready.set()
 
@@ -287,71 +322,103 @@ class EthercatDriver(Driver):
         self._keepalive.start()
         ready.wait(5.0)
 
-    def _stop_keepalive(self) -> None:
+    def _stop_keepalive(self, raise_error: bool = True) -> None:
         thread, self._keepalive = self._keepalive, None
         if thread is not None:
             self._keepalive_stop.set()
             thread.join(2.0)
+        self._raise_keepalive_error(raise_error)
+
+    def _raise_keepalive_error(self, raise_error: bool = True) -> None:
         if self._keepalive_error is not None:
             exc, self._keepalive_error = self._keepalive_error, None
-            raise EthercatError(f"cycling the bus before the first tick failed: {exc}") from exc
+            if raise_error:
+                raise EthercatError(f"cycling the bus between ticks failed: {exc}") from exc
+            log.warning("ethercat %s: cycling the bus between ticks failed: %s", self.name, exc)
 
     def _wait_enabled(self, timeout_s: float) -> None:
         drives = self.drives
         assert drives is not None
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and self._keepalive_error is None:
+        while time.monotonic() < deadline and self._keepalive_error is None and not self._estop_requested:
             if drives.all_enabled():
                 return
             time.sleep(0.005)
         self._stop_keepalive()
-        states = ", ".join(f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")
-                           for m in drives.machines if not m.enabled)
-        raise BringUpError(f"drives not enabled within {timeout_s:g} s: {states}")
+        if self._estop_requested:
+            raise BringUpError("emergency stop during bring-up: the drives were not enabled")
+        raise BringUpError(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
+
+    def _not_enabled(self) -> str:
+        return ", ".join(f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")
+                         for m in self.drives.machines if not m.enabled)
 
     # ------------------------------------------------------------ the tick
 
     async def read(self) -> None:
         t0 = time.perf_counter_ns()
-        if not self._running:
-            self._stop_keepalive()
-            self._running = True
-        bus = self.bus
-        if not self._outstanding:
-            if not self._written:  # first tick, or the loop commands nothing (emergency stop)
-                self._pack_outputs_holding()
-            bus.send()
-        self._written = False
-        sent = time.perf_counter_ns()
-        wkc = bus.receive(self.options.receive_timeout_us)
-        received = time.perf_counter_ns()
-        self._outstanding = False
-        self.cycles += 1
-        # immediate: the round trip; split: what was left of it after a whole tick
-        self._rtt_ns[self.cycles & (RING - 1)] = received - sent
-        if wkc == self._expected:
-            if self._bad_run:
-                self._bad_run = 0
-            self._load_inputs()
-            view = self.view
-            clock = view.clock
-            drives = self.drives
-            if drives is not None:
-                drives.decode()
-                drives.update_machines(self._on_drive_event)
-                state = view.state
-                drives.read(state.position, state.velocity, state.effort, state.motor_position)
-            for position, sensor in self.sensors:
-                sensor.read(clock.tick, clock.now_ns, position in self.lost)
-            view.mark_fresh()
-        else:
-            self.wkc_errors += 1
-            self._bad_run += 1
-            if self._bad_run >= self.options.wkc_error_limit:
-                self._diagnose(wkc)
-        if self.lost and time.monotonic() >= self._next_recover:
-            self._recover_lost()
+        if self._keepalive_error is not None:
+            self._raise_keepalive_error()
+        with self._lock:
+            if not self._activated:
+                self._activate()
+                t0 = time.perf_counter_ns()
+            bus = self.bus
+            if not self._outstanding:
+                if not self._written:  # the loop commands nothing (emergency stop), or a keep-alive cycled
+                    self._pack_outputs_holding()
+                bus.send()
+            self._written = False
+            sent = time.perf_counter_ns()
+            wkc = bus.receive(self.options.receive_timeout_us)
+            received = time.perf_counter_ns()
+            self._outstanding = False
+            self._last_tick_ns = time.monotonic_ns()
+            self.cycles += 1
+            # immediate: the round trip; split: what was left of it after a whole tick
+            self._rtt_ns[self.cycles & (RING - 1)] = received - sent
+            if self._pending:
+                self._handle_pending()
+            if wkc == self._expected:
+                if self._bad_run:
+                    self._bad_run = 0
+                self._take_inputs()
+            else:
+                self.wkc_errors += 1
+                self._bad_run += 1
+                if self._bad_run >= self.options.wkc_error_limit:
+                    self._diagnose(wkc)
+            if self.lost and time.monotonic() >= self._next_recover:
+                self._recover_lost()
         self._read_cpu = (time.perf_counter_ns() - t0) - (received - sent)
+
+    def _take_inputs(self) -> None:
+        """A good cycle: inputs into the image, drives and sensors into the robot's records."""
+        self._load_inputs()
+        view = self.view
+        clock = view.clock
+        drives = self.drives
+        if drives is not None:
+            drives.decode()
+            state = view.state
+            drives.read(state.position, state.velocity, state.effort, state.motor_position)
+            drives.update_machines(self._on_drive_event)  # after the rows: a resync sees this cycle's position
+        for position, sensor in self.sensors:
+            sensor.read(clock.tick, clock.now_ns, position in self.lost)
+        view.mark_fresh()
+
+    def _activate(self) -> None:
+        """The activation read (lock held): a good cycle is required, so that the loop starts
+        its commands from where the joints really are, and every drive asked to be enabled is."""
+        for _ in range(3):
+            if self._bringup_cycle() == self._expected:
+                break
+        else:
+            raise EthercatError(f"no good process-data cycle at activation (working counter != {self._expected})")
+        if self.drives is not None and self.options.enable_on_open and not self.drives.all_enabled():
+            raise EthercatError(f"drives not enabled at activation: {self._not_enabled()}")
+        self._written = False
+        self._activated = True
 
     def _load_inputs(self) -> None:
         image = self.image
@@ -365,15 +432,16 @@ class EthercatDriver(Driver):
 
     async def write(self) -> None:
         t0 = time.perf_counter_ns()
-        drives = self.drives
-        if drives is not None:
-            cmd = self.view.command
-            drives.write(cmd.position, cmd.velocity, cmd.effort, cmd.feedforward, cmd.mode)
-        self._write_outputs()
-        self._written = True
-        if self.options.exchange == "split":
-            self.bus.send()
-            self._outstanding = True
+        with self._lock:
+            drives = self.drives
+            if drives is not None:
+                cmd = self.view.command
+                drives.write(cmd.position, cmd.velocity, cmd.effort, cmd.feedforward, cmd.mode)
+            self._write_outputs()
+            self._written = True
+            if self.options.exchange == "split" and not self._outstanding:
+                self.bus.send()
+                self._outstanding = True
         self._cpu_ns[self.cycles & (RING - 1)] = self._read_cpu + time.perf_counter_ns() - t0
 
     def _write_outputs(self) -> None:
@@ -384,14 +452,18 @@ class EthercatDriver(Driver):
     # ------------------------------------------------------------ events and bus errors
 
     def _on_drive_event(self, i: int, event: DriveEvent) -> None:
+        if not self._activated:  # bring-up: open() and the activation read report what does not come up
+            log.info("ethercat %s: %s", self.name, event)
+            return
+        if threading.get_ident() != self._loop_thread:  # the keep-alive thread: the loop's next read handles it
+            self._pending.append((i, event))
+            return
         drives = self.drives
         spec = drives.specs[i]
         row = spec.row
         fault = self.view.state.fault
         kind = event.kind
-        if not self._running:  # bring-up: open() reports what does not come up
-            log.info("ethercat %s: %s", self.name, event)
-            return
+        machine = drives.machines[i]
         if kind is EventKind.FAULT_ENTERED:
             self.drive_faults += 1
             fault[row] |= Fault.HARDWARE
@@ -399,24 +471,39 @@ class EthercatDriver(Driver):
             self.view.report_fault("read", reason)
             self.view.request_hold(reason)
         elif kind is EventKind.LOST_ENABLED and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT) \
-                and drives.machines[i].target is Target.ENABLED:
+                and machine.target is Target.ENABLED:
+            machine.target = Target.DISABLED  # parked: enabling it again is the application's decision
+            drives.invalidate()
             fault[row] |= Fault.HARDWARE
-            reason = f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label})"
+            reason = (f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label}); "
+                      "reset_faults() enables it again")
             self.view.report_fault("read", reason)
             self.view.request_hold(reason)
         elif kind is EventKind.STUCK:
             fault[row] |= Fault.HARDWARE
             self.view.report_fault("read", f"joint {spec.joint}: {event}")
             self.view.request_hold(str(event))
-        elif kind is EventKind.BECAME_ENABLED and fault[row] & Fault.HARDWARE:
+        elif kind is EventKind.BECAME_ENABLED:
             fault[row] &= ~np.uint32(Fault.HARDWARE)
             mask = self._drive_mask
             mask[:] = False
             mask[row] = True
-            self.view.resync(mask)
-            log.warning("ethercat %s: joint %s enabled again where it stands", self.name, spec.joint)
+            self.view.resync(mask)  # its command continues from where it stands
+            log.warning("ethercat %s: joint %s enabled where it stands", self.name, spec.joint)
         else:
             log.info("ethercat %s: %s", self.name, event)
+
+    def _handle_pending(self) -> None:
+        pending, self._pending = self._pending, []
+        for i, event in pending:
+            self._on_drive_event(i, event)
+
+    def _on_emergency(self, position: int, emcy: Any) -> None:
+        """An EMCY message (during an SDO); never raises."""
+        self.emergencies += 1
+        self._warn.warning(f"emcy{position}", "ethercat %s: emergency from slave %d (%s): error code 0x%04X, "
+                           "register 0x%02X", self.name, position, self.options.slaves[position].name,
+                           getattr(emcy, "error_code", 0), getattr(emcy, "error_reg", 0))
 
     def _diagnose(self, wkc: int) -> None:
         """``wkc_error_limit`` bad cycles in a row: which slaves are not in OP?"""
@@ -424,56 +511,76 @@ class EthercatDriver(Driver):
         self._bad_run = 0
         states = self.bus.states()  # holds the GIL for a frame or two
         lost = {i for i, st in enumerate(states) if st != OP}
+        self._update_lost(states, lost)
         if not lost:
             self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
-                               self.name, wkc, self._expected)
+                               self.name, wkc, sum(info.wkc for info in self.infos))
             return
-        describe = [f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
-                    f"{self.bus.slaves[i].al_status:04X}" for i in sorted(lost)]
+        describe = {i: f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
+                       f"{self.bus.slaves[i].al_status:04X}" for i in sorted(lost)}
         drives_lost = [i for i in sorted(lost) if self.options.slaves[i].kind == "cia402"]
         if drives_lost:
             joints = ", ".join(self.options.slaves[i].joint or "?" for i in drives_lost)
             raise EthercatError(f"working counter {wkc}/{self._expected}: drive(s) of joint(s) {joints} "
-                                f"out of OP: " + "; ".join(describe))
-        for i in sorted(lost - self.lost):
-            self.view.report_fault("read", f"{describe[sorted(lost).index(i)]}: lost; the run goes on without it, "
+                                f"out of OP: " + "; ".join(describe.values()))
+        for i in sorted(lost - self._reported):
+            self.view.report_fault("read", f"{describe[i]}: lost; the run goes on without it, "
                                    f"recovery every {self.options.recover_interval_s:g} s")
-        for i in sorted(self.lost - lost):
-            self._recovered(i)
-        self._set_lost(lost)
-        # a slave in SAFEOP still counts in the working counter (its SyncManagers work; only its
-        # application ignores the outputs), one below SAFEOP or gone does not
-        self._expected = sum(info.wkc for info, st in zip(self.infos, states, strict=True) if st & 0x0F in (SAFEOP, OP))
+        self._reported = set(lost)
         self._next_recover = time.monotonic() + self.options.recover_interval_s
 
-    def _set_lost(self, lost: set[int]) -> None:
+    def _update_lost(self, states: list[int], lost: set[int]) -> None:
+        """New states read: who is lost, who came back, and the working counter to expect (a
+        slave in SAFEOP still counts: its SyncManagers work, only its application ignores outputs)."""
+        for i in sorted(self.lost - lost):
+            self._recovered(i)
         self.lost = set(lost)
         self._lost_slaves = {self.bus.slaves[i] for i in lost}
+        self._expected = sum(info.wkc for info, st in zip(self.infos, states, strict=True) if st & 0x0F in (SAFEOP, OP))
         for position, sensor in self.sensors:
             if position in lost:
                 sensor.record.set_fault(Fault.HARDWARE)
 
     def _recover_lost(self) -> None:
-        """One recovery step for each lost slave (holds the GIL for a few frames)."""
+        """One quick recovery step for the lost slaves (holds the GIL for a few frames)."""
         self._next_recover = time.monotonic() + self.options.recover_interval_s
-        back = self.bus.recover_steps(sorted(self.lost))
-        for i in back:
-            self._recovered(i)
-        if back:
-            self._set_lost(self.lost - set(back))
+        states = self.bus.recover_steps(sorted(self.lost))
+        lost = {i for i in self.lost if states[i] != OP}
+        for i in sorted(lost - self._unrecoverable):
+            if states[i] & 0x0F < SAFEOP:
+                self._unrecoverable.add(i)
+                self.view.report_fault("read", f"slave {i} ({self.infos[i].name}) is in {state_name(states[i])}: "
+                                       "bringing it back needs a reconfiguration, which would stop the bus "
+                                       "for too long; it stays lost until the driver is opened again")
+        self._update_lost(states, lost)
 
     def _recovered(self, i: int) -> None:
         self.recovered += 1
+        self._unrecoverable.discard(i)
+        self._reported.discard(i)
         log.warning("ethercat %s: slave %d (%s) is back in OP", self.name, i, self.infos[i].name)
 
     # ------------------------------------------------------------ application API
 
     def reset_faults(self) -> list[str]:
-        """Grant one fault reset to every faulted drive (the drive is re-enabled where it stands);
-        the names of those drives."""
-        if self.drives is None:
+        """Grant one fault reset to every faulted drive and enable again those that left
+        Operation enabled unasked; each is enabled where it stands. The names of those drives."""
+        if self.drives is None or self._estop_requested:
             return []
-        return self.drives.reset_faults()
+        with self._lock:
+            names = self.drives.reset_faults()
+            for machine in self.drives.machines:
+                if machine.target is Target.DISABLED:
+                    machine.target = Target.ENABLED
+                    names.append(machine.name)
+            self.drives.invalidate()
+        return sorted(set(names))
+
+    def enable_drives(self) -> None:
+        """Enable every drive (with ``enable_on_open = false``); each starts where it stands."""
+        if self.drives is not None and not self._estop_requested:
+            with self._lock:
+                self.drives.request(Target.ENABLED)
 
     def _position(self, slave: str | int) -> int:
         if isinstance(slave, int):
@@ -500,54 +607,62 @@ class EthercatDriver(Driver):
     # ------------------------------------------------------------ safety and shutdown
 
     def estop(self) -> None:
-        """Quick stop every drive now: one frame sent from here; later cycles keep it."""
-        if getattr(self, "_estopped", True):
+        """Quick stop every drive: a frame is sent from here at once when the bus is free
+        (within 2 ms); otherwise the next cycle, the tick's or the keep-alive's, carries it."""
+        if not hasattr(self, "_lock"):
+            return  # never opened
+        self._estop_requested = True  # bring-up in progress: it stops and does not enable
+        drives, bus = self.drives, getattr(self, "bus", None)
+        if drives is None or self._estop_sent or bus is None or not bus.is_open:
             return
-        self._estopped = True
-        drives = self.drives
-        if drives is None or not self.bus.is_open:
-            return
+        self._estop_sent = True
         drives.request(Target.QUICK_STOP)
-        if self._keepalive is not None or self._outstanding:
-            return  # the keep-alive thread, or the next tick's frame, carries the request
+        if not self._lock.acquire(timeout=0.002):
+            return
         try:
+            if self._outstanding:
+                self.bus.receive(1000)
+                self._outstanding = False
             drives.controlwords[:] = [0x02] * len(drives)  # Quick stop (the machines take over next cycle)
             self._pack_outputs_holding()
             self.bus.send()
             self._outstanding = True
         except Exception as exc:  # never raise from estop
             log.error("ethercat %s: sending the quick stop failed: %s", self.name, exc)
+        finally:
+            self._lock.release()
 
     async def close(self) -> None:
         if not hasattr(self, "bus"):
             return
-        try:
-            self._stop_keepalive()
-        except EthercatError as exc:
-            log.warning("ethercat %s: %s", self.name, exc)
+        self._stop_keepalive(raise_error=False)
         if self.drives is not None:  # for the report: how the run left them, not the shutdown
             self._enabled_at_close = sum(m.enabled for m in self.drives.machines)
         await asyncio.get_running_loop().run_in_executor(self._executor, self._shutdown)
         self._executor.shutdown(wait=False)
 
-    def _shutdown(self) -> None:
-        """Disable the drives over a few cycles (bounded), then every slave to INIT."""
+    def _shutdown(self, budget_s: float = 1.0) -> None:
+        """Quick stop every drive and wait for it (the ramp), then disable it, within
+        ``budget_s``; then every slave to INIT."""
         bus, drives = self.bus, self.drives
         try:
             if bus.is_open and drives is not None and self.image is not None:
-                drives.request(Target.DISABLED)
+                deadline = time.monotonic() + budget_s
                 period_s = self.view.clock.period_ns * 1e-9
-                for _ in range(50):
-                    if self._outstanding:
-                        bus.receive(self.options.bringup_receive_timeout_us)
-                        self._outstanding = False
-                    self._bringup_cycle()
-                    if all(m.state in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT)
-                           for m in drives.machines):
-                        break
-                    time.sleep(period_s)
+                timeout_us = min(self.options.bringup_receive_timeout_us, 10_000)
+                moving = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+                for target, done in ((Target.QUICK_STOP, lambda m: m.state not in moving),
+                                     (Target.DISABLED, lambda m: m.state in (State.SWITCH_ON_DISABLED,
+                                                                             State.NOT_READY_TO_SWITCH_ON, State.FAULT))):
+                    drives.request(target)
+                    while time.monotonic() < deadline:
+                        with self._lock:
+                            self._bringup_cycle(timeout_us)
+                        if all(done(m) for m in drives.machines):
+                            break
+                        time.sleep(period_s)
         except Exception as exc:
-            log.warning("ethercat %s: disabling the drives failed: %s", self.name, exc)
+            log.warning("ethercat %s: stopping the drives failed: %s", self.name, exc)
         finally:
             bus.close()
 
@@ -567,12 +682,16 @@ class EthercatDriver(Driver):
             cpu = self._cpu_ns[:n] if self.cycles < RING else self._cpu_ns
             out[key] = [round(float(v) / 1e3, 1) for v in np.percentile(rtt, (50, 99))]
             out["cpu_us"] = [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
+        if self._keepalive_cycles:
+            out["keepalive_cycles"] = self._keepalive_cycles
         if self.drives is not None:
-            enabled = getattr(self, "_enabled_at_close", None)
+            enabled = self._enabled_at_close
             if enabled is None:
                 enabled = sum(m.enabled for m in self.drives.machines)
             out["drives_enabled"] = f"{enabled}/{len(self.drives)}"
             out["drive_faults"] = self.drive_faults
+        if self.emergencies:
+            out["emergencies"] = self.emergencies
         if self.lost or self.diagnoses:
             out["lost"] = [self.infos[i].name for i in sorted(self.lost)]
             out["diagnoses"] = self.diagnoses
