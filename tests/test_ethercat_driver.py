@@ -31,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "ethercat_sim.toml"
 LINE = "drive*7,imu,ft"
 JOINTS = ["a1", "a2", "a3", "a4", "a5", "a6", "a7"]
+WATCHDOG_MS = 1000
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +41,9 @@ def sim():
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment, SimulatorUnavailable
 
     try:
-        segment = SimulatedSegment(LINE, watchdog_ms=250)
+        # SM watchdog 1 s: a stall of this shared VM (hundreds of ms at times) stalls the
+        # simulator too, and its watchdog would trip when it resumes
+        segment = SimulatedSegment(LINE, watchdog_ms=WATCHDOG_MS)
         segment.start()
     except SimulatorUnavailable as exc:
         if os.environ.get("CI") == "true":
@@ -169,8 +172,10 @@ async def test_a_drive_lost_mid_run_puts_the_robot_in_its_safe_state(segment):
 @pytest.mark.asyncio
 async def test_a_lost_sensor_is_faulted_and_recovered_while_the_arm_runs(segment):
     raw = raw_config(segment.ifname, wkc_error_limit=5, recover_interval_s=0.1)
+    # the outage outlasts the SM watchdog: the F/T sensor (it has outputs) comes back in
+    # SAFEOP + error and is acknowledged, the IMU (inputs only) comes back in OP
     at = At((800, in_thread(segment.control, {"cmd": "break", "slave": 7})),
-            (1500, in_thread(segment.control, {"cmd": "repair"})))
+            (800 + WATCHDOG_MS + 400, in_thread(segment.control, {"cmd": "repair"})))
     seen = {}
 
     def watch(loop):
@@ -181,19 +186,19 @@ async def test_a_lost_sensor_is_faulted_and_recovered_while_the_arm_runs(segment
     async with ControlLoop(parse_config(raw)) as loop:
         loop.add_publisher(at)
         loop.add_publisher(watch)
-        report = await loop.run(ticks=3500)
+        report = await loop.run(ticks=WATCHDOG_MS + 3200)
         await asyncio.gather(*at.tasks)
         driver = driver_of(loop)
         imu, ft = loop.robot.device("base_imu"), loop.robot.device("wrist_ft")
         assert driver.drives.all_enabled()
-    assert report["safety_level"] == "run" and report["ticks"] + report["missed_ticks"] == 3500
+    assert report["safety_level"] == "run" and report["ticks"] + report["missed_ticks"] == WATCHDOG_MS + 3200
     lost = [f for f in report["faults"] if "lost" in f["error"]]
     assert {("imu" in f["error"], "ft" in f["error"]) for f in lost} == {(True, False), (False, True)}
-    assert 800 <= seen["imu_fault"] < 1500
+    assert 800 <= seen["imu_fault"] < 800 + WATCHDOG_MS
     assert driver.lost == set() and driver.recovered == 2
     # bad cycles only until each change was diagnosed (5 in a row each), not for the whole outage
     assert report["drivers"]["bus"]["wkc_errors"] < 50
-    assert imu.fault == 0 and ft.fault == 0 and imu.updated_tick > 3000 and ft.updated_tick > 3000
+    assert imu.fault == 0 and ft.fault == 0 and imu.updated_tick > WATCHDOG_MS + 2700 and ft.updated_tick > WATCHDOG_MS + 2700
 
 
 @pytest.mark.asyncio
@@ -218,7 +223,8 @@ async def test_sdo_round_trips_run_beside_the_ticks(segment):
     assert back[:200] == blob
     assert missing.value.abort_code == 0x06020000 and "0x5FFF" in str(missing.value)
     assert ticks_during < 1500  # the transfers were done while the loop ran
-    assert report["faults"] == [] and report["drivers"]["bus"]["wkc_errors"] <= 5
+    bus = report["drivers"]["bus"]
+    assert report["faults"] == [] and bus["wkc_errors"] <= max(10, bus["cycles"] // 100)  # late frames in stalls
 
 
 @pytest.mark.asyncio
@@ -298,7 +304,7 @@ async def test_an_emergency_stop_quick_stops_every_drive_in_split_mode(segment):
 async def test_the_bus_keeps_cycling_between_runs_so_no_watchdog_trips(segment):
     async with ControlLoop(parse_config(raw_config(segment.ifname))) as loop:
         first = await loop.run(ticks=300)
-        await asyncio.sleep(0.6)  # longer than the slaves' 250 ms SM watchdog
+        await asyncio.sleep(WATCHDOG_MS / 1e3 + 0.5)  # longer than the slaves' SM watchdog
         second = await loop.run(ticks=300)
         driver = driver_of(loop)
         enabled = driver.drives.all_enabled()
@@ -360,3 +366,18 @@ async def test_a_drive_faulted_before_the_first_tick_fails_the_activation(segmen
     finally:
         await driver.close()
     assert not driver.bus.is_open
+
+
+@pytest.mark.asyncio
+async def test_a_drive_whose_slave_drops_to_safeop_fails_the_driver(segment):
+    """In SAFEOP a slave still counts in the working counter: the drive's statusword tells
+    first, and the driver then reads the slaves' states."""
+    at = At((800, in_thread(segment.control, {"cmd": "al_error", "slave": 1, "code": 0x001A})))
+    async with ControlLoop(parse_config(raw_config(segment.ifname))) as loop:
+        loop.add_publisher(at)
+        report = await loop.run(ticks=2000)
+        await asyncio.gather(*at.tasks)
+    failed = [f for f in report["faults"] if f["source"] == "driver:bus" and "out of OP" in f["error"]]
+    assert len(failed) == 1 and "joint(s) a2" in failed[0]["error"]
+    assert "slave 1 (drive2) in SAFEOP+ERROR, AL status 0x001A" in failed[0]["error"]
+    assert report["safety_level"] == "estop"

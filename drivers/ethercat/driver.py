@@ -40,7 +40,7 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 from pydantic import Field
 
-from aiohal.busvar import ProcessImage
+from aiohal.busvar import LayoutError, ProcessImage
 from aiohal.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
@@ -91,6 +91,7 @@ class EthercatOptions(Options):
     dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
     wkc_error_limit: int = Field(10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read.")
     recover_interval_s: FiniteFloat = Field(1.0, gt=0, description="Between two recovery steps of a lost sensor.")
+    bringup_attempts: int = Field(2, ge=1, le=10, description="A bring-up that fails is tried again from scratch.")
     enable_on_open: bool = Field(True, description="Enable the drives at bring-up; else enable_drives() does.")
     keepalive_after_ms: FiniteFloat = Field(20.0, gt=0, le=1000,
                                             description="The driver cycles the bus itself when the loop has not for this long.")
@@ -153,16 +154,24 @@ class EthercatDriver(Driver):
         if opts.frame_timeout_us is not None:
             pysoem.settings.timeouts.ret = opts.frame_timeout_us
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"ethercat-{self.name}")
-        self._init_state()
-        self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map)
         loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
-        try:
-            await loop.run_in_executor(self._executor, self._bring_up)
-        except BaseException:
-            self._stop_keepalive(raise_error=False)
-            await loop.run_in_executor(self._executor, self._shutdown)
-            raise
+        for attempt in range(1, opts.bringup_attempts + 1):
+            self._init_state()
+            self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map)
+            try:
+                await loop.run_in_executor(self._executor, self._bring_up)
+                return
+            except BaseException as exc:
+                self._stop_keepalive(raise_error=False)
+                await loop.run_in_executor(self._executor, self._shutdown)
+                # a frame lost in a stall (an SII or mailbox read, a state change) fails a
+                # bring-up that works the next time; a wrong config fails every attempt
+                retry = attempt < opts.bringup_attempts and not self._estop_requested and isinstance(
+                    exc, (EthercatError, LayoutError, pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError))
+                if not retry:
+                    raise
+                log.warning("ethercat %s: bring-up attempt %d failed (%s), trying again", self.name, attempt, exc)
 
     def _init_state(self) -> None:
         period_ns = self.view.clock.period_ns
@@ -189,6 +198,7 @@ class EthercatDriver(Driver):
         self._reported: set[int] = set()  # lost slaves already reported
         self._expected = 0
         self._bad_run = 0
+        self._check_states = False  # read every slave's state at the next read (a drive dropped out)
         self._next_recover = 0.0
         self.cycles = 0
         self.wkc_errors = 0
@@ -388,6 +398,9 @@ class EthercatDriver(Driver):
                 self._bad_run += 1
                 if self._bad_run >= self.options.wkc_error_limit:
                     self._diagnose(wkc)
+            if self._check_states:  # a slave in SAFEOP still counts in the working counter
+                self._check_states = False
+                self._diagnose(wkc)
             if self.lost and time.monotonic() >= self._next_recover:
                 self._recover_lost()
         self._read_cpu = (time.perf_counter_ns() - t0) - (received - sent)
@@ -474,6 +487,7 @@ class EthercatDriver(Driver):
                 and machine.target is Target.ENABLED:
             machine.target = Target.DISABLED  # parked: enabling it again is the application's decision
             drives.invalidate()
+            self._check_states = True  # its slave may have left OP (SM watchdog): that fails the driver
             fault[row] |= Fault.HARDWARE
             reason = (f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label}); "
                       "reset_faults() enables it again")
@@ -513,8 +527,9 @@ class EthercatDriver(Driver):
         lost = {i for i, st in enumerate(states) if st != OP}
         self._update_lost(states, lost)
         if not lost:
-            self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
-                               self.name, wkc, sum(info.wkc for info in self.infos))
+            if wkc != self._expected:
+                self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
+                                   self.name, wkc, self._expected)
             return
         describe = {i: f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
                        f"{self.bus.slaves[i].al_status:04X}" for i in sorted(lost)}
