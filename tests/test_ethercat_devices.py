@@ -150,3 +150,23 @@ def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
     assert rec.fault == Fault.HARDWARE and rec.updated_tick == 7
     device.read(9, 125, lost=True)
     assert rec.fault == Fault.HARDWARE
+
+
+def test_write_sees_commands_written_in_place_between_ticks():
+    image, group = drives(2)
+    group.decode()
+    group.hold = [False, False]
+    command = np.zeros((6, 2))
+    mode = np.full(2, Mode.POSITION, dtype=np.int8)
+    command[0] = [0.1, 0.2]
+    group.write(command[0], command[1], command[2], command[5], mode)
+    command[0] = [0.3, -0.4]  # the loop writes the same arrays in place each tick
+    group.write(command[0], command[1], command[2], command[5], mode)
+    k = 131072 / (2 * np.pi)
+    assert outputs(image, 0)[1] == round(0.3 * k) and outputs(image, 1)[1] == round(-0.4 * k)
+    strided = np.zeros((2, 4))[:, 0]  # not contiguous: read afresh every time
+    strided[:] = [0.5, 0.6]
+    group.write(strided, command[1], command[2], command[5], mode)
+    strided[:] = [0.7, 0.8]
+    group.write(strided, command[1], command[2], command[5], mode)
+    assert outputs(image, 0)[1] == round(0.7 * k) and outputs(image, 1)[1] == round(0.8 * k)

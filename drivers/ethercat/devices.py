@@ -92,8 +92,11 @@ class DriveGroup:
         self._decode_plan = tuple(((c.unpack_from, c.buf, c.offset), rad, motor_rad, nm, off) for c, rad, motor_rad, nm, off
                                   in zip(self.inputs, self.rad_per_count, self.motor_rad_per_count,
                                          self.nm_per_per_mille, self.offset, strict=True))
-        self._encode_plan = tuple(((c.pack_into, c.buf, c.offset), k, off, per_mille) for c, k, off, per_mille
-                                  in zip(self.outputs, self.counts_per_rad, self.offset, self.per_mille_per_nm, strict=True))
+        self._encode_plan = tuple(((c.pack_into, c.buf, c.offset), row, k, off, per_mille)
+                                  for c, row, k, off, per_mille in zip(self.outputs, self.rows, self.counts_per_rad,
+                                                                       self.offset, self.per_mille_per_nm, strict=True))
+        self._cmd_views: tuple | None = None
+        self._cmd_arrays: tuple = ()
 
     def __len__(self) -> int:
         return len(self.specs)
@@ -165,32 +168,40 @@ class DriveGroup:
 
     def write(self, cmd_position: np.ndarray, cmd_velocity: np.ndarray, cmd_effort: np.ndarray,
               cmd_feedforward: np.ndarray, cmd_mode: np.ndarray) -> None:
-        """Commands → targets, modes and controlwords; a drive in ``hold`` gets target = actual."""
-        rows = self._rows
-        cp = cmd_position[rows].tolist()
-        cv = cmd_velocity[rows].tolist()
-        ce = (cmd_effort[rows] + cmd_feedforward[rows]).tolist()
-        cm = cmd_mode[rows].tolist()
+        """Commands → targets, modes and controlwords; a drive in ``hold`` gets target = actual.
+
+        The command arrays are read element by element through memoryviews (made once for
+        the same arrays): no temporary array or list per tick, and only the values the
+        drive's mode uses."""
+        arrays = (cmd_position, cmd_velocity, cmd_effort, cmd_feedforward, cmd_mode)
+        views = self._cmd_views
+        if views is None or any(a is not b for a, b in zip(arrays, self._cmd_arrays, strict=True)):
+            views = tuple(_items(a) for a in arrays)
+            if all(isinstance(v, memoryview) for v in views):  # live views: kept for the next ticks
+                self._cmd_views, self._cmd_arrays = views, arrays
+        cp, cv, ce, cf, cm = views
         modes, hold, controlwords, raw_position = MODE_OF_OPERATION, self.hold, self.controlwords, self.raw_position
         i = 0
-        for (pack, buf, offset), k, off, per_mille in self._encode_plan:
-            mode = modes.get(cm[i], CSP)
+        for (pack, buf, offset), row, k, off, per_mille in self._encode_plan:
             if hold[i]:
                 pack(buf, offset, controlwords[i], raw_position[i], 0, 0, CSP)
-            elif mode == CSP:  # the drive reads the position target only
-                pack(buf, offset, controlwords[i], ((round((cp[i] - off) * k) + _I32) & 0xFFFFFFFF) - _I32, 0, 0, CSP)
+                i += 1
+                continue
+            mode = modes.get(cm[row], CSP)
+            target = ((round((cp[row] - off) * k) + _I32) & 0xFFFFFFFF) - _I32  # wraps as the drive counts
+            if mode == CSP:  # the drive reads the position target only
+                pack(buf, offset, controlwords[i], target, 0, 0, CSP)
             else:
-                velocity = round(cv[i] * k)
-                torque = round(ce[i] * per_mille)
-                pack(buf, offset, controlwords[i],
-                     ((round((cp[i] - off) * k) + _I32) & 0xFFFFFFFF) - _I32,  # wraps as the drive counts
+                velocity = round(cv[row] * k)
+                torque = round((ce[row] + cf[row]) * per_mille)
+                pack(buf, offset, controlwords[i], target,
                      velocity if -_I32 <= velocity < _I32 else (_I32 - 1 if velocity > 0 else -_I32),
                      torque if -_I16 <= torque < _I16 else (_I16 - 1 if torque > 0 else -_I16), mode)
             i += 1
 
     def write_holding(self) -> None:
         """Every drive: its controlword, target = actual (before the first tick, and in a stop)."""
-        for (pack, buf, offset), controlword, raw in zip((p[0] for p in self._encode_plan), self.controlwords,
+        for (pack, buf, offset), controlword, raw in zip((plan[0] for plan in self._encode_plan), self.controlwords,
                                                          self.raw_position):
             pack(buf, offset, controlword, raw, 0, 0, CSP)
 
@@ -284,3 +295,11 @@ def _check_group(image: ProcessImage, slave: str, name: str, n: int) -> None:
     if var.shape != (n,) or not var.byte_aligned:
         raise VariableTypeError(f'"{var.full_name}" must be {n} contiguous values, it is '
                                 f"{var.type}{list(var.shape) or ''}")
+
+
+def _items(array: np.ndarray) -> memoryview | list:
+    """Element access without a numpy call per element: a memoryview of a contiguous 1-D array
+    (it sees later writes), else a snapshot list."""
+    if array.ndim == 1 and array.flags.c_contiguous:
+        return memoryview(array)
+    return array.tolist()
