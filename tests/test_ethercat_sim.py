@@ -12,6 +12,7 @@ import struct
 
 import pytest
 from aiohal.drivers.ethercat.sim import control
+from aiohal.drivers.ethercat.sim.bench import soem_map
 from aiohal.drivers.ethercat.sim.od import (
     BOOL,
     INT16,
@@ -249,7 +250,6 @@ class Bus:
     def map_all(self):
         """SM2/SM3 and FMMUs for every slave: outputs first, then inputs (SOEM's legacy map),
         bit-packed for < 8 bits; then SAFEOP."""
-        bits_pos = 0
         layout = []
         for i, esc in enumerate(self.seg.active):
             dev = esc.device
@@ -261,26 +261,9 @@ class Bus:
                 self.fpwr(st_, 0x0810, struct.pack("<HHBBBB", dev.out_addr, (o_bits + 7) // 8, 0x64, 0, 1, 0))
             if i_bits:
                 self.fpwr(st_, 0x0818, struct.pack("<HHBBBB", dev.in_addr, (i_bits + 7) // 8, 0x20, 0, 1, 0))
-        fm = {st_: 0 for st_, *_ in layout}
-        for key in ("out", "in"):
-            for st_, dev, o_bits, i_bits in layout:
-                bits = o_bits if key == "out" else i_bits
-                if not bits:
-                    continue
-                if bits >= 8 and bits_pos % 8:
-                    bits_pos += 8 - bits_pos % 8
-                start, sbit = divmod(bits_pos, 8)
-                span = bits if bits < 8 else (bits + 7) // 8 * 8
-                end, ebit = divmod(bits_pos + span - 1, 8)
-                self.offsets[(st_, key)] = bits_pos
-                phys = dev.out_addr if key == "out" else dev.in_addr
-                self.fpwr(st_, 0x0600 + 16 * fm[st_], struct.pack("<IHBBHBBB", start, end - start + 1, sbit, ebit,
-                                                                   phys, 0, 2 if key == "out" else 1, 1) + bytes(3))
-                fm[st_] += 1
-                bits_pos += span
-            if key == "out" and bits_pos % 8:
-                bits_pos += 8 - bits_pos % 8
-        self.iomap = (bits_pos + 7) // 8
+        writes, self.offsets, _, self.iomap = soem_map(layout)
+        for st_, register, data in writes:
+            self.fpwr(st_, register, data)
         for st_, *_ in layout:
             self.request(st_, SAFEOP)
         return layout

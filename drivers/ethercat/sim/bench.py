@@ -41,6 +41,37 @@ def parse(reply: bytes) -> list[tuple[int, bytes, int]]:
         pos += 12 + n
 
 
+def soem_map(layout: list[tuple[int, Any, int, int]]) -> tuple[list[tuple[int, int, bytes]], dict, int, int]:
+    """SOEM's legacy ``config_map`` for slaves ``(station, device, out_bits, in_bits)`` in bus
+    order: the outputs of all slaves first, then the inputs, slaves of fewer than 8 bits
+    bit-packed. Returns the FMMU register writes ``(station, register, data)``, the logical bit
+    offset of each ``(station, "out" | "in")``, the output bytes and the IO map bytes."""
+    writes: list[tuple[int, int, bytes]] = []
+    offsets: dict[tuple[int, str], int] = {}
+    fmmus = {station: 0 for station, *_ in layout}
+    pos = out_total = 0
+    for key in ("out", "in"):
+        for station, dev, out_bits, in_bits in layout:
+            bits = out_bits if key == "out" else in_bits
+            if not bits:
+                continue
+            if bits >= 8 and pos % 8:
+                pos += 8 - pos % 8
+            start, sbit = divmod(pos, 8)
+            span = bits if bits < 8 else (bits + 7) // 8 * 8
+            end, ebit = divmod(pos + span - 1, 8)
+            offsets[(station, key)] = pos
+            phys, ftype = (dev.out_addr, 2) if key == "out" else (dev.in_addr, 1)
+            writes.append((station, 0x0600 + 16 * fmmus[station],
+                           struct.pack("<IHBBHBBB", start, end - start + 1, sbit, ebit, phys, 0, ftype, 1) + bytes(3)))
+            fmmus[station] += 1
+            pos += span
+        if key == "out":
+            out_total = (pos + 7) // 8
+            pos = out_total * 8
+    return writes, offsets, out_total, (pos + 7) // 8
+
+
 class MiniMaster:
     def __init__(self, segment: Segment) -> None:
         self.seg = segment
@@ -78,32 +109,10 @@ class MiniMaster:
                 self.dg(FPWR, station, 0x0810, struct.pack("<HHBBBB", dev.out_addr, out_bytes, 0x64, 0, 1, 0))
             if in_bytes:
                 self.dg(FPWR, station, 0x0818, struct.pack("<HHBBBB", dev.in_addr, in_bytes, 0x20, 0, 1, 0))
-        # FMMUs: outputs of all slaves first, then inputs (SOEM's config_map), bit packing < 8 bits
-        addr_bits = 0
-        self.offsets: dict[tuple[int, str], int] = {}  # (station, "out"/"in") -> logical byte
-        fmmu_used = {s: 0 for s, *_ in layout}
-        for key in ("out", "in"):
-            for station, dev, out_bits, in_bits in layout:
-                bits = out_bits if key == "out" else in_bits
-                if not bits:
-                    continue
-                if bits >= 8 and addr_bits % 8:
-                    addr_bits += 8 - addr_bits % 8
-                start, sbit = divmod(addr_bits, 8)
-                self.offsets[(station, key)] = start
-                endpos = addr_bits + (bits if bits < 8 else ((bits + 7) // 8) * 8) - 1
-                end, ebit = divmod(endpos, 8)
-                phys = dev.out_addr if key == "out" else dev.in_addr
-                ftype = 2 if key == "out" else 1
-                n = fmmu_used[station]
-                fmmu_used[station] += 1
-                self.dg(FPWR, station, 0x0600 + 16 * n,
-                        struct.pack("<IHBBHBBB", start, end - start + 1, sbit, ebit, phys, 0, ftype, 1) + b"\0\0\0")
-                addr_bits = endpos + 1
-            if key == "out":
-                out_total = (addr_bits + 7) // 8
-                addr_bits = out_total * 8
-        size = (addr_bits + 7) // 8
+        writes, bit_offsets, out_total, size = soem_map(layout)
+        for station, register, data in writes:
+            self.dg(FPWR, station, register, data)
+        self.offsets = {key: bits // 8 for key, bits in bit_offsets.items()}  # (station, "out"/"in") -> logical byte
         self.layout = layout
         for station, *_ in layout:
             self.dg(FPWR, station, 0x0120, struct.pack("<H", 0x04))
