@@ -20,9 +20,9 @@ from aiohal.busvar import ProcessImage, VariableTypeError
 from aiohal.cia402 import CSP, CST, CSV, Cia402Drive, DriveEvent, DriveUnits, Target
 from aiohal.robot import JOINT_STATE_FIELDS, DeviceRecord, Fault, Mode
 
+_CSP = int(CSP)  # a plain int: struct packs it without an enum lookup
 #: joint command mode → CiA 402 mode of operation (impedance runs as CSP: the drive's own loop)
-CSP = int(CSP)
-MODE_OF_OPERATION = {int(Mode.NONE): int(CSP), int(Mode.POSITION): int(CSP), int(Mode.IMPEDANCE): int(CSP),
+MODE_OF_OPERATION = {int(Mode.NONE): _CSP, int(Mode.POSITION): _CSP, int(Mode.IMPEDANCE): _CSP,
                      int(Mode.VELOCITY): int(CSV), int(Mode.EFFORT): int(CST)}
 DRIVE_INPUTS = ("Statusword", "Position actual value", "Velocity actual value", "Torque actual value", "Error code")
 DRIVE_INPUT_TYPES = ("u16", "i32", "i32", "i16", "u16")
@@ -184,13 +184,13 @@ class DriveGroup:
         i = 0
         for (pack, buf, offset), row, k, off, per_mille in self._encode_plan:
             if hold[i]:
-                pack(buf, offset, controlwords[i], raw_position[i], 0, 0, CSP)
+                pack(buf, offset, controlwords[i], raw_position[i], 0, 0, _CSP)
                 i += 1
                 continue
-            mode = modes.get(cm[row], CSP)
+            mode = modes.get(cm[row], _CSP)
             target = ((round((cp[row] - off) * k) + _I32) & 0xFFFFFFFF) - _I32  # wraps as the drive counts
-            if mode == CSP:  # the drive reads the position target only
-                pack(buf, offset, controlwords[i], target, 0, 0, CSP)
+            if mode == _CSP:  # the drive reads the position target only
+                pack(buf, offset, controlwords[i], target, 0, 0, _CSP)
             else:
                 velocity = round(cv[row] * k)
                 torque = round((ce[row] + cf[row]) * per_mille)
@@ -203,7 +203,7 @@ class DriveGroup:
         """Every drive: its controlword, target = actual (before the first tick, and in a stop)."""
         for (pack, buf, offset), controlword, raw in zip((plan[0] for plan in self._encode_plan), self.controlwords,
                                                          self.raw_position):
-            pack(buf, offset, controlword, raw, 0, 0, CSP)
+            pack(buf, offset, controlword, raw, 0, 0, _CSP)
 
     def request(self, target: Target) -> None:
         for machine in self.machines:

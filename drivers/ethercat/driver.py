@@ -188,7 +188,6 @@ class EthercatDriver(Driver):
         self._keepalive_error: BaseException | None = None
         self._keepalive_cycles = 0
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
-        self._lost_slaves: set[Any] = set()
         self.infos: list[SlaveInfo] = []
         self.image: ProcessImage | None = None
         self.drives: DriveGroup | None = None
@@ -240,7 +239,7 @@ class EthercatDriver(Driver):
         by_input = sorted((i for i in self.infos if i.input_bytes), key=lambda i: image.slave(i.name).input_offset)
         # pysoem's property getters/setters, bound once: a property lookup per slave per cycle costs more
         self._in_getters = [bus.slaves[i.position]._get_input for i in by_input]
-        self._in_parts = [(bus.slaves[i.position], image.slave(i.name)) for i in by_input]
+        self._in_parts = [(i.position, bus.slaves[i.position], image.slave(i.name)) for i in by_input]
         self._contiguous_inputs = sum(i.input_bytes for i in by_input) == len(image.inputs)
         self._out_parts = [(bus.slaves[i.position]._set_output, image.slave(i.name).output_offset,
                             image.slave(i.name).output_offset + i.output_bytes) for i in self.infos if i.output_bytes]
@@ -439,9 +438,9 @@ class EthercatDriver(Driver):
             image.inputs[:] = np.frombuffer(b"".join([get() for get in self._in_getters]), dtype=np.uint8)
             return
         lost = self.lost
-        for info_slave, part in self._in_parts:
-            if not lost or info_slave not in self._lost_slaves:
-                part.load_inputs(info_slave.input)
+        for position, slave, part in self._in_parts:
+            if position not in lost:
+                part.load_inputs(slave.input)
 
     async def write(self) -> None:
         t0 = time.perf_counter_ns()
@@ -550,7 +549,6 @@ class EthercatDriver(Driver):
         for i in sorted(self.lost - lost):
             self._recovered(i)
         self.lost = set(lost)
-        self._lost_slaves = {self.bus.slaves[i] for i in lost}
         self._expected = sum(info.wkc for info, st in zip(self.infos, states, strict=True) if st & 0x0F in (SAFEOP, OP))
         for position, sensor in self.sensors:
             if position in lost:
