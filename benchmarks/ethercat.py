@@ -30,9 +30,10 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
-from benchmarks.common import ROOT, table, write_json
+from benchmarks.common import ROOT, steal_seconds, table, write_json
 
 LINES = {1: "drive", 7: "drive*7", 25: "drive*23,imu,ft"}
 LOOP_CPU, SIM_CPU = 0, 1
@@ -82,12 +83,6 @@ ramp = 0.5
 """
 
 
-def _steal_jiffies() -> tuple[int, int]:
-    with open("/proc/stat") as f:
-        fields = [int(x) for x in f.readline().split()[1:]]
-    return fields[7], sum(fields)
-
-
 def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float) -> dict:
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
 
@@ -96,11 +91,11 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float) -> dict
         config = Path(tmp) / "bench.toml"
         config.write_text(config_text(n_slaves, sim.ifname, rate_hz, exchange))
         out = Path(tmp) / "report.json"
-        steal0, total0 = _steal_jiffies()
+        steal0, wall0 = steal_seconds(), time.monotonic()
         cmd = ["taskset", "-c", str(LOOP_CPU), sys.executable, "-m", "aiohal", str(config), "--duration", str(seconds),
                "--quiet", "--log-format", "json", "--report-json", str(out), "--loop", "uvloop"]
         proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=seconds + 120)
-        steal1, total1 = _steal_jiffies()
+        steal = 100 * (steal_seconds() - steal0) / (time.monotonic() - wall0) / os.cpu_count()
         if not out.exists():
             raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {proc.stderr[-2000:]}")
         report = json.loads(out.read_text())
@@ -111,7 +106,7 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float) -> dict
         "cycles": bus.get("cycles"), "wkc_errors": bus.get("wkc_errors"), "faults": len(report["faults"]),
         "lateness_p99_us": report["lateness_us"]["p99"],
         "cpu_p50_us": (bus.get("cpu_us") or [None, None])[0], "cpu_p99_us": (bus.get("cpu_us") or [None, None])[1],
-        "steal_percent": round(100 * (steal1 - steal0) / max(1, total1 - total0), 1),
+        "steal_percent": round(steal, 1),
         "exit_code": proc.returncode,
     }
     key = "rtt_us" if exchange == "immediate" else "receive_wait_us"
@@ -133,7 +128,6 @@ def breakdown(n_slaves: int, ticks: int) -> dict:
     import asyncio
     import functools
     import importlib
-    import time
     import tomllib
 
     from aiohal.config import parse_config

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from .common import table, write_json
+from .common import steal_seconds, table, write_json
 
 THRESHOLDS_US = (2, 5, 10, 50, 1000)
 
@@ -30,8 +30,7 @@ def spin(seconds: float, cpu: int, fifo: bool = False) -> tuple[np.ndarray, floa
     os.sched_setaffinity(0, {cpu})
     if fifo:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80))
-    with open("/proc/stat") as f:
-        steal0 = int(f.readline().split()[8])
+    steal0 = steal_seconds()
     mono = time.monotonic_ns
     gaps = np.zeros(2_000_000, dtype=np.int64)
     n = 0
@@ -43,9 +42,7 @@ def spin(seconds: float, cpu: int, fifo: bool = False) -> tuple[np.ndarray, floa
             gaps[n] = now - last
             n += 1
         last = now
-    with open("/proc/stat") as f:
-        steal1 = int(f.readline().split()[8])
-    steal = 100 * (steal1 - steal0) / os.sysconf("SC_CLK_TCK") / seconds / os.cpu_count()
+    steal = 100 * (steal_seconds() - steal0) / seconds / os.cpu_count()
     return gaps[:n], steal
 
 

@@ -42,7 +42,7 @@ import time
 from aiohal.pipe import Message, NrtPeer
 
 from .breakdown import bare_spec, spawn, timeout_for, worker, worker_main
-from .common import table, write_json
+from .common import steal_seconds, table, write_json
 
 MODULE = "benchmarks.pipe"
 PERIOD_NS = 1_000_000  # 1 kHz
@@ -76,12 +76,6 @@ def _cpu_s(peer: NrtPeer) -> float:
     with open(path) as f:
         fields = f.read().rpartition(")")[2].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
-
-
-def _steal_s() -> float:
-    """CPU seconds the host took from this VM so far (all CPUs; /proc/stat "steal")."""
-    with open("/proc/stat") as f:
-        return int(f.readline().split()[8]) / os.sysconf("SC_CLK_TCK")
 
 
 async def _start_peer(target: str, mode: str) -> NrtPeer:
@@ -120,7 +114,7 @@ async def _ticks(seconds: float, warmup: float, on_tick) -> dict:
     end = measure_from + deadlines * PERIOD_NS
     served = stall = 0
     k = ticker.k
-    steal0, wall0 = _steal_s(), time.monotonic()
+    steal0, wall0 = steal_seconds(), time.monotonic()
     try:
         while True:
             await ticker.next()
@@ -136,7 +130,7 @@ async def _ticks(seconds: float, warmup: float, on_tick) -> dict:
             served += measured
     finally:
         ticker.close()
-    steal = 100 * (_steal_s() - steal0) / (time.monotonic() - wall0) / os.cpu_count()
+    steal = 100 * (steal_seconds() - steal0) / (time.monotonic() - wall0) / os.cpu_count()
     return {"ticks": served, "missed": deadlines - served, "stall_max_ms": round(stall / 1e6, 2),
             "steal_percent": round(steal, 1)}
 
