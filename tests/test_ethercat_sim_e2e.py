@@ -43,7 +43,7 @@ def _environment():
 def pysoem():
     mod = _environment()
     saved = mod.settings.timeouts.ret
-    mod.settings.timeouts.ret = 10_000  # tolerate a busy 2-core machine during bring-up
+    mod.settings.timeouts.ret = RX_TIMEOUT_US  # every non-cyclic frame (bring-up, state reads) rides out a stall too
     yield mod
     mod.settings.timeouts.ret = saved
 
@@ -326,13 +326,31 @@ def _drive_inputs(slave):
     return struct.unpack("<HiihbH", slave.input)
 
 
+# CiA 402 statusword & 0x6F after each controlword of the enable sequence
+STATUS_AFTER = {0x06: 0x21, 0x07: 0x23, 0x0F: 0x27}
+
+
+def _command_drives(master, drives, controlwords, position=0, max_cycles=200):
+    """Each controlword in turn, cycled until every drive's statusword shows the state it leads
+    to (bounded), as a master's state machine waits for it: a frame lost in a stall of the
+    shared machine then delays the step instead of failing it."""
+    for cw in controlwords:
+        for d in drives:
+            d.output = _drive_outputs(cw, position)
+        for _ in range(max_cycles):
+            master.cycle(1)
+            words = [_drive_inputs(d)[0] for d in drives]
+            if all(w & 0x6F == STATUS_AFTER[cw] for w in words):
+                break
+        else:
+            raise AssertionError(f"controlword 0x{cw:02X}: statuswords {[hex(w) for w in words]}, bad {master.bad}")
+
+
 def test_drive_enable_and_follow_csp(master, pysoem):
     master.up()
     drive = master.m.slaves[1]
     start = _drive_inputs(drive)[1]
-    for cw in (0x06, 0x07, 0x0F):
-        drive.output = _drive_outputs(cw, start)
-        master.cycle(3)
+    _command_drives(master, [drive], (0x06, 0x07, 0x0F), start)
     sw = _drive_inputs(drive)[0]
     assert sw & 0x6F == 0x27, hex(sw)
 
@@ -353,9 +371,7 @@ def test_drive_fault_emergency_and_reset(master, pysoem):
     drive = master.m.slaves[2]
     seen = []
     drive.add_emergency_callback(seen.append)
-    for cw in (0x06, 0x0F):
-        drive.output = _drive_outputs(cw)
-        master.cycle(3)
+    _command_drives(master, [drive], (0x06, 0x0F))
     master.sim.control({"cmd": "drive_fault", "slave": 2, "code": 0x2310})
     master.cycle(4)
     sw, *_rest, code = _drive_inputs(drive)
@@ -402,9 +418,7 @@ def test_cable_break_seen_in_wkc_then_recovery(master, pysoem):
 def test_watchdog_when_the_master_stops(master, pysoem):
     master.up()
     drive = master.m.slaves[1]
-    for cw in (0x06, 0x0F):
-        drive.output = _drive_outputs(cw)
-        master.cycle(3)
+    _command_drives(master, [drive], (0x06, 0x0F))
     time.sleep(0.6)  # no process data for longer than the SM watchdog
     st = master.sim.status()["slaves"]
     assert st[1]["state"] == "SAFEOP" and st[1]["al_status_code"] == 0x001B
@@ -420,14 +434,16 @@ def test_frame_faults_drop_delay_wrong_wkc(master, pysoem):
     expected = m.expected_wkc
     master.sim.control({"cmd": "drop", "count": 3})
     wkcs = [master.cycle(1) for _ in range(6)]
-    assert wkcs.count(-1) == 3 and wkcs[-1] == expected
+    # the simulator's counter says exactly 3 were dropped (below); a stall may lose one more
+    assert wkcs[:3] == [-1, -1, -1] and set(wkcs[3:]) <= {expected, -1} and expected in wkcs[3:]
     master.sim.control({"cmd": "delay", "ms": 5, "count": 5})
     t0 = time.monotonic()
     assert master.cycle(5, period=0) == expected
     assert time.monotonic() - t0 >= 0.025
     master.sim.control({"cmd": "wkc", "count": 2})
-    wkcs = [master.cycle(1) for _ in range(4)]
-    assert wkcs == [expected - 1, expected - 1, expected, expected]
+    wkcs = [w for w in (master.cycle(1) for _ in range(5)) if w != -1]  # -1: a frame lost in a stall
+    # one short, then right again (how many were corrupted: the simulator's counter, below)
+    assert wkcs[0] == expected - 1 and wkcs[-1] == expected and wkcs == sorted(wkcs), wkcs
     status = master.sim.status()
     assert status["counters"]["dropped"] == 3 and status["counters"]["wkc_corrupted"] == 2
     master.sim.control({"cmd": "al_error", "slave": 4, "code": 0x0020})
@@ -447,16 +463,12 @@ def test_25_slaves_at_1khz(pysoem):
             master.m.config_dc()
             master.to_op()
             drives = master.m.slaves[:21]
-            for cw in (0x06, 0x0F):
-                for d in drives:
-                    d.output = _drive_outputs(cw)
-                master.cycle(3)
+            _command_drives(master, drives, (0x06, 0x0F))
             master.bad.clear()
             assert master.consecutive_good(1000, 3000) == 1000, (master.bad, sim.status()["counters"])
             assert not master.wrong, master.bad
-            enabled = sum(1 for s in sim.status()["slaves"]
-                          if s["device"].get("state") == "operation_enabled")
-            assert enabled == 21
+            states = [s["device"].get("state") for s in sim.status()["slaves"][:21]]
+            assert states == ["operation_enabled"] * 21, (states, master.bad)
         finally:
             master.close()
     assert not _link_exists(sim.ifname)
