@@ -125,6 +125,9 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
     assert imu.quaternion == pytest.approx([1, 0, 0, 0], abs=1e-6)
     assert imu.linear_acceleration[2] == pytest.approx(9.81, abs=0.01)
     assert imu.fault == 0 and ft.fault == 0 and ft.updated_tick > 2000
+    # the shipped config's sync0 = true: SYNC0 at the loop's period on the drives, not the sensors
+    sync0 = [s["sync0"] for s in segment.status()["slaves"]]
+    assert sync0 == [{"active": True, "cycle_ns": 1_000_000}] * 7 + [{"active": False, "cycle_ns": 0}] * 2
 
 
 @pytest.mark.asyncio
@@ -282,6 +285,10 @@ def test_config_errors_name_the_key(tmp_path):
     assert "options.slaves[2].joint" in proc.stderr and '"a9"' in proc.stderr
     assert "options.slaves[8].device" in proc.stderr
     assert 'joint "a3" has no cia402 drive' in proc.stderr
+    path.write_text(text.replace("sync0 = true", "sync0 = true\ndc = false"))
+    proc = subprocess.run([sys.executable, "-m", "aiohal", "check", str(path)], capture_output=True, text=True,
+                          timeout=60, cwd=ROOT)
+    assert proc.returncode == 2 and "options.sync0" in proc.stderr and "distributed clocks" in proc.stderr
 
 
 @pytest.mark.asyncio

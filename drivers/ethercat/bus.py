@@ -149,18 +149,36 @@ class Bus:
         count = self._sdo_retried(slave, index, 0)[0]
         return [struct.unpack("<I", self._sdo_retried(slave, index, sub)[:4])[0] for sub in range(1, count + 1)]
 
-    def map(self, dc: bool) -> int:
-        """Map the process data (the masters's IO map), set DC up, reach SAFEOP; the map's size."""
+    def map(self, dc: bool, sync0: Sequence[int] = (), cycle_ns: int = 0, shift_ns: int = 0) -> int:
+        """Map the process data (the masters's IO map), set DC up (SYNC0 on the slaves at
+        ``sync0``), reach SAFEOP; the map's size."""
         try:
             size = self.master.config_overlap_map() if self.overlap else self.master.config_map()
         except self.pysoem.ConfigMapError as exc:
             raise BringUpError(f"mapping process data failed: {exc}") from exc
         if dc:
             self.master.config_dc()
+            for position in sync0:
+                self._activate_sync0(position, cycle_ns, shift_ns)
         if self.master.state_check(SAFEOP, 50_000) != SAFEOP:
             self.master.read_state()
             raise BringUpError("slaves did not reach SAFEOP: " + self.describe_not_in(SAFEOP))
         return size
+
+    def _activate_sync0(self, position: int, cycle_ns: int, shift_ns: int) -> None:
+        """SYNC0 every ``cycle_ns`` (SOEM starts it about 100 ms ahead), read back: pysoem's
+        dc_sync reports nothing, and a slave without DC ignores the registers."""
+        slave = self.slaves[position]
+        slave.dc_sync(True, cycle_ns, shift_ns)
+        timeout = self.pysoem.settings.timeouts.ret
+        try:
+            active = slave._fprd(0x0981, 1, timeout_us=timeout)[0] & 0x03 == 0x03
+            cycle = struct.unpack("<I", slave._fprd(0x09A0, 4, timeout_us=timeout))[0]
+        except self.pysoem.WkcError:
+            active, cycle = False, 0
+        if not active or cycle != cycle_ns:
+            raise BringUpError(f"slave {position} ({slave.name}) did not take SYNC0 at {cycle_ns} ns (no distributed "
+                               f"clock?); options.slaves[{position}].sync0 = false leaves it out")
 
     def request_op(self, exchange: Any, timeout_s: float, period_s: float) -> None:
         """SAFEOP → OP, with process data cycling (``exchange()``) before and during the request."""

@@ -76,6 +76,8 @@ class SlaveOptions(Options):
     position_offset: FiniteFloat = Field(0.0, description="rad added to the drive's position.")
     names: dict[str, str | list[str]] = Field(default_factory=dict, description="Bus variable names by address.")
     variables: dict[str, str] = Field(default_factory=dict, description="imu / force_torque: which variables to read.")
+    sync0: bool | None = Field(None, description="SYNC0 on this slave (default: options.sync0 for a cia402 drive, "
+                                                 "off for others).")
 
 
 class EthercatOptions(Options):
@@ -89,6 +91,9 @@ class EthercatOptions(Options):
                                          description="pysoem.settings.timeouts.ret (process-wide) for bring-up frames.")
     overlap_map: bool = Field(False, description="config_overlap_map (inputs and outputs share logical addresses).")
     dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
+    sync0: bool = Field(False, description="Activate SYNC0 at the loop's period on every cia402 drive (DC-synchronous "
+                                           "drives need it, e.g. in CSP); needs dc.")
+    sync0_shift_us: FiniteFloat = Field(0.0, ge=0, description="SYNC0 pulses this long after the period's DC time.")
     wkc_error_limit: int = Field(10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read.")
     recover_interval_s: FiniteFloat = Field(1.0, gt=0, description="Between two recovery steps of a lost sensor.")
     bringup_attempts: int = Field(2, ge=1, le=10, description="A bring-up that fails is tried again from scratch.")
@@ -98,6 +103,11 @@ class EthercatOptions(Options):
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
     op_timeout_s: FiniteFloat = Field(5.0, gt=0)
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
+
+    def sync0_slaves(self) -> list[int]:
+        """Bus positions of the slaves whose SYNC0 is activated."""
+        return [i for i, s in enumerate(self.slaves)
+                if (s.sync0 if s.sync0 is not None else self.sync0 and s.kind == "cia402")]
 
 
 class EthercatDriver(Driver):
@@ -138,6 +148,8 @@ class EthercatDriver(Driver):
                         issues.append((f"{where}.variables.{key}", f"unknown; expected one of {sorted(allowed)}"))
             elif s.device is not None:
                 issues.append((f"{where}.device", f"a {s.kind} slave fills no device"))
+        if not options.dc and options.sync0_slaves():
+            issues.append(("options.sync0", "SYNC0 needs distributed clocks (options.dc = true)"))
         for joint in joints:
             if joint not in drives_for:
                 issues.append(("joints", f'joint "{joint}" has no cia402 drive in options.slaves'))
@@ -223,7 +235,8 @@ class EthercatDriver(Driver):
             check_identity(i, slave.name, s.name, slave.man, slave.id, s.vendor_id, s.product_code)
         bus.watch_emergencies(self._on_emergency)
         layouts = [bus.read_layout(i, s.names) for i, s in enumerate(opts.slaves)]
-        bus.map(opts.dc)
+        bus.map(opts.dc, sync0=opts.sync0_slaves(), cycle_ns=self.view.clock.period_ns,
+                shift_ns=round(opts.sync0_shift_us * 1000))
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
             self.infos.append(SlaveInfo(i, s.name, slave.name, slave.man, slave.id, slave.rev, layout,
                                         len(slave.output), len(slave.input)))

@@ -742,6 +742,7 @@ class Esc:
             "device": self.device.status(),
             "stats": dict(self.stats),
             "coe": dict(self.coe.stats) if self.coe is not None else None,
+            "sync0": {"active": self.mem[0x0981] & 0x03 == 0x03, "cycle_ns": U32.unpack_from(self.mem, 0x09A0)[0]},
         }
 
 
