@@ -18,6 +18,7 @@ took from this VM during the case, in % of both CPUs (from /proc/stat).
 
     sudo python -m benchmarks.ethercat [--seconds 10] [--soak 60] [--json PATH]
     sudo python -m benchmarks.ethercat --breakdown 7 [--seconds 5]   # where the driver's time goes
+    sudo python -m benchmarks.ethercat --bare 7 [--rounds 3]          # pysoem's own floor beside it
 
 ``--soak`` runs 25 slaves at 1 kHz (split) for that long at the end (0 = skip).
 """
@@ -33,10 +34,13 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from benchmarks.common import ROOT, steal_seconds, table, write_json
 
 LINES = {1: "drive", 7: "drive*7", 25: "drive*23,imu,ft"}
 LOOP_CPU, SIM_CPU = 0, 1
+OP_STATE = 0x08
 
 
 def config_text(n_slaves: int, ifname: str, rate_hz: int, exchange: str) -> str:
@@ -117,7 +121,7 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float) -> dict
 
 PHASES = (("bus", "Bus", "send"), ("bus", "Bus", "receive"), ("driver", "EthercatDriver", "_load_inputs"),
           ("devices", "DriveGroup", "decode"), ("devices", "DriveGroup", "update_machines"),
-          ("devices", "DriveGroup", "read"), ("devices", "DriveGroup", "write"),
+          ("devices", "DriveGroup", "write"),
           ("driver", "EthercatDriver", "_write_outputs"))
 
 
@@ -173,6 +177,91 @@ def breakdown(n_slaves: int, ticks: int) -> dict:
         return {"slaves": n_slaves, **asyncio.run(run(sim.ifname))}
 
 
+def bare_case(n_slaves: int, seconds: float) -> dict:
+    """The least any driver on pysoem does per cycle, timed like the driver's CPU figure: a
+    plain loop (SCHED_FIFO 80, sleeping to absolute 1 ms deadlines, as the aiohal loop does)
+    that receives the frame sent at the end of the previous cycle (the wait is excluded), reads
+    every slave's ``input``, writes every slave's ``output`` (bytes made once), sends. No
+    decoding, no state machine: what is left of 50 µs after this is the budget for the rest."""
+    import gc
+
+    import pysoem
+
+    from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
+
+    cycles = round(seconds * 1000)
+    with SimulatedSegment(LINES[n_slaves], watchdog_ms=100) as sim:
+        os.sched_setaffinity(sim.pid, {SIM_CPU})
+        os.sched_setaffinity(0, {LOOP_CPU})
+        m = pysoem.Master()
+        m.open(sim.ifname)
+        try:
+            if m.config_init() != n_slaves:
+                raise RuntimeError("config_init did not find the simulated slaves")
+            m.config_map()
+            m.config_dc()
+            slaves = list(m.slaves)
+            getters = [s._get_input for s in slaves if len(s.input)]
+            setters = [(s._set_output, bytes(len(s.output))) for s in slaves if len(s.output)]
+            for _ in range(3):
+                m.send_processdata()
+                m.receive_processdata(50_000)
+            m.state = OP_STATE
+            m.write_state()
+            for _ in range(500):
+                m.send_processdata()
+                m.receive_processdata(50_000)
+                if m.state_check(OP_STATE, 1000) == OP_STATE:
+                    break
+                time.sleep(0.001)
+            else:
+                raise RuntimeError("the simulated slaves did not reach OP")
+            expected = m.expected_wkc
+            spent = np.zeros(cycles, dtype=np.int64)
+            parts = np.zeros((cycles, 3), dtype=np.int64)  # inputs, outputs, send
+            bad = 0
+            gc.collect()
+            gc.disable()
+            saved = os.sched_getscheduler(0), os.sched_getparam(0)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80))
+            steal0, wall0 = steal_seconds(), time.monotonic()
+            try:
+                m.send_processdata()
+                deadline = time.monotonic() + 0.001
+                for i in range(cycles):
+                    t0 = time.perf_counter_ns()
+                    wkc = m.receive_processdata(2000)
+                    t1 = time.perf_counter_ns()
+                    bad += wkc != expected
+                    inputs = [get() for get in getters]
+                    t2 = time.perf_counter_ns()
+                    for set_output, data in setters:
+                        set_output(data)
+                    t3 = time.perf_counter_ns()
+                    m.send_processdata()
+                    t4 = time.perf_counter_ns()
+                    spent[i] = (t4 - t0) - (t1 - t0)
+                    parts[i] = (t2 - t1, t3 - t2, t4 - t3)
+                    del inputs
+                    left = deadline - time.monotonic()
+                    if left > 0:
+                        time.sleep(left)
+                    deadline += 0.001
+                m.receive_processdata(2000)
+            finally:
+                os.sched_setscheduler(0, saved[0], saved[1])
+                gc.enable()
+            steal = 100 * (steal_seconds() - steal0) / (time.monotonic() - wall0) / os.cpu_count()
+        finally:
+            m.close()
+    med = np.median(parts, axis=0)
+    return {"loop": "bare pysoem", "slaves": n_slaves, "cycles": cycles, "wkc_errors": int(bad),
+            "cpu_p50_us": round(float(np.median(spent)) / 1e3, 1),
+            "cpu_p99_us": round(float(np.percentile(spent, 99)) / 1e3, 1),
+            "inputs_p50_us": round(med[0] / 1e3, 1), "outputs_p50_us": round(med[1] / 1e3, 1),
+            "send_p50_us": round(med[2] / 1e3, 1), "steal_percent": round(steal, 1)}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seconds", type=float, default=10.0)
@@ -182,12 +271,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None)
     p.add_argument("--breakdown", type=int, choices=sorted(LINES), default=None,
                    help="instead: the driver's time per phase in the loop with this many slaves")
+    p.add_argument("--bare", type=int, choices=sorted(LINES), default=None,
+                   help="instead: a bare pysoem loop against the driver (1 kHz, split), alternately, "
+                        "--rounds times each with this many slaves")
+    p.add_argument("--rounds", type=int, default=3)
     args = p.parse_args(argv)
     if os.geteuid() != 0:
         print("benchmarks.ethercat needs root (veth pair, network namespace, raw socket)", file=sys.stderr)
         return 2
     if args.breakdown:
         print(json.dumps(breakdown(args.breakdown, round(args.seconds * 1000))))
+        return 0
+    if args.bare:
+        pairs = []
+        for _ in range(args.rounds):
+            pairs.append(bare_case(args.bare, args.seconds))
+            print(json.dumps(pairs[-1]), flush=True)
+            pairs.append({"loop": "aiohal driver", **run_case(args.bare, 1000, "split", args.seconds)})
+            print(json.dumps(pairs[-1]), flush=True)
+        print(table(pairs, [("loop", "loop"), ("slaves", "slaves"), ("wkc_errors", "WKC errors"),
+                            ("cpu_p50_us", "CPU p50 µs"), ("cpu_p99_us", "CPU p99 µs"),
+                            ("inputs_p50_us", "inputs µs"), ("outputs_p50_us", "outputs µs"),
+                            ("send_p50_us", "send µs"), ("steal_percent", "steal %")]))
+        write_json(args.json, {"benchmark": "ethercat_bare", "rows": pairs})
         return 0
     rows = []
     for n in args.slaves:

@@ -81,13 +81,15 @@ def test_decode_unwraps_int32_positions_and_converts_units():
     image, group = drives(2, units)
     set_inputs(image, 0, position=2**31 - 100, velocity=4096, torque=500)
     set_inputs(image, 1, position=-10)
+    state = np.zeros((6, 2))
+    group.bind_state(state[0], state[1], state[2], state[3])
     group.decode()
+    before = state.copy()
     set_inputs(image, 0, position=-(2**31) + 100, velocity=4096, torque=500)  # wrapped: +200 counts
     set_inputs(image, 1, position=10)
+    group.decode(into_state=False)  # a cycle off the loop's thread: unwrapped, the state not touched
+    assert np.array_equal(state, before)
     group.decode()
-    state = np.zeros((6, 2))
-    group.bind_state(state)
-    group.read(state[0], state[1], state[2], state[3])
     counts_per_rad = 4096 * 2 / (2 * np.pi)
     assert state[0, 0] == pytest.approx((2**31 + 100) / counts_per_rad)
     assert state[0, 1] == pytest.approx(10 / counts_per_rad)
@@ -122,11 +124,20 @@ def test_rows_out_of_order_map_each_drive_to_its_joint():
     image, group = drives(3, rows=[2, 0, 1])
     for i in range(3):
         set_inputs(image, i, position=1000 * (i + 1))
-    group.decode()
     state = np.zeros((6, 3))
-    group.read(state[0], state[1], state[2], state[3])
+    group.bind_state(state[0], state[1], state[2], state[3])
+    group.decode()
     counts_per_rad = 131072 / (2 * np.pi)
     assert state[0] * counts_per_rad == pytest.approx([2000, 3000, 1000])
+
+
+def test_bind_state_refuses_rows_decode_could_not_write_in_place():
+    _, group = drives(2)
+    block = np.zeros((6, 2))
+    with pytest.raises(ValueError, match="state velocity: a writable contiguous"):
+        group.bind_state(block[0], np.zeros((2, 4))[:, 0], block[2], block[3])
+    with pytest.raises(ValueError, match="state effort has 1 joints"):
+        group.bind_state(block[0], block[1], np.zeros(1), block[3])
 
 
 def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():

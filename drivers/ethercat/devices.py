@@ -18,7 +18,7 @@ import numpy as np
 
 from aiohal.busvar import ProcessImage, VariableTypeError
 from aiohal.cia402 import CSP, CST, CSV, Cia402Drive, DriveEvent, DriveUnits, Target
-from aiohal.robot import JOINT_STATE_FIELDS, DeviceRecord, Fault, Mode
+from aiohal.robot import DeviceRecord, Fault, Mode
 
 _CSP = int(CSP)  # a plain int: struct packs it without an enum lookup
 #: joint command mode → CiA 402 mode of operation (impedance runs as CSP: the drive's own loop)
@@ -63,10 +63,6 @@ class DriveGroup:
             self.inputs.append(image.codec(s.slave, DRIVE_INPUTS))
             self.outputs.append(image.codec(s.slave, DRIVE_OUTPUTS, writable=True))
         self.rows = [s.row for s in specs]
-        self._rows_index = np.array(self.rows)
-        consecutive = self.rows == list(range(self.rows[0], self.rows[0] + len(self.rows)))
-        self._rows: slice | np.ndarray = slice(self.rows[0], self.rows[0] + len(self.rows)) if consecutive \
-            else self._rows_index
         # per-drive constants as Python floats (a loop over a few drives)
         self.rad_per_count = [float(s.units.rad_per_count) for s in specs]
         self.counts_per_rad = [float(s.units.counts_per_rad) for s in specs]
@@ -86,11 +82,15 @@ class DriveGroup:
         self._started = False
         self._last_status: list[int] = []
         self._steady = False  # every drive enabled, following, nothing pending
-        self._block: np.ndarray | None = None
-        self._decoded: tuple[list[float], ...] = ([0.0] * n,) * 4  # position, motor position, velocity, effort
-        # what the per-cycle loops need, bound once: (struct function, buffer, offset) and constants
-        self._decode_plan = tuple(((c.unpack_from, c.buf, c.offset), rad, motor_rad, nm, off) for c, rad, motor_rad, nm, off
-                                  in zip(self.inputs, self.rad_per_count, self.motor_rad_per_count,
+        # decode writes position, velocity, effort, motor position by row: into the robot's state
+        # once bound, and into these private rows when not (or when cycled off the loop's thread)
+        self._scratch = np.zeros((4, max(self.rows) + 1))
+        self._scratch_rows = tuple(memoryview(r) for r in self._scratch)
+        self._state_rows = self._scratch_rows
+        # what the per-cycle loops need, bound once: (struct function, buffer, offset), row and constants
+        self._decode_plan = tuple(((c.unpack_from, c.buf, c.offset), row, rad, motor_rad, nm, off)
+                                  for c, row, rad, motor_rad, nm, off
+                                  in zip(self.inputs, self.rows, self.rad_per_count, self.motor_rad_per_count,
                                          self.nm_per_per_mille, self.offset, strict=True))
         self._encode_plan = tuple(((c.pack_into, c.buf, c.offset), row, k, off, per_mille)
                                   for c, row, k, off, per_mille in zip(self.outputs, self.rows, self.counts_per_rad,
@@ -103,45 +103,41 @@ class DriveGroup:
 
     # ------------------------------------------------------------ per cycle
 
-    def decode(self) -> None:
-        """Unpack every drive's inputs; unwrap the positions; convert to SI units."""
-        pos, motor, vel, eff = [], [], [], []
+    def bind_state(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray,
+                   motor_position: np.ndarray) -> None:
+        """The robot's state rows (rad, rad/s, N·m; motor side in rad) that :meth:`decode`
+        writes, element by element through memoryviews: no list or array per cycle."""
+        views = []
+        for name, array in (("position", position), ("velocity", velocity), ("effort", effort),
+                            ("motor_position", motor_position)):
+            if array.ndim != 1 or array.dtype != np.float64 or not array.flags.c_contiguous or not array.flags.writeable:
+                raise ValueError(f"state {name}: a writable contiguous 1-D float64 array is needed")
+            if len(array) <= max(self.rows):
+                raise ValueError(f"state {name} has {len(array)} joints, a drive writes row {max(self.rows)}")
+            views.append(memoryview(array))
+        self._state_rows = tuple(views)
+
+    def decode(self, into_state: bool = True) -> None:
+        """Unpack every drive's inputs; unwrap the positions; convert to SI units and write
+        them into the bound state rows (``into_state=False``: into private rows, for a cycle
+        made off the loop's thread, which must not touch the robot's state)."""
+        P, V, E, M = self._state_rows if into_state else self._scratch_rows
         counts, raw_position, statuswords, error_codes = self.counts, self.raw_position, self.statuswords, self.error_codes
         started = self._started
         i = 0
-        for (unpack, buf, offset), rad, motor_rad, nm, off in self._decode_plan:
+        for (unpack, buf, offset), row, rad, motor_rad, nm, off in self._decode_plan:
             sw, raw, v, t, err = unpack(buf, offset)
             statuswords[i] = sw
             error_codes[i] = err
             c = counts[i] + ((raw - raw_position[i] + _I32) & 0xFFFFFFFF) - _I32 if started else raw
             counts[i] = c
             raw_position[i] = raw
-            pos.append(c * rad + off)
-            motor.append(c * motor_rad)
-            vel.append(v * rad)
-            eff.append(t * nm)
+            P[row] = c * rad + off
+            M[row] = c * motor_rad
+            V[row] = v * rad
+            E[row] = t * nm
             i += 1
         self._started = True
-        self._decoded = (pos, motor, vel, eff)
-
-    def bind_state(self, block: np.ndarray) -> None:
-        """Write decoded values with one assignment into the state block's first four rows
-        (position, velocity, effort, motor position: JOINT_STATE_FIELDS' order)."""
-        assert JOINT_STATE_FIELDS[:4] == ("position", "velocity", "effort", "motor_position")
-        self._block = block[:4]
-
-    def read(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray,
-             motor_position: np.ndarray) -> None:
-        """The decoded values → the driver's state rows (rad, rad/s, N·m; motor side in rad)."""
-        rows = self._rows
-        pos, motor, vel, eff = self._decoded
-        if self._block is not None:  # the state's rows 0-3 are position, velocity, effort, motor position
-            self._block[:, rows] = (pos, vel, eff, motor)
-            return
-        position[rows] = pos
-        motor_position[rows] = motor
-        velocity[rows] = vel
-        effort[rows] = eff
 
     def update_machines(self, on_event: Callable[[int, DriveEvent], None]) -> None:
         """Run the state machines when a statusword changed or a drive is not steadily enabled;

@@ -254,6 +254,7 @@ class EthercatDriver(Driver):
         self._in_getters = [bus.slaves[i.position]._get_input for i in by_input]
         self._in_parts = [(i.position, bus.slaves[i.position], image.slave(i.name)) for i in by_input]
         self._contiguous_inputs = sum(i.input_bytes for i in by_input) == len(image.inputs)
+        self._inputs_bytes = memoryview(image.inputs).cast("B")  # bytes in with a memcpy, no numpy call
         self._out_parts = [(bus.slaves[i.position]._set_output, image.slave(i.name).output_offset,
                             image.slave(i.name).output_offset + i.output_bytes) for i in self.infos if i.output_bytes]
         period_s = self.view.clock.period_ns * 1e-9
@@ -283,7 +284,8 @@ class EthercatDriver(Driver):
             stuck = max(1, round(opts.stuck_after_ms * 1e6 / self.view.clock.period_ns))
             target = Target.ENABLED if opts.enable_on_open and not self._estop_requested else Target.DISABLED
             self.drives = DriveGroup(image, specs, stuck_after=stuck, target=target)
-            self.drives.bind_state(self.view.state.block)
+            state = self.view.state
+            self.drives.bind_state(state.position, state.velocity, state.effort, state.motor_position)
             self._drive_mask = np.zeros(view.dof, dtype=bool)
             if self._estop_requested:
                 self.drives.request(Target.QUICK_STOP)
@@ -303,7 +305,7 @@ class EthercatDriver(Driver):
         if wkc == self._expected:
             self._load_inputs()
             if self.drives is not None:
-                self.drives.decode()
+                self.drives.decode(into_state=False)  # the robot's state is the loop's
                 self.drives.update_machines(self._on_drive_event)
         return wkc
 
@@ -424,9 +426,7 @@ class EthercatDriver(Driver):
         clock = view.clock
         drives = self.drives
         if drives is not None:
-            drives.decode()
-            state = view.state
-            drives.read(state.position, state.velocity, state.effort, state.motor_position)
+            drives.decode()  # straight into the state's rows
             drives.update_machines(self._on_drive_event)  # after the rows: a resync sees this cycle's position
         for position, sensor in self.sensors:
             sensor.read(clock.tick, clock.now_ns, position in self.lost)
@@ -448,7 +448,7 @@ class EthercatDriver(Driver):
     def _load_inputs(self) -> None:
         image = self.image
         if self._contiguous_inputs and not self.lost:
-            image.inputs[:] = np.frombuffer(b"".join([get() for get in self._in_getters]), dtype=np.uint8)
+            self._inputs_bytes[:] = b"".join([get() for get in self._in_getters])
             return
         lost = self.lost
         for position, slave, part in self._in_parts:
