@@ -107,7 +107,7 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float) -> dict
     row = {
         "slaves": n_slaves, "rate_hz": rate_hz, "exchange": exchange, "seconds": seconds,
         "process_data_bytes": None, "ticks": report["ticks"], "missed": report["missed_ticks"],
-        "cycles": bus.get("cycles"), "wkc_errors": bus.get("wkc_errors"), "faults": len(report["faults"]),
+        "cycles": bus.get("cycles"), "wkc_errors": bus.get("wkc_errors"), "frames_lost": bus.get("frames_lost"), "faults": len(report["faults"]),
         "lateness_p99_us": report["lateness_us"]["p99"],
         "cpu_p50_us": (bus.get("cpu_us") or [None, None])[0], "cpu_p99_us": (bus.get("cpu_us") or [None, None])[1],
         "steal_percent": round(steal, 1),
@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(run_case(25, 1000, "split", args.soak))
         print(json.dumps(rows[-1]), flush=True)
     columns = [("slaves", "slaves"), ("process_data_bytes", "PD bytes"), ("rate_hz", "Hz"), ("exchange", "exchange"),
-               ("seconds", "s"), ("ticks", "ticks"), ("missed", "missed"), ("wkc_errors", "WKC errors"),
+               ("seconds", "s"), ("ticks", "ticks"), ("missed", "missed"), ("wkc_errors", "WKC errors"), ("frames_lost", "of which lost"),
                ("rtt_us_p50", "RTT p50 µs"), ("rtt_us_p99", "RTT p99 µs"),
                ("receive_wait_us_p50", "wait p50 µs"), ("receive_wait_us_p99", "wait p99 µs"),
                ("cpu_p50_us", "driver CPU p50 µs"), ("cpu_p99_us", "CPU p99 µs"),

@@ -117,8 +117,10 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
     assert report["faults"] == [] and report["safety_level"] == "run"
     health = report["drivers"]["bus"]
     assert health["drives_enabled"] == "7/7" and health["slaves"] == 9 and health["expected_wkc"] == 25
-    # a frame later than the receive timeout (a host stall) costs one cycle; nothing else may
-    assert health["cycles"] >= report["ticks"] and health["wkc_errors"] <= max(5, health["cycles"] // 200)
+    # a frame later than the receive timeout (a stall of this shared host) costs one cycle; a
+    # frame that came back short of a slave never happens
+    assert health["cycles"] >= report["ticks"] and health["wkc_errors"] == health["frames_lost"]
+    assert health["frames_lost"] <= max(5, health["cycles"] // 20)
     # the drives follow: the sine moved every joint, and the measured position is where it was sent
     assert np.all(np.abs(commanded) > 0.05)
     assert position == pytest.approx(commanded, abs=0.02)
@@ -200,7 +202,8 @@ async def test_a_lost_sensor_is_faulted_and_recovered_while_the_arm_runs(segment
     assert 800 <= seen["imu_fault"] < 800 + WATCHDOG_MS
     assert driver.lost == set() and driver.recovered == 2
     # bad cycles only until each change was diagnosed (5 in a row each), not for the whole outage
-    assert report["drivers"]["bus"]["wkc_errors"] < 50
+    bus = report["drivers"]["bus"]
+    assert bus["wkc_errors"] - bus["frames_lost"] < 50  # (frames lost in a stall of the host aside)
     assert imu.fault == 0 and ft.fault == 0 and imu.updated_tick > WATCHDOG_MS + 2700 and ft.updated_tick > WATCHDOG_MS + 2700
 
 
@@ -227,7 +230,8 @@ async def test_sdo_round_trips_run_beside_the_ticks(segment):
     assert missing.value.abort_code == 0x06020000 and "0x5FFF" in str(missing.value)
     assert ticks_during < 1500  # the transfers were done while the loop ran
     bus = report["drivers"]["bus"]
-    assert report["faults"] == [] and bus["wkc_errors"] <= max(10, bus["cycles"] // 100)  # late frames in stalls
+    assert report["faults"] == [] and bus["wkc_errors"] == bus["frames_lost"]  # late frames (stalls), never short
+    assert bus["frames_lost"] <= max(10, bus["cycles"] // 20)
 
 
 @pytest.mark.asyncio
@@ -328,14 +332,18 @@ async def test_drives_left_disabled_are_enabled_by_the_application_where_they_st
     raw = raw_config(segment.ifname, enable_on_open=False)
     raw["controller"] = {"type": "hold"}  # commands the activation position, 30000 counts
     # the disabled joint is moved by hand meanwhile: enabling it must not pull it back
-    at = At((200, in_thread(segment.control, {"cmd": "device", "slave": 1, "position": 60000})),
-            (400, lambda loop: driver_of(loop).enable_drives()))
     seen = {}
 
+    def enable(loop):
+        seen["asked_at_cycle"] = driver_of(loop).cycles
+        driver_of(loop).enable_drives()
+
+    at = At((200, in_thread(segment.control, {"cmd": "device", "slave": 1, "position": 60000})), (400, enable))
+
     def watch(loop):
-        machines = driver_of(loop).drives.machines
-        if machines[1].enabled and "tick" not in seen:
-            seen.update(tick=loop.robot.clock.tick, command=loop.robot.command.position[1],
+        driver = driver_of(loop)
+        if driver.drives.machines[1].enabled and "tick" not in seen:
+            seen.update(tick=loop.robot.clock.tick, cycle=driver.cycles, command=loop.robot.command.position[1],
                         measured=loop.robot.state.position[1])
 
     async with ControlLoop(parse_config(raw)) as loop:
@@ -343,12 +351,14 @@ async def test_drives_left_disabled_are_enabled_by_the_application_where_they_st
         assert not any(m.enabled for m in driver.drives.machines)
         loop.add_publisher(at)
         loop.add_publisher(watch)
-        report = await loop.run(ticks=1800)
+        report = await loop.run(ticks=2500)
         assert driver.drives.all_enabled()
         position_after = loop.robot.state.position[1]
         await asyncio.gather(*at.tasks)
     assert report["faults"] == []
-    assert 400 < seen["tick"] < 450
+    # enabled a few cycles after the request (counted in bus cycles: a stall of this shared host
+    # skips ticks, and the tick number with them)
+    assert seen["tick"] > 400 and 0 < seen["cycle"] - seen["asked_at_cycle"] < 50
     assert seen["measured"] == pytest.approx(60000 * 2 * np.pi / 131072, abs=1e-3)
     # resynchronised: the command starts where the joint stands (without it, the command would
     # still be the activation position, 1.44 rad away) and moves on only at the velocity limit

@@ -829,6 +829,20 @@ def test_watchdog_also_trips_during_a_frame_gap():
     assert bus.al(0x1001) == (SAFEOP | 0x10, 0x001B)
 
 
+def test_a_stall_of_the_simulator_itself_is_not_held_against_the_watchdog():
+    """The runner reports the time it was not run (the host stalled it and the master with
+    it): hardware slaves would not have stalled, so their watchdogs do not count it."""
+    bus = Bus("drive", watchdog_ms=100)
+    bus.up()
+    bus.clock.advance(500)  # the host stalled both sides for 500 ms
+    bus.seg.discount_stall(500_000_000)
+    bus.seg.poll()
+    assert bus.al(0x1001) == (OP, 0) and bus.seg.counters["stalls_discounted"] == 1
+    bus.clock.advance(120)  # then the master really stops sending
+    bus.seg.poll()
+    assert bus.al(0x1001) == (SAFEOP | 0x10, 0x001B)
+
+
 # ====================================================================== drive
 
 

@@ -212,7 +212,8 @@ class EthercatDriver(Driver):
         self._check_states = False  # read every slave's state at the next read (a drive dropped out)
         self._next_recover = 0.0
         self.cycles = 0
-        self.wkc_errors = 0
+        self.wkc_errors = 0  # cycles without the expected working counter...
+        self.frames_lost = 0  # ...of which no frame came back in time (the others: a slave short)
         self.diagnoses = 0
         self.recovered = 0
         self.drive_faults = 0
@@ -409,6 +410,8 @@ class EthercatDriver(Driver):
                 self._take_inputs()
             else:
                 self.wkc_errors += 1
+                if wkc < 0:  # no frame back within receive_timeout_us (SOEM's EC_NOFRAME)
+                    self.frames_lost += 1
                 self._bad_run += 1
                 if self._bad_run >= self.options.wkc_error_limit:
                     self._diagnose(wkc)
@@ -698,7 +701,8 @@ class EthercatDriver(Driver):
         n = min(self.cycles, RING)
         out: dict[str, Any] = {
             "interface": self.options.interface, "slaves": len(self.infos), "cycles": self.cycles,
-            "wkc_errors": self.wkc_errors, "expected_wkc": self._expected, "exchange": self.options.exchange,
+            "wkc_errors": self.wkc_errors, "frames_lost": self.frames_lost, "expected_wkc": self._expected,
+            "exchange": self.options.exchange,
         }
         if self.image is not None:
             out["process_data_bytes"] = len(self.image.outputs) + len(self.image.inputs)

@@ -94,7 +94,7 @@ class Segment:
     # ------------------------------------------------------------------ bookkeeping
     def reset_counters(self) -> None:
         self.counters = {"frames": 0, "replied": 0, "dropped": 0, "delayed": 0, "ignored": 0,
-                         "wkc_corrupted": 0, "watchdog_trips": 0, "datagrams": 0}
+                         "wkc_corrupted": 0, "watchdog_trips": 0, "datagrams": 0, "stalls_discounted": 0}
         self.command_counts = [0] * 16
 
     def _on_change(self, what: str) -> None:
@@ -221,6 +221,14 @@ class Segment:
         for esc in self.slaves:
             if esc.al_state == OP and esc.check_watchdog(now):
                 self.counters["watchdog_trips"] += 1
+
+    def discount_stall(self, ns: int) -> None:
+        """The simulator was not run for ``ns`` (the host stalled it, and the master with it):
+        the SM watchdogs do not count that time."""
+        self.counters["stalls_discounted"] += 1
+        for esc in self.slaves:
+            if esc.last_output_ns is not None:
+                esc.last_output_ns += ns
 
     def next_deadline(self) -> int | None:
         """Earliest watchdog deadline (ns, clock time) or None."""
