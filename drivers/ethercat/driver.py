@@ -438,15 +438,26 @@ class EthercatDriver(Driver):
     def _activate(self) -> None:
         """The activation read (lock held): a good cycle is required, so that the loop starts
         its commands from where the joints really are, and every drive asked to be enabled is."""
+        wkcs = []
         for _ in range(3):
-            if self._bringup_cycle() == self._expected:
+            wkcs.append(self._bringup_cycle())
+            if wkcs[-1] == self._expected:
                 break
         else:
-            raise EthercatError(f"no good process-data cycle at activation (working counter != {self._expected})")
+            why = "no frame came back" if max(wkcs) < 0 else self._states_not_op()
+            raise EthercatError(f"no good process-data cycle at activation (working counters {wkcs}, expected "
+                                f"{self._expected}): {why}")
         if self.drives is not None and self.options.enable_on_open and not self.drives.all_enabled():
             raise EthercatError(f"drives not enabled at activation: {self._not_enabled()}")
         self._written = False
         self._activated = True
+
+    def _states_not_op(self) -> str:
+        try:
+            self.bus.states()
+        except Exception as exc:  # the reason we were asked for matters more than this failure
+            return f"the slaves' states could not be read ({exc})"
+        return self.bus.describe_not_in(OP)
 
     def _load_inputs(self) -> None:
         image = self.image
