@@ -109,6 +109,7 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
         assert [i.name for i in driver.infos] == [f"drive{i}" for i in range(1, 8)] + ["imu", "ft"]
         assert driver.infos[0].device_name == "AIOHAL-Drive" and driver.infos[0].product_code == 0x402
         report = await loop.run(ticks=2500)  # the sine's ramp (1 s) and 1.5 s of motion
+        last_tick = loop.robot.clock.tick
         state, cmd = loop.robot.state, loop.robot.command
         position = state.position.copy()
         commanded = cmd.position.copy()
@@ -126,7 +127,7 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
     assert position == pytest.approx(commanded, abs=0.02)
     assert imu.quaternion == pytest.approx([1, 0, 0, 0], abs=1e-6)
     assert imu.linear_acceleration[2] == pytest.approx(9.81, abs=0.01)
-    assert imu.fault == 0 and ft.fault == 0 and ft.updated_tick > 2000
+    assert imu.fault == 0 and ft.fault == 0 and ft.updated_tick > last_tick - 50  # fresh to the end
     # the shipped config's sync0 = true: SYNC0 at the loop's period on the drives, not the sensors
     sync0 = [s["sync0"] for s in segment.status()["slaves"]]
     assert sync0 == [{"active": True, "cycle_ns": 1_000_000}] * 7 + [{"active": False, "cycle_ns": 0}] * 2
@@ -283,7 +284,10 @@ async def test_an_interface_that_does_not_exist_is_named():
 def test_the_shipped_config_runs_from_the_command_line(segment, tmp_path):
     """`python -m aiohal configs/ethercat_sim.toml` with the segment's interface: the run, its report."""
     text = CONFIG.read_text().replace('interface = "ecm0"', f'interface = "{segment.ifname}"')
-    assert segment.ifname in text
+    # the loop holds the robot on feedback older than 50 ms (tested elsewhere); this shared
+    # host stalls for longer at times
+    text = text.replace("rate_hz = 1000\n", "rate_hz = 1000\nmax_feedback_age = 1000\n", 1)
+    assert segment.ifname in text and "max_feedback_age = 1000" in text
     config = tmp_path / "ethercat_sim.toml"
     config.write_text(text)
     proc = subprocess.run([sys.executable, "-m", "aiohal", str(config), "--duration", "2", "--log-format", "json"],
@@ -355,18 +359,22 @@ async def test_drives_left_disabled_are_enabled_by_the_application_where_they_st
 
     at = At((200, in_thread(segment.control, {"cmd": "device", "slave": 1, "position": 60000})), (400, enable))
 
+    target = 30000 * 2 * np.pi / 131072  # hold's command: the activation position
+
     def watch(loop):
         driver = driver_of(loop)
         if driver.drives.machines[1].enabled and "tick" not in seen:
             seen.update(tick=loop.robot.clock.tick, cycle=driver.cycles, command=loop.robot.command.position[1],
                         measured=loop.robot.state.position[1])
+        if "tick" in seen and abs(loop.robot.state.position[1] - target) < 0.005:
+            loop.request_stop("back at hold's target")  # (bounded by the run's ticks otherwise)
 
     async with ControlLoop(parse_config(raw)) as loop:
         driver = driver_of(loop)
         assert not any(m.enabled for m in driver.drives.machines)
         loop.add_publisher(at)
         loop.add_publisher(watch)
-        report = await loop.run(ticks=2500)
+        report = await loop.run(ticks=6000)
         assert driver.drives.all_enabled()
         position_after = loop.robot.state.position[1]
         await asyncio.gather(*at.tasks)
@@ -379,7 +387,7 @@ async def test_drives_left_disabled_are_enabled_by_the_application_where_they_st
     # still be the activation position, 1.44 rad away) and moves on only at the velocity limit
     # (2 rad/s: 2 mrad per tick) toward what the controller commands
     assert abs(seen["command"] - seen["measured"]) <= 2.0e-3 + 1e-9
-    assert position_after == pytest.approx(30000 * 2 * np.pi / 131072, abs=0.01)  # hold's target, reached by a ramp
+    assert position_after == pytest.approx(target, abs=0.01)  # hold's target, reached by a ramp
 
 
 @pytest.mark.asyncio

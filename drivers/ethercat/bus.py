@@ -127,19 +127,19 @@ class Bus:
         names = names_for(slave.man, slave.id, device_type=device_type, overrides=names_overrides)
         return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
 
-    def _sdo_retried(self, slave: Any, index: int, subindex: int, attempts: int = 3) -> bytes:
-        """An SDO read at bring-up, tried again when its mailbox frame was lost (not when the
-        slave aborts it): a lost frame is a normal event on a bus, and on a busy host."""
-        for attempt in range(attempts):
+    def _sdo_retried(self, slave: Any, index: int, subindex: int, size: int = 0, attempts: int = 3) -> bytes:
+        """An SDO read, tried again when its mailbox frame was lost (not when the slave aborts
+        it): a lost frame is a normal event on a bus, and on a busy host. A read changes
+        nothing, so a second one is safe (a write is not retried)."""
+        lost = (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError)
+        for attempt in range(attempts - 1):
             try:
-                return slave.sdo_read(index, subindex, release_gil=True)
-            except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError):
-                if attempt == attempts - 1:
-                    raise
+                return slave.sdo_read(index, subindex, size, release_gil=True)
+            except lost:
                 time.sleep(0.01 * (attempt + 1))
                 log.info("ethercat %s: SDO read 0x%04X:%02X of %s lost, trying again", self.ifname, index,
                          subindex, slave.name)
-        raise AssertionError("unreachable")
+        return slave.sdo_read(index, subindex, size, release_gil=True)
 
     def _assignment(self, slave: Any, index: int) -> list[int]:
         count = self._sdo_retried(slave, index, 0)[0]
@@ -251,7 +251,7 @@ class Bus:
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         slave = self.slaves[position]
         try:
-            return slave.sdo_read(index, subindex, size, release_gil=True)
+            return self._sdo_retried(slave, index, subindex, size)
         except self.pysoem.SdoError as exc:
             raise SdoAbortError(f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}", exc.abort_code, exc.desc) from exc
         except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError) as exc:
