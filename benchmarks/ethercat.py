@@ -40,7 +40,6 @@ from benchmarks.common import ROOT, steal_seconds, table, write_json
 
 LINES = {1: "drive", 7: "drive*7", 25: "drive*23,imu,ft"}
 LOOP_CPU, SIM_CPU = 0, 1
-OP_STATE = 0x08
 
 
 def config_text(n_slaves: int, ifname: str, rate_hz: int, exchange: str) -> str:
@@ -187,6 +186,7 @@ def bare_case(n_slaves: int, seconds: float) -> dict:
 
     import pysoem
 
+    from aiohal.drivers.ethercat.bus import OP as OP_STATE
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
 
     cycles = round(seconds * 1000)
