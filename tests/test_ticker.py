@@ -116,8 +116,12 @@ async def test_sleep_source_never_wakes_early_and_does_not_drift():
     ticker, lateness = await _run_real(SleepTickSource(), 1.0)
     assert min(lateness) >= 0, "the portable source woke before a deadline"
     assert ticker.k >= 1000 and len(lateness) + ticker.missed == ticker.k
-    tail = sorted(lateness[-100:])[50]
-    head = sorted(lateness[:100])[50]
+    # no drift: late at the end by about what it was late at the start (medians of up to 100
+    # ticks; a stall of the shared host can leave fewer: a CI run kept under 100 of 1000)
+    n = min(100, len(lateness) // 2)
+    assert n >= 5, f"only {len(lateness)} of {ticker.k} ticks ran"
+    tail = sorted(lateness[-n:])[n // 2]
+    head = sorted(lateness[:n])[n // 2]
     assert abs(tail - head) < 2_000_000
 
 
