@@ -117,8 +117,10 @@ def hand_raw(mode: str = "subprocess", steps=None, **options) -> dict:
         "mode": mode,
         "rate_hz": 100,
         "backend_options": {"object_at": 0.5, "stroke_time_s": 0.2, "io_time_s": [0.001, 0.004]},
-        "stale_after_ms": 60,
-        "dead_after_ms": 150,
+        # generous: this shared host stalls the hand's process for 150-200 ms at times (seen in
+        # CI); the stalled-hand test sets the thresholds it measures
+        "stale_after_ms": 500,
+        "dead_after_ms": 1500,
         **options,
     }
     raw["driver"].append(
@@ -145,7 +147,8 @@ class FaultWatch:
         self.at_tick, self.action = at_tick, action
         self.acted_tick = None
         self.first = {}  # fault bit -> first tick seen
-        self.first_ns = {}  # fault bit -> time.monotonic_ns() when first seen
+        self.rises_ns = {Fault.STALE: [], Fault.HARDWARE: []}  # every time the bit was newly set
+        self._bits = 0
 
     def __call__(self, loop: ControlLoop) -> None:
         tick = loop.robot.clock.tick
@@ -153,10 +156,17 @@ class FaultWatch:
             self.action(loop)
             self.acted_tick = tick
         bits = int(loop.robot.hand.fault[0])
+        now = time.monotonic_ns()
         for bit in (Fault.STALE, Fault.HARDWARE):
             if bits & bit and bit not in self.first:
                 self.first[bit] = tick
-                self.first_ns[bit] = time.monotonic_ns()
+            if bits & bit and not self._bits & bit:
+                self.rises_ns[bit].append(now)
+        self._bits = bits
+
+    def first_since(self, bit: int, since_ns: int) -> int:
+        """When ``bit`` was first newly set at or after ``since_ns``."""
+        return next(t for t in self.rises_ns[bit] if t >= since_ns)
 
 
 @pytest.mark.asyncio
@@ -186,7 +196,7 @@ async def test_killing_the_hand_process_faults_the_hand_and_the_run_goes_on():
     assert report["ticks"] + report["missed_ticks"] == 500  # the run went on to its end
     assert level_during.name == "RUN"  # the arm was not held for its hand
     assert loop.robot.state.position[0] == pytest.approx(0.5)  # and finished its move
-    # peer death is seen at once (EOF), well within dead_after_ms = 150 ms = 75 ticks
+    # peer death is seen at once (EOF), whatever dead_after_ms: within 150 ms = 75 ticks
     assert watch.first[Fault.HARDWARE] - watch.acted_tick <= 75
     (fault,) = report["faults"]
     assert fault["source"] == "driver:hand"
@@ -199,7 +209,8 @@ async def test_killing_the_hand_process_faults_the_hand_and_the_run_goes_on():
 
 @pytest.mark.asyncio
 async def test_a_stalled_hand_goes_stale_then_faulted_in_the_configured_time():
-    raw = hand_raw(steps=[{"pose": {"j0": 0.2}, "duration": 0.5}], stall_after_s=0.3)
+    raw = hand_raw(steps=[{"pose": {"j0": 0.2}, "duration": 0.5}], stall_after_s=0.3, stale_after_ms=60,
+                   dead_after_ms=150)
     watch = FaultWatch()
     async with ControlLoop(parse_config(raw)) as loop:
         loop.add_publisher(watch)
@@ -207,9 +218,11 @@ async def test_a_stalled_hand_goes_stale_then_faulted_in_the_configured_time():
         driver = loop.slots[1].driver
         last_state_ns = driver.pipe.last_receive_ns
     # ages count from the last state received; never early, and late only by the tick that
-    # sees them (2 ms) plus whatever the shared VM stalls the loop (hence the loose upper bound)
-    stale_ms = (watch.first_ns[Fault.STALE] - last_state_ns) / 1e6
-    dead_ms = (watch.first_ns[Fault.HARDWARE] - last_state_ns) / 1e6
+    # sees them (2 ms) plus whatever the shared VM stalls the loop (hence the loose upper bound).
+    # A stall of the host before the hand's own stall can make it briefly stale (seen in CI):
+    # what counts is the first time after its last state.
+    stale_ms = (watch.first_since(Fault.STALE, last_state_ns) - last_state_ns) / 1e6
+    dead_ms = (watch.first_since(Fault.HARDWARE, last_state_ns) - last_state_ns) / 1e6
     assert 60 <= stale_ms <= 60 + 100, stale_ms
     assert 150 <= dead_ms <= 150 + 100, dead_ms
     assert report["ticks"] + report["missed_ticks"] == 600  # the run went on
@@ -317,8 +330,16 @@ def test_shipped_arm_and_hand_config_moves_grasps_and_moves_again(tmp_path):
 
     require_module("mujoco")
     report_path = tmp_path / "report.json"
+    # as shipped, but for the hand's stale/dead ages: this shared host stalls the hand's
+    # process for longer than 300 ms at times (the ages are tested with the pipe)
+    text = (CONFIGS / "kuka_lwr_hand_sim.toml").read_text()
+    config = tmp_path / "kuka_lwr_hand_sim.toml"
+    config.write_text(text.replace("stale_after_ms = 100", "stale_after_ms = 500")
+                      .replace("dead_after_ms = 300", "dead_after_ms = 2000")
+                      .replace('model = "models/', f'model = "{CONFIGS}/models/'))
+    assert "dead_after_ms = 2000" in config.read_text() and str(CONFIGS) in config.read_text()
     proc = subprocess.run(
-        [sys.executable, "-m", "aiohal", str(CONFIGS / "kuka_lwr_hand_sim.toml"), "--duration", "9",
+        [sys.executable, "-m", "aiohal", str(config), "--duration", "9",
          "--quiet", "--report-json", str(report_path)],
         capture_output=True, text=True, timeout=60,
     )

@@ -263,14 +263,19 @@ def test_go_to_without_the_activation_bit_is_refused(sim, make_hand):
     assert hand.read().fault == FAULT_NONE
 
 
-def test_go_to_during_activation_is_delayed(sim, make_hand):
-    hand = make_hand(sim)
-    hand.command(1.0, 1.0, 0.0)  # no open(): rACT rises with this go-to
-    status = hand.read()
-    assert status.fault == FAULT_NOT_READY
-    assert hand.read_raw().gflt == 0x5
-    wait_for(hand.read, lambda s: s.ready and s.fault == FAULT_NONE)  # then it moves
-    wait_for(hand.read, lambda s: s.position == 1.0)
+def test_go_to_during_activation_is_delayed(clock, make_hand):
+    # the manual clock: a stall of the host between the go-to and the read must not complete
+    # the activation (a CI run read a 50 ms activation as done)
+    with running_in_thread(host=HOST, port=0, activation_time_s=0.05, clock=clock) as sim:
+        hand = make_hand(sim)
+        hand.command(1.0, 1.0, 0.0)  # no open(): rACT rises with this go-to
+        status = hand.read()
+        assert status.fault == FAULT_NOT_READY
+        assert hand.read_raw().gflt == 0x5
+        clock.advance(0.06)
+        assert hand.read().ready and hand.read().fault == FAULT_NONE  # then it moves
+        clock.advance(1.0)
+        assert hand.read().position == 1.0
 
 
 def test_a_modbus_exception_is_a_clear_error(sim, make_hand):
