@@ -118,10 +118,11 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float) -> dict
     return row
 
 
-PHASES = (("bus", "Bus", "send"), ("bus", "Bus", "receive"), ("driver", "EthercatDriver", "_load_inputs"),
-          ("devices", "DriveGroup", "decode"), ("devices", "DriveGroup", "update_machines"),
-          ("devices", "DriveGroup", "write"),
-          ("driver", "EthercatDriver", "_write_outputs"))
+ETHERCAT = "aiohal.drivers.ethercat"
+PHASES = ((f"{ETHERCAT}.bus", "Bus", "send"), (f"{ETHERCAT}.bus", "Bus", "receive"),
+          (f"{ETHERCAT}.driver", "EthercatDriver", "_load_inputs"), (f"{ETHERCAT}.devices", "DriveGroup", "decode"),
+          (f"{ETHERCAT}.devices", "DriveGroup", "update_machines"), ("aiohal.robot", "DriverView", "mark_fresh"),
+          (f"{ETHERCAT}.devices", "DriveGroup", "write"), (f"{ETHERCAT}.driver", "EthercatDriver", "_write_outputs"))
 
 
 def breakdown(n_slaves: int, ticks: int) -> dict:
@@ -139,7 +140,7 @@ def breakdown(n_slaves: int, ticks: int) -> dict:
 
     spent: dict[str, int] = {}
     for module, cls_name, name in PHASES:
-        cls = getattr(importlib.import_module(f"aiohal.drivers.ethercat.{module}"), cls_name)
+        cls = getattr(importlib.import_module(module), cls_name)
         fn = getattr(cls, name)
 
         def timed(*a, _fn=fn, _name=name, **k):
