@@ -32,7 +32,7 @@ import difflib
 import itertools
 import re
 import struct
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -849,49 +849,33 @@ class RecordCodec:
             at = offset + var.bits // 8
         self.offset = start
         self.struct = struct.Struct(fmt)
-        self._slots = tuple(slots)
-        self._scalars = all(isinstance(s, int) for s in slots)
-        self._in_order = self._scalars and tuple(slots) == tuple(range(len(slots)))
-        self._count = position
-
-    @property
-    def unpack_from(self) -> Any:
-        """``f(buf, offset) -> values`` in the order the variables were given: ``struct``'s own
-        function when that is the bytes' order (the fast path of per-cycle loops)."""
-        if self._in_order:
-            return self.struct.unpack_from
-        slots, unpack = self._slots, self.struct.unpack_from
-
-        def reordered(buf: Any, offset: int) -> tuple:
-            raw = unpack(buf, offset)
-            return tuple(raw[s] for s in slots)
-        return reordered
-
-    @property
-    def pack_into(self) -> Any:
-        """``f(buf, offset, *values)``, values in the order the variables were given."""
-        if self._in_order:
-            return self.struct.pack_into
-        slots, pack, count = self._slots, self.struct.pack_into, self._count
-
-        def reordered(buf: Any, offset: int, *values: Any) -> None:
-            raw: list[Any] = [0] * count
-            for value, slot in zip(values, slots, strict=True):
-                raw[slot] = value
-            pack(buf, offset, *raw)
-        return reordered
+        in_order = tuple(slots) == tuple(range(len(slots)))  # scalars, in the bytes' order
+        #: ``f(buf, offset) -> values`` and ``f(buf, offset, *values)``, values in the order the
+        #: variables were given: ``struct``'s own functions when that is the bytes' order (the
+        #: fast path of per-cycle loops)
+        self.unpack_from: Callable[..., tuple] = self.struct.unpack_from if in_order else \
+            _reordered_unpack(self.struct.unpack_from, tuple(slots))
+        self.pack_into: Callable[..., None] = self.struct.pack_into if in_order else \
+            _reordered_pack(self.struct.pack_into, tuple(slots), position)
 
     def unpack(self) -> tuple:
-        raw = self.struct.unpack_from(self.buf, self.offset)
-        if self._in_order:
-            return raw
-        return tuple(raw[s] if isinstance(s, int) else raw[s] for s in self._slots)
+        return self.unpack_from(self.buf, self.offset)
 
     def pack(self, *values: Any) -> None:
-        if self._in_order:
-            self.struct.pack_into(self.buf, self.offset, *values)
-            return
-        raw: list[Any] = [0] * self._count
-        for value, slot in zip(values, self._slots, strict=True):
+        self.pack_into(self.buf, self.offset, *values)
+
+
+def _reordered_unpack(unpack: Callable[..., tuple], slots: tuple) -> Callable[..., tuple]:
+    def reordered(buf: Any, offset: int) -> tuple:
+        raw = unpack(buf, offset)
+        return tuple(raw[s] for s in slots)
+    return reordered
+
+
+def _reordered_pack(pack: Callable[..., None], slots: tuple, count: int) -> Callable[..., None]:
+    def reordered(buf: Any, offset: int, *values: Any) -> None:
+        raw: list[Any] = [0] * count
+        for value, slot in zip(values, slots, strict=True):
             raw[slot] = value
-        self.struct.pack_into(self.buf, self.offset, *raw)
+        pack(buf, offset, *raw)
+    return reordered

@@ -373,18 +373,6 @@ class FastEnd(_End):
         if self._closed:
             return []
         return [self._decoded(data, cls) for data, cls in self._pending(limit)]
-        for _ in range(limit):
-            try:
-                data = self._recv_datagram()
-            except PeerGone:
-                self.peer_alive = False
-                break
-            if data is None:
-                break
-            cls = self._accept(data)
-            if cls is not None:
-                out.append(self._decoded(data, cls))
-        return out
 
 
 class NrtEnd(_End):
