@@ -18,7 +18,8 @@ import logging
 import socket
 import struct
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -83,6 +84,8 @@ class Bus:
         self.overlap = overlap
         self.master: Any = None
         self.slaves: list[Any] = []  # pysoem slave objects, made once (each access makes a new one)
+        #: pysoem's errors for a mailbox or datagram frame that did not come back (not a refusal)
+        self.lost_frame = (pysoem.MailboxError, pysoem.PacketError, pysoem.WkcError)
         self.is_open = False
 
     # ------------------------------------------------------------ bring-up
@@ -116,7 +119,7 @@ class Bus:
             mappings = {pdo: self._mapping(slave, pdo) for pdo in (*rx_assign, *tx_assign)}
         except self.pysoem.SdoError as exc:
             raise LayoutError(f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}") from exc
-        except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError) as exc:
+        except self.lost_frame as exc:
             raise LayoutError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc}); "
                               "slaves without CoE are not supported by this driver") from exc
         device_type = None
@@ -131,11 +134,10 @@ class Bus:
         """An SDO read, tried again when its mailbox frame was lost (not when the slave aborts
         it): a lost frame is a normal event on a bus, and on a busy host. A read changes
         nothing, so a second one is safe (a write is not retried)."""
-        lost = (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError)
         for attempt in range(attempts - 1):
             try:
                 return slave.sdo_read(index, subindex, size, release_gil=True)
-            except lost:
+            except self.lost_frame:
                 time.sleep(0.01 * (attempt + 1))
                 log.info("ethercat %s: SDO read 0x%04X:%02X of %s lost, trying again", self.ifname, index,
                          subindex, slave.name)
@@ -250,23 +252,23 @@ class Bus:
 
     def sdo_read(self, position: int, index: int, subindex: int, size: int) -> bytes:
         slave = self.slaves[position]
-        try:
+        with self._sdo_errors(f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}"):
             return self._sdo_retried(slave, index, subindex, size)
-        except self.pysoem.SdoError as exc:
-            raise SdoAbortError(f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}", exc.abort_code, exc.desc) from exc
-        except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError) as exc:
-            raise SdoAbortError(f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}", None,
-                                f"{type(exc).__name__}: {exc}") from exc
 
     def sdo_write(self, position: int, index: int, subindex: int, data: bytes) -> None:
         slave = self.slaves[position]
-        try:
+        with self._sdo_errors(f"SDO write 0x{index:04X}:{subindex:02X} of {slave.name}"):
             slave.sdo_write(index, subindex, bytes(data), release_gil=True)
+
+    @contextmanager
+    def _sdo_errors(self, where: str) -> Iterator[None]:
+        """pysoem's SDO errors as :class:`SdoAbortError`: the slave's abort code, or the frame lost."""
+        try:
+            yield
         except self.pysoem.SdoError as exc:
-            raise SdoAbortError(f"SDO write 0x{index:04X}:{subindex:02X} of {slave.name}", exc.abort_code, exc.desc) from exc
-        except (self.pysoem.MailboxError, self.pysoem.PacketError, self.pysoem.WkcError) as exc:
-            raise SdoAbortError(f"SDO write 0x{index:04X}:{subindex:02X} of {slave.name}", None,
-                                f"{type(exc).__name__}: {exc}") from exc
+            raise SdoAbortError(where, exc.abort_code, exc.desc) from exc
+        except self.lost_frame as exc:
+            raise SdoAbortError(where, None, f"{type(exc).__name__}: {exc}") from exc
 
     # ------------------------------------------------------------ shutdown
 

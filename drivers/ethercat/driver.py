@@ -180,7 +180,7 @@ class EthercatDriver(Driver):
                 # a frame lost in a stall (an SII or mailbox read, a state change) fails a
                 # bring-up that works the next time; a wrong config fails every attempt
                 retry = attempt < opts.bringup_attempts and not self._estop_requested and isinstance(
-                    exc, (EthercatError, LayoutError, pysoem.WkcError, pysoem.MailboxError, pysoem.PacketError))
+                    exc, (EthercatError, LayoutError, *self.bus.lost_frame))
                 if not retry:
                     raise
                 log.warning("ethercat %s: bring-up attempt %d failed (%s), trying again", self.name, attempt, exc)
@@ -460,7 +460,6 @@ class EthercatDriver(Driver):
         return self.bus.describe_not_in(OP)
 
     def _load_inputs(self) -> None:
-        image = self.image
         if self._contiguous_inputs and not self.lost:
             self._inputs_bytes[:] = b"".join([get() for get in self._in_getters])
             return
