@@ -3,23 +3,29 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import subprocess
 import sys
+import time
+from collections.abc import Sequence
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run_cli(config: Path, *args: str, timeout: float = 600) -> dict:
-    """Run ``python -m aiohal CONFIG ARGS`` in a fresh process and return its JSON report."""
+def run_cli(config: Path, *args: str, prefix: Sequence[str] = (), timeout: float = 600) -> dict:
+    """Run ``python -m aiohal CONFIG ARGS`` (after ``prefix``, e.g. ``taskset -c 0``) in a fresh
+    process and return its JSON report, with the process's ``exit_code`` added."""
     out = ROOT / ".bench-report.json"
-    cmd = [sys.executable, "-m", "aiohal", str(config), "--quiet", "--log-format", "json", "--report-json", str(out), *args]
+    cmd = [*prefix, sys.executable, "-m", "aiohal", str(config), "--quiet", "--log-format", "json",
+           "--report-json", str(out), *args]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
     if not out.exists():
         raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}): {proc.stderr[-2000:]}")
     report = json.loads(out.read_text())
     out.unlink()
+    report["exit_code"] = proc.returncode
     return report
 
 
@@ -27,7 +33,17 @@ def steal_seconds() -> float:
     """CPU seconds the hypervisor took from this VM so far, all CPUs together (/proc/stat "steal");
     divide a difference by the wall time and the CPU count for a share."""
     with open("/proc/stat") as f:
-        return int(f.readline().split()[8]) / __import__("os").sysconf("SC_CLK_TCK")
+        return int(f.readline().split()[8]) / os.sysconf("SC_CLK_TCK")
+
+
+class StealMeter:
+    """The share of all CPUs the hypervisor took from this VM since the meter was made, in %."""
+
+    def __init__(self) -> None:
+        self.steal0, self.wall0 = steal_seconds(), time.monotonic()
+
+    def percent(self) -> float:
+        return 100 * (steal_seconds() - self.steal0) / (time.monotonic() - self.wall0) / os.cpu_count()
 
 
 def machine() -> dict:
@@ -39,7 +55,7 @@ def machine() -> dict:
                 break
     except OSError:
         pass
-    return {"python": platform.python_version(), "kernel": platform.release(), "cpu": cpu, "cores": __import__("os").cpu_count()}
+    return {"python": platform.python_version(), "kernel": platform.release(), "cpu": cpu, "cores": os.cpu_count()}
 
 
 def table(rows: list[dict], columns: list[tuple[str, str]]) -> str:

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from .common import steal_seconds, table, write_json
+from .common import StealMeter, table, write_json
 
 THRESHOLDS_US = (2, 5, 10, 50, 1000)
 
@@ -30,7 +30,7 @@ def spin(seconds: float, cpu: int, fifo: bool = False) -> tuple[np.ndarray, floa
     os.sched_setaffinity(0, {cpu})
     if fifo:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80))
-    steal0 = steal_seconds()
+    steal = StealMeter()
     mono = time.monotonic_ns
     gaps = np.zeros(2_000_000, dtype=np.int64)
     n = 0
@@ -42,8 +42,7 @@ def spin(seconds: float, cpu: int, fifo: bool = False) -> tuple[np.ndarray, floa
             gaps[n] = now - last
             n += 1
         last = now
-    steal = 100 * (steal_seconds() - steal0) / seconds / os.cpu_count()
-    return gaps[:n], steal
+    return gaps[:n], steal.percent()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -42,7 +42,7 @@ import time
 from aiohal.pipe import Message, NrtPeer
 
 from .breakdown import bare_spec, spawn, timeout_for, worker, worker_main
-from .common import steal_seconds, table, write_json
+from .common import StealMeter, table, write_json
 
 MODULE = "benchmarks.pipe"
 PERIOD_NS = 1_000_000  # 1 kHz
@@ -114,7 +114,7 @@ async def _ticks(seconds: float, warmup: float, on_tick) -> dict:
     end = measure_from + deadlines * PERIOD_NS
     served = stall = 0
     k = ticker.k
-    steal0, wall0 = steal_seconds(), time.monotonic()
+    steal = StealMeter()
     try:
         while True:
             await ticker.next()
@@ -130,9 +130,8 @@ async def _ticks(seconds: float, warmup: float, on_tick) -> dict:
             served += measured
     finally:
         ticker.close()
-    steal = 100 * (steal_seconds() - steal0) / (time.monotonic() - wall0) / os.cpu_count()
     return {"ticks": served, "missed": deadlines - served, "stall_max_ms": round(stall / 1e6, 2),
-            "steal_percent": round(steal, 1)}
+            "steal_percent": round(steal.percent(), 1)}
 
 
 async def _round_trip(spec: dict) -> dict:
