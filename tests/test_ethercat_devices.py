@@ -7,7 +7,7 @@ import struct
 import numpy as np
 import pytest
 
-from aiohal.busvar import (IMU_NAMES, PdoLayout, ProcessImage, ReadOnlyVariableError, UnknownVariableError,
+from aiohal.busvar import (PdoLayout, ProcessImage, ReadOnlyVariableError, UnknownVariableError,
                            VariableTypeError, encode_mapping)
 from aiohal.cia402 import CSP, CST, CSV, DriveUnits
 from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec, ImuDevice
@@ -45,11 +45,11 @@ def test_codec_reads_and_writes_in_the_order_given_whatever_the_byte_order():
     set_inputs(image, 0, statusword=0x1234, position=-5, velocity=7, torque=-3, error=0x2310)
     codec = image.codec("d0", ["Error code", "Position actual value", "Statusword"])
     assert codec.unpack() == (0x2310, -5, 0x1234)
-    assert codec.unpack_from(codec.buf, codec.offset) == (0x2310, -5, 0x1234)
     out = image.codec("d0", ["Modes of operation", "Controlword"], writable=True)
     out.pack(9, 0x0F)
-    out.pack_into(out.buf, out.offset, 9, 0x0F)
     assert outputs(image, 0)[0] == 0x0F and outputs(image, 0)[4] == 9
+    out.pack_into(out.buf, out.offset, 10, 0x06)  # the per-cycle form, same order
+    assert outputs(image, 0)[0] == 0x06 and outputs(image, 0)[4] == 10
 
 
 def test_codec_link_errors():
@@ -146,7 +146,6 @@ def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
          [(0x6020, s, 32) for s in range(1, 4)] + [(0x6030, 0, 16)]
     imu_layout = PdoLayout.from_coe([], [0x1A00], {0x1A00: [encode_mapping(*e) for e in tx]},
                                     names_for(AIOHAL_VENDOR_ID, PRODUCT_IMU))
-    assert IMU_NAMES[(0x6030, 0)][0] == "Status"
     image = ProcessImage([("imu", imu_layout)])
     group = ImuGroup(["base"])
     device = ImuDevice(image, "imu", group["base"], {"quaternion": "Orientation", "angular_velocity": "Angular velocity",
@@ -159,8 +158,11 @@ def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
     struct.pack_into("<H", image.inputs, 40, 0)  # status: not valid
     device.read(8, 124, lost=False)
     assert rec.fault == Fault.HARDWARE and rec.updated_tick == 7
-    device.read(9, 125, lost=True)
-    assert rec.fault == Fault.HARDWARE
+    struct.pack_into("<H", image.inputs, 40, 1)  # valid again
+    device.read(9, 125, lost=False)
+    assert rec.fault == 0 and rec.updated_tick == 9
+    device.read(10, 126, lost=True)  # the slave lost: faulted, nothing read
+    assert rec.fault == Fault.HARDWARE and rec.updated_tick == 9
 
 
 def test_write_sees_commands_written_in_place_between_ticks():

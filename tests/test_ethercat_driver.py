@@ -14,11 +14,10 @@ import struct
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import require_module, require_root
+from conftest import CONFIGS, ROOT, require_module, require_root
 
 from aiohal.config import parse_config
 from aiohal.errors import DriverError
@@ -27,10 +26,8 @@ from aiohal.robot import Fault
 
 pytestmark = pytest.mark.root
 
-ROOT = Path(__file__).resolve().parents[1]
-CONFIG = ROOT / "configs" / "ethercat_sim.toml"
+CONFIG = CONFIGS / "ethercat_sim.toml"
 LINE = "drive*7,imu,ft"
-JOINTS = ["a1", "a2", "a3", "a4", "a5", "a6", "a7"]
 WATCHDOG_MS = 1000
 
 
@@ -80,14 +77,12 @@ class At:
 
     def __init__(self, *steps) -> None:
         self.steps = sorted(steps, key=lambda s: s[0])
-        self.done: dict[int, int] = {}
         self.tasks: list[asyncio.Future] = []
 
     def __call__(self, loop: ControlLoop) -> None:
         tick = loop.robot.clock.tick
         while self.steps and tick >= self.steps[0][0]:
-            at, action = self.steps.pop(0)
-            self.done[at] = tick
+            _, action = self.steps.pop(0)
             result = action(loop)
             if isinstance(result, asyncio.Future):
                 self.tasks.append(result)
@@ -183,7 +178,7 @@ async def test_a_drive_lost_mid_run_puts_the_robot_in_its_safe_state(segment):
         report = await loop.run(ticks=3000)
         await asyncio.gather(*at.tasks)
     assert report["ticks"] + report["missed_ticks"] < 3000  # the run ended: no driver left
-    (fault, *rest) = [f for f in report["faults"] if f["source"] == "driver:bus"]
+    fault, *_ = [f for f in report["faults"] if f["source"] == "driver:bus"]
     assert fault["phase"] == "read" and "joint(s) a5, a6, a7" in fault["error"]
     assert "drive5" in fault["error"] and "drive7" in fault["error"]
     assert report["safety_level"] == "estop"
