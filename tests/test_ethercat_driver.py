@@ -190,14 +190,26 @@ async def test_a_lost_sensor_is_faulted_and_recovered_while_the_arm_runs(segment
     raw = raw_config(segment.ifname, wkc_error_limit=5, recover_interval_s=0.1)
     # the outage outlasts the SM watchdog: the F/T sensor (it has outputs) comes back in
     # SAFEOP + error and is acknowledged, the IMU (inputs only) comes back in OP
-    at = At((800, in_thread(segment.control, {"cmd": "break", "slave": 7})),
-            (800 + WATCHDOG_MS + 400, in_thread(segment.control, {"cmd": "repair"})))
     seen = {}
+
+    def break_imu(loop):
+        """Breaks the line at the IMU, noting the bus cycle when asked and when done (a
+        stall of this shared host adds ticks, seen up to a second, but no bus cycles)."""
+        driver = driver_of(loop)
+        seen["break_asked"] = driver.cycles
+
+        def run():
+            segment.control({"cmd": "break", "slave": 7})
+            seen["break_done"] = driver.cycles
+
+        return asyncio.get_running_loop().run_in_executor(None, run)
+
+    at = At((800, break_imu), (800 + WATCHDOG_MS + 400, in_thread(segment.control, {"cmd": "repair"})))
 
     def watch(loop):
         imu = loop.robot.device("base_imu")
         if imu.fault & Fault.HARDWARE and "imu_fault" not in seen:
-            seen["imu_fault"] = loop.robot.clock.tick
+            seen["imu_fault"] = (loop.robot.clock.tick, driver_of(loop).cycles)
 
     async with ControlLoop(parse_config(raw)) as loop:
         loop.add_publisher(at)
@@ -210,7 +222,9 @@ async def test_a_lost_sensor_is_faulted_and_recovered_while_the_arm_runs(segment
     assert report["safety_level"] == "run" and report["ticks"] + report["missed_ticks"] == WATCHDOG_MS + 3200
     lost = [f for f in report["faults"] if "lost" in f["error"]]
     assert {("imu" in f["error"], "ft" in f["error"]) for f in lost} == {(True, False), (False, True)}
-    assert 800 <= seen["imu_fault"] < 800 + WATCHDOG_MS
+    fault_tick, fault_cycle = seen["imu_fault"]
+    # diagnosed within a few bus cycles of the break (5 bad ones in a row), not at the watchdog
+    assert fault_tick >= 800 and seen["break_asked"] < fault_cycle < seen["break_done"] + 50
     assert driver.lost == set() and driver.recovered == 2
     # bad cycles only until each change was diagnosed (5 in a row each), not for the whole outage
     bus = report["drivers"]["bus"]
@@ -329,14 +343,17 @@ async def test_an_emergency_stop_quick_stops_every_drive_in_split_mode(segment):
 async def test_the_bus_keeps_cycling_between_runs_so_no_watchdog_trips(segment):
     async with ControlLoop(parse_config(raw_config(segment.ifname))) as loop:
         first = await loop.run(ticks=300)
-        await asyncio.sleep(WATCHDOG_MS / 1e3 + 0.5)  # longer than the slaves' SM watchdog
-        second = await loop.run(ticks=300)
         driver = driver_of(loop)
+        before_pause = driver.health().get("keepalive_cycles", 0)
+        await asyncio.sleep(WATCHDOG_MS / 1e3 + 0.5)  # longer than the slaves' SM watchdog
+        during_pause = driver.health().get("keepalive_cycles", 0) - before_pause
+        second = await loop.run(ticks=300)
         enabled = driver.drives.all_enabled()
-        health = driver.health()
         status = await asyncio.to_thread(segment.status)
     assert first["faults"] == [] and second["faults"] == [] and enabled
-    assert health["keepalive_cycles"] > 100  # it cycled through the pause (up to one per ms)
+    # the keep-alive cycled through the pause (up to once per ms; a stall of the host, seen
+    # up to a second in CI, takes most of them) and no slave's watchdog tripped
+    assert during_pause > 0
     assert all(s["state"] == "OP" and not s["error"] for s in status["slaves"])
 
 
