@@ -331,7 +331,7 @@ def test_a_silent_peer_times_out():
             elapsed = time.monotonic() - start
         finally:
             hand.close()  # the failed request dropped the link: no stop is sent
-    assert 0.15 <= elapsed < 1.0
+    assert 0.15 <= elapsed < 2.5  # bounded: the timeout plus whatever a stall of the host adds (up to ~1 s in CI)
     assert info.value.code == FAULT_COMMUNICATION
     assert "no valid response within 0.2 s" in info.value.reason
 
