@@ -777,6 +777,17 @@ class ProcessImage:
         """Several byte-aligned variables of one slave (all inputs or all outputs), read or
         written with one ``struct`` call: per value, far cheaper than a numpy call when a
         loop visits a few slaves (numpy's fixed cost per call dominates arrays of 7)."""
+        variables = self._byte_variables(slave, names, writable)
+        buf = self.outputs if variables[0].direction == "output" else self.inputs
+        return RecordCodec(variables, buf)
+
+    def byte_offsets(self, slave: str, names: Sequence[str], *, writable: bool = False) -> list[int]:
+        """Where several byte-aligned variables of one slave (all inputs or all outputs) start
+        in their buffer (``inputs`` or ``outputs``), checked as :meth:`codec` checks them: for
+        code that reads or writes the image's bytes itself (compiled kernels)."""
+        return [var.bit_offset // 8 for var in self._byte_variables(slave, names, writable)]
+
+    def _byte_variables(self, slave: str, names: Sequence[str], writable: bool) -> list[Variable]:
         variables = [self.variable(f"{slave}.{name}") for name in names]
         for var in variables:
             self._check_writable(var, writable)
@@ -788,8 +799,7 @@ class ProcessImage:
                                         f"{variables[0].direction}: a codec reads or writes one direction")
         if writable and variables[0].direction == "input":
             raise ReadOnlyVariableError(f'"{variables[0].full_name}" is an input (slave to master): it is read-only')
-        buf = self.outputs if variables[0].direction == "output" else self.inputs
-        return RecordCodec(variables, buf)
+        return variables
 
     @staticmethod
     def _check_writable(var: Variable, writable: bool) -> None:

@@ -41,7 +41,7 @@ LINES = {1: "drive", 7: "drive*7", 25: "drive*23,imu,ft"}
 LOOP_CPU, SIM_CPU = 0, 1
 
 
-def config_text(n_slaves: int, ifname: str, rate_hz: int, exchange: str) -> str:
+def config_text(n_slaves: int, ifname: str, rate_hz: int, exchange: str, spin_guard_us: float = 0.0) -> str:
     drives = n_slaves if n_slaves < 25 else 23
     joints = [f"j{i}" for i in range(1, drives + 1)]
     slaves = [f'{{ name = "drive{i}", kind = "cia402", joint = "j{i}" }}' for i in range(1, drives + 1)]
@@ -59,6 +59,7 @@ rate_hz = {rate_hz}
 [realtime]
 priority = 80
 lock_memory = true
+spin_guard_us = {spin_guard_us}
 [joint_defaults]
 position = [-2.5, 2.5]
 velocity = 2.0
@@ -85,13 +86,13 @@ ramp = 0.5
 """
 
 
-def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float) -> dict:
+def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float, spin_guard_us: float = 0.0) -> dict:
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
 
     with SimulatedSegment(LINES[n_slaves], watchdog_ms=100) as sim, tempfile.TemporaryDirectory() as tmp:
         os.sched_setaffinity(sim.pid, {SIM_CPU})
         config = Path(tmp) / "bench.toml"
-        config.write_text(config_text(n_slaves, sim.ifname, rate_hz, exchange))
+        config.write_text(config_text(n_slaves, sim.ifname, rate_hz, exchange, spin_guard_us))
         steal = StealMeter()
         report = run_cli(config, "--duration", str(seconds), "--loop", "uvloop", prefix=("taskset", "-c", str(LOOP_CPU)),
                          timeout=seconds + 120)
@@ -101,7 +102,7 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float) -> dict
     key = "rtt_us" if exchange == "immediate" else "receive_wait_us"
     wait_p50, wait_p99 = bus.get(key, [None, None])
     return {
-        "slaves": n_slaves, "rate_hz": rate_hz, "exchange": exchange, "seconds": seconds,
+        "slaves": n_slaves, "rate_hz": rate_hz, "exchange": exchange, "seconds": seconds, "spin_guard_us": spin_guard_us,
         "process_data_bytes": bus.get("process_data_bytes"), "ticks": report["ticks"], "missed": report["missed_ticks"],
         "cycles": bus.get("cycles"), "wkc_errors": bus.get("wkc_errors"), "frames_lost": bus.get("frames_lost"),
         "faults": len(report["faults"]), "lateness_p99_us": report["lateness_us"]["p99"],
@@ -269,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
                       help="instead: a bare pysoem loop against the driver (1 kHz, split), alternately, "
                            "--rounds times each with this many slaves")
     p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--spin-guard-us", type=float, default=0.0,
+                   help="[realtime] spin_guard_us of the runs (wake early and spin to the deadline)")
     args = p.parse_args(argv)
     if os.geteuid() != 0:
         print("benchmarks.ethercat needs root (veth pair, network namespace, raw socket)", file=sys.stderr)
@@ -283,7 +286,8 @@ def main(argv: list[str] | None = None) -> int:
         for _ in range(args.rounds):
             pairs.append(bare_case(args.bare, args.seconds))
             print(json.dumps(pairs[-1]), flush=True)
-            pairs.append({"loop": "aiohal driver", **run_case(args.bare, 1000, "split", args.seconds)})
+            pairs.append({"loop": "aiohal driver", **run_case(args.bare, 1000, "split", args.seconds,
+                                                                       args.spin_guard_us)})
             print(json.dumps(pairs[-1]), flush=True)
         print(table(pairs, [("loop", "loop"), ("slaves", "slaves"), ("wkc_errors", "WKC errors"),
                             ("exit_code", "exit"), ("faults", "faults"),
@@ -296,10 +300,10 @@ def main(argv: list[str] | None = None) -> int:
     for n in args.slaves:
         for rate in args.rates:
             for exchange in ("immediate", "split"):
-                rows.append(run_case(n, rate, exchange, args.seconds))
+                rows.append(run_case(n, rate, exchange, args.seconds, args.spin_guard_us))
                 print(json.dumps(rows[-1]), flush=True)
     if args.soak:
-        rows.append(run_case(25, 1000, "split", args.soak))
+        rows.append(run_case(25, 1000, "split", args.soak, args.spin_guard_us))
         print(json.dumps(rows[-1]), flush=True)
     columns = [("slaves", "slaves"), ("process_data_bytes", "PD bytes"), ("rate_hz", "Hz"), ("exchange", "exchange"),
                ("seconds", "s"), ("ticks", "ticks"), ("missed", "missed"), ("wkc_errors", "WKC errors"), ("frames_lost", "of which lost"),

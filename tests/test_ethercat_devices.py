@@ -6,12 +6,20 @@ import struct
 
 import numpy as np
 import pytest
-
-from aiohal.busvar import (PdoLayout, ProcessImage, ReadOnlyVariableError, UnknownVariableError,
-                           VariableTypeError, encode_mapping)
-from aiohal.cia402 import CSP, CST, CSV, DriveUnits
 from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec, ImuDevice
-from aiohal.robot import Fault, ImuGroup, Mode
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from aiohal.busvar import (
+    PdoLayout,
+    ProcessImage,
+    ReadOnlyVariableError,
+    UnknownVariableError,
+    VariableTypeError,
+    encode_mapping,
+)
+from aiohal.cia402 import CSP, CST, CSV, DriveUnits
+from aiohal.robot import Fault, ImuGroup, JointCommand, JointState, Mode
 
 RX = [(0x6040, 16), (0x607A, 32), (0x60FF, 32), (0x6071, 16), (0x6060, 8)]
 TX = [(0x6041, 16), (0x6064, 32), (0x606C, 32), (0x6077, 16), (0x6061, 8), (0x603F, 16)]
@@ -81,14 +89,15 @@ def test_decode_unwraps_int32_positions_and_converts_units():
     image, group = drives(2, units)
     set_inputs(image, 0, position=2**31 - 100, velocity=4096, torque=500)
     set_inputs(image, 1, position=-10)
-    state = np.zeros((6, 2))
-    group.bind_state(state[0], state[1], state[2], state[3])
+    joints = JointState(2)
+    group.bind_state(joints)
+    state = joints.block
     group.decode()
     before = state.copy()
     set_inputs(image, 0, position=-(2**31) + 100, velocity=4096, torque=500)  # wrapped: +200 counts
     set_inputs(image, 1, position=10)
     group.decode(into_state=False)  # a cycle off the loop's thread: unwrapped, the state not touched
-    assert np.array_equal(state, before)
+    assert np.array_equal(state, before, equal_nan=True)  # (temperature is NaN: not reported)
     group.decode()
     counts_per_rad = 4096 * 2 / (2 * np.pi)
     assert state[0, 0] == pytest.approx((2**31 + 100) / counts_per_rad)
@@ -104,40 +113,53 @@ def test_write_holds_drives_not_following_and_maps_modes():
     for i in range(3):
         set_inputs(image, i, position=1234 + i)
     group.decode()
-    group.controlwords = [0x0F, 0x0F, 0x06]
-    group.hold = [False, False, True]
-    position = np.array([1.0, 0.0, 0.5])
-    velocity = np.array([0.0, 2.0, 0.0])
-    effort = np.array([0.0, 0.0, 0.0])
-    mode = np.array([Mode.POSITION, Mode.VELOCITY, Mode.EFFORT], dtype=np.int8)
-    group.write(position, velocity, effort, effort, mode)
+    group.controlwords[:] = [0x0F, 0x0F, 0x06]
+    group.hold[:] = [False, False, True]
+    command = JointCommand(3)
+    command.position[:] = [1.0, 0.0, 0.5]
+    command.velocity[:] = [0.0, 2.0, 0.0]
+    command.mode[:] = [Mode.POSITION, Mode.VELOCITY, Mode.EFFORT]
+    group.write(command)
     k = 1000 / (2 * np.pi)
     assert outputs(image, 0) == (0x0F, round(1.0 * k), 0, 0, CSP)
     assert outputs(image, 1) == (0x0F, 0, round(2.0 * k), 0, CSV)
     assert outputs(image, 2) == (0x06, 1236, 0, 0, CSP)  # held: target = actual
-    group.hold = [False] * 3
-    group.write(position, velocity, np.array([0.0, 0.0, 50.0]), np.zeros(3), mode)
+    group.hold[:] = [False] * 3
+    command.effort[2], command.feedforward[2] = 30.0, 20.0
+    group.write(command)
     assert outputs(image, 2) == (0x06, round(0.5 * k), 0, 32767, CST)  # 50 N·m saturates the int16
+    command.effort[2], command.feedforward[2] = -0.25, 0.05
+    command.position[0] = np.nan  # never sent by the loop (its limits replace it): held, not garbage
+    group.write(command)
+    assert outputs(image, 2) == (0x06, round(0.5 * k), 0, -200, CST)  # effort + feed-forward, in ‰
+    assert outputs(image, 0) == (0x0F, 1234, 0, 0, CSP)
+    group.write_holding()  # every drive held, whatever its mode
+    assert [outputs(image, i) for i in range(3)] == [(0x0F, 1234, 0, 0, CSP), (0x0F, 1235, 0, 0, CSP),
+                                                      (0x06, 1236, 0, 0, CSP)]
 
 
 def test_rows_out_of_order_map_each_drive_to_its_joint():
     image, group = drives(3, rows=[2, 0, 1])
     for i in range(3):
         set_inputs(image, i, position=1000 * (i + 1))
-    state = np.zeros((6, 3))
-    group.bind_state(state[0], state[1], state[2], state[3])
+    joints = JointState(3)
+    group.bind_state(joints)
     group.decode()
     counts_per_rad = 131072 / (2 * np.pi)
-    assert state[0] * counts_per_rad == pytest.approx([2000, 3000, 1000])
+    assert joints.position * counts_per_rad == pytest.approx([2000, 3000, 1000])
 
 
-def test_bind_state_refuses_rows_decode_could_not_write_in_place():
-    _, group = drives(2)
-    block = np.zeros((6, 2))
-    with pytest.raises(ValueError, match="state velocity: a writable contiguous"):
-        group.bind_state(block[0], np.zeros((2, 4))[:, 0], block[2], block[3])
-    with pytest.raises(ValueError, match="state effort has 1 joints"):
-        group.bind_state(block[0], block[1], np.zeros(1), block[3])
+def test_bind_state_writes_the_drivers_rows_of_the_robots_state_and_refuses_too_few_joints():
+    units = DriveUnits(counts_per_rev=1000)
+    image, group = drives(2, units)
+    set_inputs(image, 1, velocity=500)
+    robot_state = JointState(5)
+    group.bind_state(robot_state.view(slice(2, 4)))  # a driver's joints: a strided view of the robot's block
+    group.decode()
+    assert robot_state.velocity[3] == pytest.approx(500 * 2 * np.pi / 1000)
+    assert np.count_nonzero(robot_state.block[:4]) == 1
+    with pytest.raises(ValueError, match="the joint state has 1 joints, a drive writes row 1"):
+        group.bind_state(JointState(1))
 
 
 def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
@@ -165,21 +187,62 @@ def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
     assert rec.fault == Fault.HARDWARE and rec.updated_tick == 9
 
 
-def test_write_sees_commands_written_in_place_between_ticks():
+def test_write_reads_the_drivers_rows_of_the_robots_command_as_they_are_at_each_call():
     image, group = drives(2)
     group.decode()
-    group.hold = [False, False]
-    command = np.zeros((6, 2))
-    mode = np.full(2, Mode.POSITION, dtype=np.int8)
-    command[0] = [0.1, 0.2]
-    group.write(command[0], command[1], command[2], command[5], mode)
-    command[0] = [0.3, -0.4]  # the loop writes the same arrays in place each tick
-    group.write(command[0], command[1], command[2], command[5], mode)
+    group.hold[:] = [False, False]
+    command = JointCommand(4)
+    command.mode[:] = Mode.POSITION
+    mine = command.view(slice(1, 3))  # a strided view, as a driver gets
+    command.position[:] = [9.0, 0.1, 0.2, 9.0]
+    group.write(mine)
+    command.position[1:3] = [0.3, -0.4]  # the loop writes the same arrays in place each tick
+    group.write(mine)
     k = 131072 / (2 * np.pi)
     assert outputs(image, 0)[1] == round(0.3 * k) and outputs(image, 1)[1] == round(-0.4 * k)
-    strided = np.zeros((2, 4))[:, 0]  # not contiguous: read afresh every time
-    strided[:] = [0.5, 0.6]
-    group.write(strided, command[1], command[2], command[5], mode)
-    strided[:] = [0.7, 0.8]
-    group.write(strided, command[1], command[2], command[5], mode)
-    assert outputs(image, 0)[1] == round(0.7 * k) and outputs(image, 1)[1] == round(0.8 * k)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 0xFFFF), st.integers(-2**31, 2**31 - 1), st.integers(-2**31, 2**31 - 1),
+                          st.integers(-2**15, 2**15 - 1), st.integers(0, 0xFFFF)), min_size=1, max_size=4),
+       st.integers(-2**31, 2**31 - 1))
+def test_decode_matches_the_bytes_and_unwraps_any_step_of_less_than_half_a_turn_of_the_counter(values, step):
+    """The compiled decode against struct's reading of the same bytes; the counts move by the
+    int32 difference between cycles, wrapped (steps of less than 2**31 counts are exact)."""
+    units = DriveUnits(counts_per_rev=1 << 16, rated_torque=2.0)
+    image, group = drives(len(values), units)
+    joints = JointState(len(values))
+    group.bind_state(joints)
+    for i, (sw, pos, vel, tq, err) in enumerate(values):
+        set_inputs(image, i, statusword=sw, position=pos, velocity=vel, torque=tq, error=err)
+    group.decode()
+    assert group.statuswords.tolist() == [v[0] for v in values] and group.error_codes.tolist() == [v[4] for v in values]
+    assert group.counts.tolist() == [v[1] for v in values]
+    assert joints.velocity == pytest.approx([v[2] * 2 * np.pi / (1 << 16) for v in values])
+    assert joints.effort == pytest.approx([v[3] / 1000 * 2.0 for v in values])
+    for i, (sw, pos, vel, tq, err) in enumerate(values):
+        wrapped = (pos + step + 2**31) % 2**32 - 2**31
+        set_inputs(image, i, statusword=sw, position=wrapped, velocity=vel, torque=tq, error=err)
+    group.decode()
+    expected = [v[1] + step for v in values]
+    assert group.counts.tolist() == expected
+    assert joints.position == pytest.approx([c * 2 * np.pi / (1 << 16) for c in expected])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(-1e12, 1e12), st.floats(-1e12, 1e12), st.floats(-1e6, 1e6), st.sampled_from(list(Mode)))
+def test_encode_wraps_the_position_and_clamps_velocity_and_torque_as_the_drive_types_allow(position, velocity,
+                                                                                          effort, mode):
+    units = DriveUnits(counts_per_rev=1 << 16, rated_torque=2.0)
+    image, group = drives(1, units)
+    group.decode()
+    group.hold[:] = [False]
+    command = JointCommand(1)
+    command.position[0], command.velocity[0], command.effort[0], command.mode[0] = position, velocity, effort, mode
+    group.write(command)
+    counts_per_rad = (1 << 16) / (2 * np.pi)
+    cia = {Mode.VELOCITY: CSV, Mode.EFFORT: CST}.get(mode, CSP)
+    target = (round(position * counts_per_rad) + 2**31) % 2**32 - 2**31
+    speed = min(max(round(velocity * counts_per_rad), -2**31), 2**31 - 1) if cia != CSP else 0
+    torque = min(max(round(effort * 500.0), -2**15), 2**15 - 1) if cia != CSP else 0
+    assert outputs(image, 0) == (0, target, speed, torque, cia)

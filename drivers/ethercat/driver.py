@@ -285,8 +285,7 @@ class EthercatDriver(Driver):
             stuck = max(1, round(opts.stuck_after_ms * 1e6 / self.view.clock.period_ns))
             target = Target.ENABLED if opts.enable_on_open and not self._estop_requested else Target.DISABLED
             self.drives = DriveGroup(image, specs, stuck_after=stuck, target=target)
-            state = self.view.state
-            self.drives.bind_state(state.position, state.velocity, state.effort, state.motor_position)
+            self.drives.bind_state(self.view.state)
             self._drive_mask = np.zeros(view.dof, dtype=bool)
             if self._estop_requested:
                 self.drives.request(Target.QUICK_STOP)
@@ -473,8 +472,7 @@ class EthercatDriver(Driver):
         with self._lock:
             drives = self.drives
             if drives is not None:
-                cmd = self.view.command
-                drives.write(cmd.position, cmd.velocity, cmd.effort, cmd.feedforward, cmd.mode)
+                drives.write(self.view.command)
             self._write_outputs()
             self._written = True
             if self.options.exchange == "split" and not self._outstanding:
