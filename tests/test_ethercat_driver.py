@@ -103,7 +103,19 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
         assert driver.drives.all_enabled()
         assert [i.name for i in driver.infos] == [f"drive{i}" for i in range(1, 8)] + ["imu", "ft"]
         assert driver.infos[0].device_name == "AIOHAL-Drive" and driver.infos[0].product_code == 0x402
-        report = await loop.run(ticks=2500)  # the sine's ramp (1 s) and 1.5 s of motion
+        reach = np.zeros(loop.robot.dof)  # the largest command each joint was sent
+        ran = [0]
+
+        def watch(loop):
+            """Ends the run after 2500 ticks run: the sine's ramp (1 s) and 1.5 s of motion
+            (a stall of the host skips ticks, which would count otherwise; bounded below)."""
+            np.maximum(reach, np.abs(loop.robot.command.position), out=reach)
+            ran[0] += 1
+            if ran[0] >= 2500:
+                loop.request_stop("2500 ticks run")
+
+        loop.add_publisher(watch)
+        report = await loop.run(ticks=8000)
         last_tick = loop.robot.clock.tick
         state, cmd = loop.robot.state, loop.robot.command
         position = state.position.copy()
@@ -118,7 +130,7 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
     assert health["cycles"] >= report["ticks"] and health["wkc_errors"] == health["frames_lost"]
     assert health["frames_lost"] <= max(5, health["cycles"] // 20)
     # the drives follow: the sine moved every joint, and the measured position is where it was sent
-    assert np.all(np.abs(commanded) > 0.05)
+    assert np.all(reach > 0.1), reach
     assert position == pytest.approx(commanded, abs=0.02)
     assert imu.quaternion == pytest.approx([1, 0, 0, 0], abs=1e-6)
     assert imu.linear_acceleration[2] == pytest.approx(9.81, abs=0.01)
@@ -280,6 +292,26 @@ async def test_bring_up_errors_name_the_slave_and_leave_the_bus_closed(segment, 
     assert not driver_of(loop).bus.is_open
     status = segment.status()  # the master left: no slave is in OP
     assert all(s["state"] != "OP" for s in status["slaves"])
+
+
+@pytest.mark.asyncio
+async def test_a_drive_without_a_distributed_clock_fails_sync0_by_name_and_runs_once_left_out(segment):
+    segment.control({"cmd": "dc", "slave": 3, "supported": False})  # drive4's ESC has no DC unit
+    loop = ControlLoop(parse_config(raw_config(segment.ifname)))  # the shipped sync0 = true
+    with pytest.raises(DriverError) as err:
+        await loop.activate()
+    assert "slave 3 (AIOHAL-Drive) did not take SYNC0 at 1000000 ns" in str(err.value)
+    assert "options.slaves[3].sync0 = false leaves it out" in str(err.value)
+    assert not driver_of(loop).bus.is_open
+    raw = raw_config(segment.ifname)
+    raw["driver"][0]["options"]["slaves"][3]["sync0"] = False  # the error's advice
+    async with ControlLoop(parse_config(raw)) as loop:
+        report = await loop.run(ticks=300)
+        enabled = driver_of(loop).drives.all_enabled()
+        status = await asyncio.to_thread(segment.status)
+    assert report["faults"] == [] and enabled
+    assert [s["sync0"]["active"] for s in status["slaves"]] == [True] * 3 + [False] + [True] * 3 + [False] * 2
+    assert [s["dc"] for s in status["slaves"]] == [True] * 3 + [False] + [True] * 5
 
 
 @pytest.mark.asyncio

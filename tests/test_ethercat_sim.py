@@ -1039,6 +1039,26 @@ def test_dc_latch_offset_system_time_and_frmw():
     assert nxt == sys2 + 100_000 + 11 * 1_000_000
 
 
+def test_a_slave_without_dc_says_so_and_ignores_its_dc_registers_until_cleared():
+    bus = Bus("drive,drive")
+    assert control.apply(bus.seg, {"cmd": "dc", "slave": 1, "supported": False})["ok"]
+    assert not control.apply(bus.seg, {"cmd": "dc", "slave": 1, "supported": "no"})["ok"]
+    bus.init_all()
+    features = [struct.unpack("<H", bus.fprd(0x1001 + i, 0x0008, 2)[0])[0] for i in range(2)]
+    assert features[0] & 0x000C == 0x000C and features[1] & 0x000C == 0  # no DC, no 64-bit DC
+    assert bus.bwr(0x0900, bytes(4)) == 2  # the latch: both count the datagram, one latches
+    assert struct.unpack("<I", bus.fprd(0x1001, 0x0900, 4)[0])[0] != 0
+    assert bus.fprd(0x1002, 0x0900, 16)[0] == bytes(16)
+    for i in range(2):  # SYNC0 as SOEM's dc_sync writes it
+        bus.fpwr(0x1001 + i, 0x09A0, struct.pack("<I", 1_000_000))
+        bus.fpwr(0x1001 + i, 0x0981, b"\x03")
+    assert [bus.fprd(0x1001 + i, 0x0981, 1)[0] for i in range(2)] == [b"\x03", b"\x00"]
+    assert [s["sync0"]["active"] for s in bus.seg.status()["slaves"]] == [True, False]
+    control.apply(bus.seg, {"cmd": "clear"})  # DC back (the slave power-cycled)
+    assert [s["dc"] for s in bus.seg.status()["slaves"]] == [True, True]
+    assert struct.unpack("<H", bus.seg.slave(1).read(0x0008, 2))[0] & 0x000C == 0x000C
+
+
 # ====================================================================== faults
 
 

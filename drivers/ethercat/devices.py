@@ -99,9 +99,6 @@ class DriveGroup:
         self._state = self._scratch
         self._no_command = np.zeros((len(JOINT_COMMAND_FIELDS), max(self.rows) + 1))
         self._no_mode = np.zeros(max(self.rows) + 1, dtype=np.int8)
-        # compiled (or loaded from numba's cache) now, at bring-up, not in the first cycle
-        self.decode(into_state=False)
-        self.ints[:, kernels.VALID] = 0
         self.write_holding()
 
     def __len__(self) -> int:

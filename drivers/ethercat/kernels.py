@@ -81,7 +81,14 @@ def _clamp(value, low, high):
     return low if value < low else (high if value > high else value)
 
 
-@njit(cache=True, nogil=True)
+# Explicit signatures (any layout, "A"): compiled once, at import (or loaded from the cache),
+# and never again. A lazily compiled kernel would compile again, on the tick, for the first
+# strided array it meets (a driver's columns of the robot's state): seconds without a cycle.
+_DECODE = "boolean(uint8[:], int64[:, :], float64[:, :], int64[:, :], float64[:, :])"
+_ENCODE = "void(uint8[:], int64[:, :], float64[:, :], int64[:, :], float64[:, :], int8[:], boolean)"
+
+
+@njit(_DECODE, cache=True, nogil=True)
 def decode_drives(inputs, layout, constants, ints, state):
     """Every drive's inputs → statusword, error code, unwrapped counts (``ints``) and SI
     values into its column of ``state`` (rows: position, velocity, effort, motor position).
@@ -111,7 +118,7 @@ def decode_drives(inputs, layout, constants, ints, state):
     return changed
 
 
-@njit(cache=True, nogil=True)
+@njit(_ENCODE, cache=True, nogil=True)
 def encode_drives(outputs, layout, constants, ints, command, mode, hold_all):
     """Commands (``command``: the joints' command block, ``mode``: their modes) → every
     drive's outputs. A drive in hold (every drive with ``hold_all``) gets target = actual in

@@ -20,9 +20,11 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
 ``device``         ``slave`` + device settings (imu: quat/gyro/acc/noise/valid; ft: wrench/
                    noise/force_limit/torque_limit; dio: pattern; drive: load/inertia/viscous/
                    coulomb/csp_hz/csv_tau/max_speed/position/fault)
+``dc``             ``slave``, ``supported`` (bool): the slave's ESC has a distributed clock
+                   or not (features register, DC registers); power-cycles that slave
 ``power_cycle``    ``slave`` (default: all): back to the power-on state (registers, SII,
                    object dictionary values, device model)
-``clear``          - (drop, delay, wkc faults off; cable repaired)
+``clear``          - (drop, delay, wkc faults off; cable repaired; every slave has DC again)
 ``reset_counters`` -
 =================  ==========================================================================
 
@@ -105,6 +107,14 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
     if cmd == "device":
         k = _int(c.pop("slave"), "slave")
         return {"device": seg.slave(k).device.configure(**c)}
+    if cmd == "dc":
+        k = _int(c["slave"], "slave")
+        supported = c["supported"]
+        if not isinstance(supported, bool):
+            raise ValueError("supported: expected true or false")
+        seg.slave(k).has_dc = supported
+        seg.power_cycle(k)
+        return None
     if cmd == "power_cycle":
         if "slave" in c:
             seg.power_cycle(_int(c["slave"], "slave"))
@@ -115,6 +125,10 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
     if cmd == "clear":
         f.clear()
         seg.break_before(None)
+        for k, esc in enumerate(seg.slaves):
+            if not esc.has_dc:
+                esc.has_dc = True
+                seg.power_cycle(k)
         return None
     if cmd == "reset_counters":
         seg.reset_counters()

@@ -51,6 +51,8 @@ _VALID = {
 
 ESC_TYPE = 0x11  # an ET1100-like ESC (simulator's choice)
 FEATURES = 0x000C  # DC supported, 64-bit DC; bit 0 = 0: FMMUs are bit oriented
+FEATURES_DC = 0x000C
+DC_START, DC_END = 0x0900, 0x0A00  # the distributed clock's registers (absent without DC)
 PORT_DESCRIPTOR = 0x0F  # ports 0 and 1: MII; ports 2 and 3: not implemented
 WD_DIVIDER = 2498  # 100 us watchdog units
 HOP_NS = 400  # simulated forwarding delay per slave and direction
@@ -114,6 +116,9 @@ class Esc:
         self.on_change: Callable[[str], None] = lambda what: None
         self.stats = {"eeprom_reads": 0, "eeprom_writes": 0, "mailbox_in": 0, "mailbox_out": 0,
                       "wd_trips": 0, "al_errors": 0, "pd_cycles": 0}
+        #: False: an ESC without a distributed clock (its features say so, its DC registers
+        #: read 0 and ignore writes); set through the control command ``dc``
+        self.has_dc = True
         self.power_on()
 
     # ================================================================ power-on reset
@@ -126,7 +131,7 @@ class Esc:
         mem[5] = 8  # SyncManagers
         mem[6] = (MEM_SIZE - REG_END) // 1024  # process RAM in KiB
         mem[7] = PORT_DESCRIPTOR
-        U16.pack_into(mem, 0x0008, FEATURES)
+        U16.pack_into(mem, 0x0008, FEATURES if self.has_dc else FEATURES & ~FEATURES_DC)
         self.alias = U16.unpack_from(self.sii, 8)[0]
         U16.pack_into(mem, 0x0012, self.alias)
         mem[0x0140:0x0142] = self.sii[0:2]
@@ -204,7 +209,7 @@ class Esc:
                 a = self.read(ado, REG_END - ado)
                 b = self.read(REG_END, end - REG_END)
                 return None if a is None or b is None else a + b
-            if ado < 0x0918 and end > 0x0910:
+            if ado < 0x0918 and end > 0x0910 and self.has_dc:
                 U64.pack_into(self.mem, 0x0910, self.system_time(self.clock()))
             if ado < 0x0998 and end > 0x0990:
                 self._refresh_next_sync0()
@@ -256,6 +261,11 @@ class Esc:
     def _write_regs(self, ado: int, data: bytes) -> None:
         mem = self.mem
         end = ado + len(data)
+        if not self.has_dc and ado < DC_END and end > DC_START:  # no DC unit: only the rest is written
+            for lo, hi in ((ado, min(end, DC_START)), (max(ado, DC_END), end)):
+                if lo < hi:
+                    self._write_regs(lo, data[lo - ado:hi - ado])
+            return
         mask = WMASK[ado:end]
         if mask.count(0xFF) == len(mask):
             mem[ado:end] = data
@@ -742,6 +752,7 @@ class Esc:
             "device": self.device.status(),
             "stats": dict(self.stats),
             "coe": dict(self.coe.stats) if self.coe is not None else None,
+            "dc": self.has_dc,
             "sync0": {"active": self.mem[0x0981] & 0x03 == 0x03, "cycle_ns": U32.unpack_from(self.mem, 0x09A0)[0]},
         }
 
