@@ -20,7 +20,7 @@ import pytest
 from conftest import CONFIGS, ROOT, require_module, require_root
 
 from aiohal.config import parse_config
-from aiohal.errors import DriverError
+from aiohal.errors import ConfigError, DriverError
 from aiohal.loop import ControlLoop
 from aiohal.robot import Fault
 
@@ -312,6 +312,62 @@ async def test_a_drive_without_a_distributed_clock_fails_sync0_by_name_and_runs_
     assert report["faults"] == [] and enabled
     assert [s["sync0"]["active"] for s in status["slaves"]] == [True] * 3 + [False] + [True] * 3 + [False] * 2
     assert [s["dc"] for s in status["slaves"]] == [True] * 3 + [False] + [True] * 5
+
+
+REMAPPED_RX = ["0x6040:0:16", "0x607A:0:32", "0x60FF:0:32", "0x6071:0:16", "0x6060:0:8", "0x60B2:0:16"]
+# reordered, without the mode display (0x6061), with the following error (0x60F4)
+REMAPPED_TX = ["0x6064:0:32", "0x6041:0:16", "0x606C:0:32", "0x6077:0:16", "0x603F:0:16", "0x60F4:0:32"]
+
+
+@pytest.mark.asyncio
+async def test_pdos_remapped_from_the_config_are_linked_by_name_and_the_drive_follows(segment):
+    raw = raw_config(segment.ifname)
+    slave = raw["driver"][0]["options"]["slaves"][0]
+    slave["rx_pdos"] = {"0x1601": REMAPPED_RX}
+    slave["tx_pdos"] = {"0x1A01": REMAPPED_TX}
+    async with ControlLoop(parse_config(raw)) as loop:
+        driver = driver_of(loop)
+        layout = driver.infos[0].layout
+        following_error = driver.image.link("drive1.Following error actual value")
+        seen = set()
+        loop.add_publisher(lambda loop: seen.add(int(following_error)))
+        report = await loop.run(ticks=1500)
+        assign = await driver.sdo_read("drive1", 0x1C13, 1)
+        moved = loop.robot.state.position[0]
+        commanded = loop.robot.command.position[0]
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "7/7"
+    assert [e.pdo for e in layout.inputs] == [0x1A01] * 6 and [e.pdo for e in layout.outputs] == [0x1601] * 6
+    assert [e.name for e in layout.inputs][:2] == ["Position actual value", "Statusword"]
+    assert struct.unpack("<H", assign[:2])[0] == 0x1A01
+    assert abs(moved) > 0.01 and moved == pytest.approx(commanded, abs=0.02)  # the sine moved it: linked by name
+    # the drive's following error, read through the process image each tick: it moved with the sine
+    assert len(seen) > 10 and max(abs(e) for e in seen) < 0.02 * 131072 / (2 * np.pi), sorted(seen)[:5]
+
+
+@pytest.mark.asyncio
+async def test_a_remapping_the_slave_refuses_fails_the_bring_up_with_the_object_and_abort_code(segment):
+    raw = raw_config(segment.ifname, bringup_attempts=1)
+    raw["driver"][0]["options"]["slaves"][1]["rx_pdos"] = {"0x1601": ["0x6040:0:16", "0x6041:0:16"]}  # statusword out
+    loop = ControlLoop(parse_config(raw))
+    with pytest.raises(DriverError) as err:
+        await loop.activate()
+    assert "slave 1 (AIOHAL-Drive): PDO remapping, SDO write 0x1601:00: abort 0x06040041" in str(err.value)
+    assert not driver_of(loop).bus.is_open
+
+
+def test_pdo_remapping_config_errors_name_the_key():
+    raw = raw_config("ecm0")
+    slaves = raw["driver"][0]["options"]["slaves"]
+    slaves[0]["rx_pdos"] = {"0x1A00": ["0x6040:0:16"], "0x1601": ["0x6040:0", "0x607A:0:99", "x:0:8"]}
+    slaves[1]["tx_pdos"] = {"0x1A01": ["0x6041:0:16"]}  # fine
+    with pytest.raises(ConfigError) as err:
+        parse_config(raw)
+    paths = {issue.path: issue.message for issue in err.value.issues}
+    assert "not a PDO mapping index 0x1600..0x17FF" in paths["driver[0].options.slaves[0].rx_pdos.0x1A00"]
+    assert "expected 'index:subindex:bits'" in paths["driver[0].options.slaves[0].rx_pdos.0x1601[0]"]
+    assert "bits 1..64" in paths["driver[0].options.slaves[0].rx_pdos.0x1601[1]"]
+    assert "must be integers" in paths["driver[0].options.slaves[0].rx_pdos.0x1601[2]"]
+    assert len(paths) == 4
 
 
 @pytest.mark.asyncio

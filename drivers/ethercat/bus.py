@@ -143,6 +143,28 @@ class Bus:
                          subindex, slave.name)
         return slave.sdo_read(index, subindex, size, release_gil=True)
 
+    def write_pdo_assignment(self, position: int, assign: int, pdos: list[tuple[int, list[int]]]) -> None:
+        """Assign ``pdos`` (0x1C12: outputs, 0x1C13: inputs), in order, writing the mapping of
+        each PDO given entries (CiA 301's sequence: count 0, entries, count); in PREOP."""
+        slave = self.slaves[position]
+
+        def write(index: int, subindex: int, data: bytes) -> None:
+            with self._sdo_errors(f"slave {position} ({slave.name}): PDO remapping, SDO write 0x{index:04X}:{subindex:02X}"):
+                slave.sdo_write(index, subindex, data, release_gil=True)
+
+        write(assign, 0, b"\0")
+        for pdo, entries in pdos:
+            if entries:
+                write(pdo, 0, b"\0")
+                for k, entry in enumerate(entries, 1):
+                    write(pdo, k, struct.pack("<I", entry))
+                write(pdo, 0, bytes([len(entries)]))
+        for k, (pdo, _) in enumerate(pdos, 1):
+            write(assign, k, struct.pack("<H", pdo))
+        write(assign, 0, bytes([len(pdos)]))
+        log.info("ethercat %s: slave %d (%s) 0x%04X = %s", self.ifname, position, slave.name, assign,
+                 ", ".join(f"0x{pdo:04X}" for pdo, _ in pdos))
+
     def _assignment(self, slave: Any, index: int) -> list[int]:
         count = self._sdo_retried(slave, index, 0)[0]
         return [struct.unpack("<H", self._sdo_retried(slave, index, sub)[:2])[0] for sub in range(1, count + 1)]

@@ -40,7 +40,7 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 from pydantic import Field
 
-from aiohal.busvar import LayoutError, ProcessImage
+from aiohal.busvar import LayoutError, ProcessImage, encode_mapping
 from aiohal.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
@@ -63,6 +63,44 @@ class DriveUnitOptions(Options):
     rated_torque: FiniteFloat = Field(1.0, gt=0, description="Motor rated torque in N·m (0x6076 / 1000).")
 
 
+RX_PDOS, TX_PDOS = (0x1600, 0x17FF), (0x1A00, 0x1BFF)  # where CiA 301 puts the PDO mapping objects
+
+
+def parse_pdo_entry(text: str) -> int:
+    """``'0x607A:0:32'`` → the mapping entry 0x607A0020 (index, subindex, bits; 0x0000 pads)."""
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"{text!r}: expected 'index:subindex:bits', e.g. '0x607A:0:32'")
+    try:
+        index, subindex, bits = (int(part.strip(), 0) for part in parts)
+    except ValueError:
+        raise ValueError(f"{text!r}: index, subindex and bits must be integers (hex with 0x)") from None
+    if not (0 <= index <= 0xFFFF and 0 <= subindex <= 0xFF and 1 <= bits <= 64):
+        raise ValueError(f"{text!r}: index 0..0xFFFF, subindex 0..0xFF, bits 1..64")
+    return encode_mapping(index, subindex, bits)
+
+
+def _pdo_issues(where: str, pdos: dict[str, list[str]], low: int, high: int) -> list[tuple[str, str]]:
+    issues = []
+    if len(pdos) > 254:
+        issues.append((where, "at most 254 PDOs"))
+    for pdo, entries in pdos.items():
+        try:
+            index = int(pdo, 0)
+        except ValueError:
+            index = -1
+        if not low <= index <= high:
+            issues.append((f"{where}.{pdo}", f"not a PDO mapping index 0x{low:04X}..0x{high:04X}"))
+        if len(entries) > 254:
+            issues.append((f"{where}.{pdo}", "at most 254 entries"))
+        for k, entry in enumerate(entries):
+            try:
+                parse_pdo_entry(entry)
+            except ValueError as exc:
+                issues.append((f"{where}.{pdo}[{k}]", str(exc)))
+    return issues
+
+
 class SlaveOptions(Options):
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_ -]*$", description="Bus variables are '<name>.<variable>'.")
     kind: Literal["cia402", "imu", "force_torque", "other"] = "other"
@@ -78,6 +116,16 @@ class SlaveOptions(Options):
     variables: dict[str, str] = Field(default_factory=dict, description="imu / force_torque: which variables to read.")
     sync0: bool | None = Field(None, description="SYNC0 on this slave (default: options.sync0 for a cia402 drive, "
                                                  "off for others).")
+    rx_pdos: dict[str, list[str]] | None = Field(
+        None, description="Remap the outputs: the RxPDOs assigned (0x1C12), in order, each with its entries "
+                          "'index:subindex:bits' (e.g. '0x607A:0:32'; an empty list assigns the PDO as the slave "
+                          "maps it). Written over CoE in PREOP, before the mapping is read.")
+    tx_pdos: dict[str, list[str]] | None = Field(None, description="Remap the inputs: the TxPDOs (0x1C13), as rx_pdos.")
+
+    def pdo_assignments(self) -> list[tuple[int, list[tuple[int, list[int]]]]]:
+        """(0x1C12 or 0x1C13, [(PDO, mapping entries)]) to write; checked by check_config."""
+        return [(assign, [(int(pdo, 0), [parse_pdo_entry(e) for e in entries]) for pdo, entries in pdos.items()])
+                for assign, pdos in ((0x1C12, self.rx_pdos), (0x1C13, self.tx_pdos)) if pdos is not None]
 
 
 class EthercatOptions(Options):
@@ -148,6 +196,8 @@ class EthercatDriver(Driver):
                         issues.append((f"{where}.variables.{key}", f"unknown; expected one of {sorted(allowed)}"))
             elif s.device is not None:
                 issues.append((f"{where}.device", f"a {s.kind} slave fills no device"))
+            for key, pdos, (low, high) in (("rx_pdos", s.rx_pdos, RX_PDOS), ("tx_pdos", s.tx_pdos, TX_PDOS)):
+                issues += _pdo_issues(f"{where}.{key}", pdos or {}, low, high)
         if not options.dc and options.sync0_slaves():
             issues.append(("options.sync0", "SYNC0 needs distributed clocks (options.dc = true)"))
         for joint in joints:
@@ -235,6 +285,9 @@ class EthercatDriver(Driver):
         for i, (s, slave) in enumerate(zip(opts.slaves, bus.slaves, strict=True)):  # before any mailbox traffic
             check_identity(i, slave.name, s.name, slave.man, slave.id, s.vendor_id, s.product_code)
         bus.watch_emergencies(self._on_emergency)
+        for i, s in enumerate(opts.slaves):  # remapped in PREOP, then read back like any mapping
+            for assign, pdos in s.pdo_assignments():
+                bus.write_pdo_assignment(i, assign, pdos)
         layouts = [bus.read_layout(i, s.names) for i, s in enumerate(opts.slaves)]
         bus.map(opts.dc, sync0=opts.sync0_slaves(), cycle_ns=self.view.clock.period_ns,
                 shift_ns=round(opts.sync0_shift_us * 1000))
