@@ -6,8 +6,10 @@ import struct
 
 import numpy as np
 import pytest
-from aiohal.drivers.ethercat import kernels
-from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec, ImuDevice
+from conftest import require_module
+
+require_module("numba")  # the drives' kernels (extra ethercat)
+from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec, ImuDevice  # noqa: E402
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -201,8 +203,11 @@ def test_write_reads_the_drivers_rows_of_the_robots_command_as_they_are_at_each_
     group.write(mine)
     k = 131072 / (2 * np.pi)
     assert outputs(image, 0)[1] == round(0.3 * k) and outputs(image, 1)[1] == round(-0.4 * k)
-    # one compiled version each, whatever the layout: none is ever compiled on a tick
-    assert len(kernels.decode_drives.signatures) == 1 and len(kernels.encode_drives.signatures) == 1
+    read_only = JointCommand(4).readonly().view(slice(1, 3))  # the kernel only reads the command
+    group.write(read_only)
+    assert outputs(image, 0)[1] == 0
+    with pytest.raises(ValueError, match="the joint command has 1 joints, a drive reads row 1"):
+        group.write(JointCommand(1))  # the kernel does not check bounds: write does, once per command
 
 
 @settings(max_examples=200, deadline=None)

@@ -104,12 +104,14 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
         assert [i.name for i in driver.infos] == [f"drive{i}" for i in range(1, 8)] + ["imu", "ft"]
         assert driver.infos[0].device_name == "AIOHAL-Drive" and driver.infos[0].product_code == 0x402
         reach = np.zeros(loop.robot.dof)  # the largest command each joint was sent
+        measured_reach = np.zeros(loop.robot.dof)  # and the largest position measured
         ran = [0]
 
         def watch(loop):
             """Ends the run after 2500 ticks run: the sine's ramp (1 s) and 1.5 s of motion
             (a stall of the host skips ticks, which would count otherwise; bounded below)."""
             np.maximum(reach, np.abs(loop.robot.command.position), out=reach)
+            np.maximum(measured_reach, np.abs(loop.robot.state.position), out=measured_reach)
             ran[0] += 1
             if ran[0] >= 2500:
                 loop.request_stop("2500 ticks run")
@@ -130,7 +132,7 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
     assert health["cycles"] >= report["ticks"] and health["wkc_errors"] == health["frames_lost"]
     assert health["frames_lost"] <= max(5, health["cycles"] // 20)
     # the drives follow: the sine moved every joint, and the measured position is where it was sent
-    assert np.all(reach > 0.1), reach
+    assert np.all(reach > 0.1) and np.all(measured_reach > 0.1), (reach, measured_reach)
     assert position == pytest.approx(commanded, abs=0.02)
     assert imu.quaternion == pytest.approx([1, 0, 0, 0], abs=1e-6)
     assert imu.linear_acceleration[2] == pytest.approx(9.81, abs=0.01)
@@ -359,15 +361,20 @@ def test_pdo_remapping_config_errors_name_the_key():
     raw = raw_config("ecm0")
     slaves = raw["driver"][0]["options"]["slaves"]
     slaves[0]["rx_pdos"] = {"0x1A00": ["0x6040:0:16"], "0x1601": ["0x6040:0", "0x607A:0:99", "x:0:8"]}
-    slaves[1]["tx_pdos"] = {"0x1A01": ["0x6041:0:16"]}  # fine
+    slaves[1]["tx_pdos"] = {"0x1A01": ["0x6041:01:16", "0x6064:00:32"]}  # fine: leading zeros are decimal
+    slaves[2]["tx_pdos"] = {}
+    slaves[3]["rx_pdos"] = {"0x1601": [], "5633": []}  # 5633 = 0x1601
     with pytest.raises(ConfigError) as err:
         parse_config(raw)
     paths = {issue.path: issue.message for issue in err.value.issues}
-    assert "not a PDO mapping index 0x1600..0x17FF" in paths["driver[0].options.slaves[0].rx_pdos.0x1A00"]
-    assert "expected 'index:subindex:bits'" in paths["driver[0].options.slaves[0].rx_pdos.0x1601[0]"]
-    assert "bits 1..64" in paths["driver[0].options.slaves[0].rx_pdos.0x1601[1]"]
-    assert "must be integers" in paths["driver[0].options.slaves[0].rx_pdos.0x1601[2]"]
-    assert len(paths) == 4
+    where = "driver[0].options.slaves"
+    assert "not a PDO mapping index 0x1600..0x17FF" in paths[f"{where}[0].rx_pdos.0x1A00"]
+    assert "expected 'index:subindex:bits'" in paths[f"{where}[0].rx_pdos.0x1601[0]"]
+    assert "bits 1..64" in paths[f"{where}[0].rx_pdos.0x1601[1]"]
+    assert "must be integers" in paths[f"{where}[0].rx_pdos.0x1601[2]"]
+    assert "would unassign them all" in paths[f"{where}[2].tx_pdos"]
+    assert "the same PDO as '0x1601'" in paths[f"{where}[3].rx_pdos.5633"]
+    assert len(paths) == 6, paths
 
 
 @pytest.mark.asyncio
@@ -442,7 +449,7 @@ async def test_the_bus_keeps_cycling_between_runs_so_no_watchdog_trips(segment):
     # the keep-alive cycled through the pause (up to once per ms; a stall of the host, seen
     # up to a second in CI, takes most of them) and no slave's watchdog tripped
     assert during_pause > 0
-    assert all(s["state"] == "OP" and not s["error"] for s in status["slaves"])
+    assert all(s["state"] == "OP" and not s["error"] and s["stats"]["wd_trips"] == 0 for s in status["slaves"])
 
 
 @pytest.mark.asyncio

@@ -99,6 +99,7 @@ class DriveGroup:
         self._state = self._scratch
         self._no_command = np.zeros((len(JOINT_COMMAND_FIELDS), max(self.rows) + 1))
         self._no_mode = np.zeros(max(self.rows) + 1, dtype=np.int8)
+        self._checked_command: JointCommand | None = None
         self.write_holding()
 
     def __len__(self) -> int:
@@ -150,6 +151,11 @@ class DriveGroup:
     def write(self, command: JointCommand) -> None:
         """Commands → targets, modes and controlwords; a drive in ``hold`` gets target = actual,
         and only the values the drive's mode uses are sent (the others are 0)."""
+        if command is not self._checked_command:  # the kernel does not check bounds: once per command object
+            if command.block.shape[-1] <= max(self.rows) or command.mode.shape[-1] <= max(self.rows):
+                raise ValueError(f"the joint command has {command.block.shape[-1]} joints, a drive reads row "
+                                 f"{max(self.rows)}")
+            self._checked_command = command
         kernels.encode_drives(self._outputs, self._layout, self._constants, self.ints, command.block, command.mode,
                               False)
 

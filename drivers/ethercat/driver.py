@@ -72,7 +72,7 @@ def parse_pdo_entry(text: str) -> int:
     if len(parts) != 3:
         raise ValueError(f"{text!r}: expected 'index:subindex:bits', e.g. '0x607A:0:32'")
     try:
-        index, subindex, bits = (int(part.strip(), 0) for part in parts)
+        index, subindex, bits = (_number(part) for part in parts)
     except ValueError:
         raise ValueError(f"{text!r}: index, subindex and bits must be integers (hex with 0x)") from None
     if not (0 <= index <= 0xFFFF and 0 <= subindex <= 0xFF and 1 <= bits <= 64):
@@ -80,17 +80,31 @@ def parse_pdo_entry(text: str) -> int:
     return encode_mapping(index, subindex, bits)
 
 
-def _pdo_issues(where: str, pdos: dict[str, list[str]], low: int, high: int) -> list[tuple[str, str]]:
+def _number(text: str) -> int:
+    """``'0x1A01'``, ``'01'`` or ``'16'``: hex with 0x, else decimal (leading zeros allowed)."""
+    text = text.strip()
+    return int(text[2:], 16) if text.lower().startswith("0x") else int(text, 10)
+
+
+def _pdo_issues(where: str, pdos: dict[str, list[str]] | None, low: int, high: int) -> list[tuple[str, str]]:
+    if pdos is None:
+        return []
     issues = []
+    if not pdos:
+        issues.append((where, "no PDO: this would unassign them all (leave the key out to keep the slave's own)"))
     if len(pdos) > 254:
         issues.append((where, "at most 254 PDOs"))
+    seen: dict[int, str] = {}
     for pdo, entries in pdos.items():
         try:
-            index = int(pdo, 0)
+            index = _number(pdo)
         except ValueError:
             index = -1
         if not low <= index <= high:
             issues.append((f"{where}.{pdo}", f"not a PDO mapping index 0x{low:04X}..0x{high:04X}"))
+        elif index in seen:
+            issues.append((f"{where}.{pdo}", f"the same PDO as {seen[index]!r}"))
+        seen.setdefault(index, pdo)
         if len(entries) > 254:
             issues.append((f"{where}.{pdo}", "at most 254 entries"))
         for k, entry in enumerate(entries):
@@ -124,7 +138,7 @@ class SlaveOptions(Options):
 
     def pdo_assignments(self) -> list[tuple[int, list[tuple[int, list[int]]]]]:
         """(0x1C12 or 0x1C13, [(PDO, mapping entries)]) to write; checked by check_config."""
-        return [(assign, [(int(pdo, 0), [parse_pdo_entry(e) for e in entries]) for pdo, entries in pdos.items()])
+        return [(assign, [(_number(pdo), [parse_pdo_entry(e) for e in entries]) for pdo, entries in pdos.items()])
                 for assign, pdos in ((0x1C12, self.rx_pdos), (0x1C13, self.tx_pdos)) if pdos is not None]
 
 
@@ -197,7 +211,7 @@ class EthercatDriver(Driver):
             elif s.device is not None:
                 issues.append((f"{where}.device", f"a {s.kind} slave fills no device"))
             for key, pdos, (low, high) in (("rx_pdos", s.rx_pdos, RX_PDOS), ("tx_pdos", s.tx_pdos, TX_PDOS)):
-                issues += _pdo_issues(f"{where}.{key}", pdos or {}, low, high)
+                issues += _pdo_issues(f"{where}.{key}", pdos, low, high)
         if not options.dc and options.sync0_slaves():
             issues.append(("options.sync0", "SYNC0 needs distributed clocks (options.dc = true)"))
         for joint in joints:

@@ -23,7 +23,7 @@ tables are checked against their sources at import.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 
 from aiohal.cia402 import CSP as _CSP
 from aiohal.cia402 import CST as _CST
@@ -84,8 +84,13 @@ def _clamp(value, low, high):
 # Explicit signatures (any layout, "A"): compiled once, at import (or loaded from the cache),
 # and never again. A lazily compiled kernel would compile again, on the tick, for the first
 # strided array it meets (a driver's columns of the robot's state): seconds without a cycle.
-_DECODE = "boolean(uint8[:], int64[:, :], float64[:, :], int64[:, :], float64[:, :])"
-_ENCODE = "void(uint8[:], int64[:, :], float64[:, :], int64[:, :], float64[:, :], int8[:], boolean)"
+# Arguments a kernel only reads are typed read-only: numba then takes writable and read-only
+# arrays alike (a read-only view of the command would otherwise not match).
+_U8, _I64_2D, _F64_2D = types.Array(types.uint8, 1, "A"), types.Array(types.int64, 2, "A"), types.Array(types.float64, 2, "A")
+_RO_U8, _RO_I64_2D, _RO_F64_2D = (types.Array(t.dtype, t.ndim, "A", readonly=True) for t in (_U8, _I64_2D, _F64_2D))
+_RO_I8 = types.Array(types.int8, 1, "A", readonly=True)
+_DECODE = types.boolean(_RO_U8, _RO_I64_2D, _RO_F64_2D, _I64_2D, _F64_2D)
+_ENCODE = types.void(_U8, _RO_I64_2D, _RO_F64_2D, _I64_2D, _RO_F64_2D, _RO_I8, types.boolean)
 
 
 @njit(_DECODE, cache=True, nogil=True)
@@ -122,8 +127,11 @@ def decode_drives(inputs, layout, constants, ints, state):
 def encode_drives(outputs, layout, constants, ints, command, mode, hold_all):
     """Commands (``command``: the joints' command block, ``mode``: their modes) → every
     drive's outputs. A drive in hold (every drive with ``hold_all``) gets target = actual in
-    CSP; the others their mode's targets (a non-finite position, which the loop never sends,
-    is held too). Velocity and torque targets are clamped to their range, the position wraps."""
+    CSP; the others their mode's targets. Velocity and torque targets are clamped to their
+    int32 / int16 range, the position target wraps. The loop's limits make every command
+    finite and bounded before a driver sees it; should one not be, a non-finite position is
+    held and a non-finite velocity or torque is sent as 0 (and a position beyond ±2⁶³ counts
+    has no defined target)."""
     for i in range(layout.shape[0]):
         o = layout[i]
         row = o[ROW]

@@ -141,8 +141,9 @@ class Esc:
         U16.pack_into(mem, 0x0420, max(0, min(0xFFFF, round(self.watchdog_ms * 10))))
         U16.pack_into(mem, 0x0440, 1)
         U16.pack_into(mem, 0x0502, 0x0040)  # 8-byte reads supported
-        U16.pack_into(mem, 0x0930, 0x1000)
-        mem[0x0934] = 0x04
+        if self.has_dc:
+            U16.pack_into(mem, 0x0930, 0x1000)
+            mem[0x0934] = 0x04
         self.station = 0
         self.alias_enabled = False
         self.al_state = INIT
