@@ -190,6 +190,29 @@ def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
     assert rec.fault == Fault.HARDWARE and rec.updated_tick == 9
 
 
+def test_force_torque_tare_holds_the_control_bit_for_a_few_cycles_then_clears_it():
+    from aiohal.busvar import AIOHAL_VENDOR_ID, PRODUCT_FT, VariableTypeError, names_for
+    from aiohal.drivers.ethercat.devices import ForceTorqueDevice
+    from aiohal.robot import ForceTorqueGroup
+    tx = [(0x6000, s, 32) for s in range(1, 7)] + [(0x6010, 0, 16)]
+    ft_layout = PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: [encode_mapping(0x7000, 0, 16)],
+                                                         0x1A00: [encode_mapping(*e) for e in tx]},
+                                   names_for(AIOHAL_VENDOR_ID, PRODUCT_FT))
+    image = ProcessImage([("ft", ft_layout)])
+    group = ForceTorqueGroup(["wrist"])
+    variables = {"wrench": "Wrench", "status": "Status"}
+    device = ForceTorqueDevice(image, "ft", group["wrist"], variables, control="Control")
+    device.tare()
+    control = []
+    while device.tare_left:
+        device.write_control()
+        control.append(struct.unpack_from("<H", image.outputs, 0)[0])
+    assert control == [1] * (ForceTorqueDevice.TARE_CYCLES - 1) + [0]
+    without = ForceTorqueDevice(image, "ft", group["wrist"], variables)
+    with pytest.raises(VariableTypeError, match='"ft" has no control output'):
+        without.tare()
+
+
 def test_write_reads_the_drivers_rows_of_the_robots_command_as_they_are_at_each_call():
     image, group = drives(2)
     group.decode()

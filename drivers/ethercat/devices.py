@@ -234,9 +234,31 @@ class ImuDevice(SensorDevice):
 
 
 class ForceTorqueDevice(SensorDevice):
-    """A force/torque slave → a ``force_torque`` record (N, N·m); status bit 0 valid, bit 1 overload."""
+    """A force/torque slave → a ``force_torque`` record (N, N·m); status bit 0 valid, bit 1 overload.
+
+    With a ``control`` output variable, :meth:`tare` zeroes the sensor: control is 1 for
+    ``TARE_CYCLES`` cycles, then 0 (sensors tare on the rising edge; a few cycles so that a
+    lost frame does not lose the request)."""
 
     GROUPS = (("wrench", 6),)
+    TARE_CYCLES = 10
+
+    def __init__(self, image: ProcessImage, slave: str, record: DeviceRecord, variables: dict[str, str],
+                 control: str | None = None) -> None:
+        super().__init__(image, slave, record, variables)
+        self.control = image.codec(slave, [control], writable=True) if control else None
+        self.tare_left = 0  # cycles the control bit stays set
+
+    def tare(self) -> None:
+        if self.control is None:
+            raise VariableTypeError(f'"{self.slave}" has no control output to tare with '
+                                    "(its slave's variables.control names one)")
+        self.tare_left = self.TARE_CYCLES
+
+    def write_control(self) -> None:
+        """One cycle of a pending tare (the loop's write)."""
+        self.tare_left -= 1
+        self.control.pack(1 if self.tare_left > 0 else 0)
 
     def fill(self, values: tuple, status: int) -> bool:
         wrench = values[0]

@@ -40,7 +40,7 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 from pydantic import Field
 
-from aiohal.busvar import LayoutError, ProcessImage, encode_mapping
+from aiohal.busvar import LayoutError, ProcessImage, UnknownVariableError, VariableTypeError, encode_mapping
 from aiohal.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
@@ -55,12 +55,21 @@ RING = 1 << 16  # per-cycle timings kept for the report (the last 65 s at 1 kHz)
 IMU_VARIABLES = {"quaternion": "Orientation", "angular_velocity": "Angular velocity",
                  "linear_acceleration": "Linear acceleration", "status": "Status"}
 FT_VARIABLES = {"wrench": "Wrench", "status": "Status"}
+FT_CONTROL = "Control"  # the F/T output that tares, used when the slave maps one (variables.control)
 
 
 class DriveUnitOptions(Options):
     counts_per_rev: FiniteFloat = Field(131072, gt=0, description="Encoder increments per motor revolution (0x608F).")
     gear_ratio: FiniteFloat = Field(1.0, gt=0, description="Motor revolutions per joint revolution.")
     rated_torque: FiniteFloat = Field(1.0, gt=0, description="Motor rated torque in N·m (0x6076 / 1000).")
+
+
+def _has_variable(image: ProcessImage, slave: str, name: str) -> bool:
+    try:
+        image.slave(slave).variable(name)
+    except UnknownVariableError:
+        return False
+    return True
 
 
 RX_PDOS, TX_PDOS = (0x1600, 0x17FF), (0x1A00, 0x1BFF)  # where CiA 301 puts the PDO mapping objects
@@ -204,7 +213,7 @@ class EthercatDriver(Driver):
                     issues.append((f"{where}.device", f"an {s.kind} slave needs the device it fills"))
                 elif devices.get(s.device) != s.kind:
                     issues.append((f"{where}.device", f'"{s.device}" is not an {s.kind} device of this driver'))
-                allowed = IMU_VARIABLES if s.kind == "imu" else FT_VARIABLES
+                allowed = IMU_VARIABLES if s.kind == "imu" else {**FT_VARIABLES, "control": FT_CONTROL}
                 for key in s.variables:
                     if key not in allowed:
                         issues.append((f"{where}.variables.{key}", f"unknown; expected one of {sorted(allowed)}"))
@@ -268,6 +277,7 @@ class EthercatDriver(Driver):
         self.image: ProcessImage | None = None
         self.drives: DriveGroup | None = None
         self.sensors: list[tuple[int, ImuDevice | ForceTorqueDevice]] = []
+        self._taring: list[ForceTorqueDevice] = []  # F/T sensors with a tare under way
         self.lost: set[int] = set()
         self._unrecoverable: set[int] = set()  # lost below SAFEOP: reported, not recovered in the tick
         self._reported: set[int] = set()  # lost slaves already reported
@@ -346,8 +356,11 @@ class EthercatDriver(Driver):
             elif s.kind == "imu":
                 self.sensors.append((i, ImuDevice(image, s.name, view.devices[s.device], {**IMU_VARIABLES, **s.variables})))
             elif s.kind == "force_torque":
-                self.sensors.append((i, ForceTorqueDevice(image, s.name, view.devices[s.device],
-                                                          {**FT_VARIABLES, **s.variables})))
+                control = s.variables.get("control")  # named: must exist; else the default if mapped
+                if control is None and _has_variable(image, s.name, FT_CONTROL):
+                    control = FT_CONTROL
+                variables = {k: v for k, v in {**FT_VARIABLES, **s.variables}.items() if k != "control"}
+                self.sensors.append((i, ForceTorqueDevice(image, s.name, view.devices[s.device], variables, control)))
         if specs:
             stuck = max(1, round(opts.stuck_after_ms * 1e6 / self.view.clock.period_ns))
             target = Target.ENABLED if opts.enable_on_open and not self._estop_requested else Target.DISABLED
@@ -540,12 +553,19 @@ class EthercatDriver(Driver):
             drives = self.drives
             if drives is not None:
                 drives.write(self.view.command)
+            if self._taring:
+                self._advance_tares()
             self._write_outputs()
             self._written = True
             if self.options.exchange == "split" and not self._outstanding:
                 self.bus.send()
                 self._outstanding = True
         self._cpu_ns[self.cycles & (RING - 1)] = self._read_cpu + time.perf_counter_ns() - t0
+
+    def _advance_tares(self) -> None:
+        for sensor in self._taring:
+            sensor.write_control()
+        self._taring = [sensor for sensor in self._taring if sensor.tare_left > 0]
 
     def _write_outputs(self) -> None:
         out = self.image.outputs.tobytes()
@@ -685,6 +705,24 @@ class EthercatDriver(Driver):
         if self.drives is not None and not self._estop_requested:
             with self._lock:
                 self.drives.request(Target.ENABLED)
+
+    def tare(self, device: str) -> None:
+        """Zero a force/torque sensor, named by its robot device (e.g. ``"wrist_ft"``) or its
+        slave: its control output is set for a few cycles of the loop (the sensor tares on
+        the edge), so the zeroed wrench shows a few ticks later."""
+        for _, sensor in self.sensors:
+            if isinstance(sensor, ForceTorqueDevice) and device.lower() in (sensor.record.name.lower(),
+                                                                            sensor.slave.lower()):
+                with self._lock:
+                    try:
+                        sensor.tare()
+                    except VariableTypeError as exc:
+                        raise EthercatError(str(exc)) from exc
+                    if sensor not in self._taring:
+                        self._taring.append(sensor)
+                return
+        names = [s.record.name for _, s in self.sensors if isinstance(s, ForceTorqueDevice)]
+        raise EthercatError(f"no force/torque sensor {device!r} on this bus (there are: {', '.join(names) or 'none'})")
 
     def _position(self, slave: str | int) -> int:
         if isinstance(slave, int):
