@@ -261,16 +261,24 @@ async def test_a_lost_sensor_is_faulted_and_recovered_while_the_arm_runs(segment
     # bad cycles only until each change was diagnosed (5 in a row each), not for the whole outage
     bus = report["drivers"]["bus"]
     assert bus["wkc_errors"] - bus["frames_lost"] < 50  # (frames lost in a stall of the host aside)
-    assert imu.fault == 0 and ft.fault == 0 and imu.updated_tick > last_tick - 50 and ft.updated_tick > last_tick - 50
+    # both read again after the repair (issued at tick 800 + WATCHDOG_MS + 400); not "at the last
+    # tick": a stall of the host at the end can lose the last frames (seen in CI)
+    assert imu.fault == 0 and ft.fault == 0
+    assert imu.updated_tick > 800 + WATCHDOG_MS + 400 and ft.updated_tick > 800 + WATCHDOG_MS + 400, last_tick
 
 
 @pytest.mark.asyncio
 async def test_sdo_round_trips_run_beside_the_ticks(segment):
     from aiohal.drivers.ethercat.bus import SdoAbortError
 
+    ran = [0]
+    loop_ticks = lambda loop: ran.__setitem__(0, ran[0] + 1)  # noqa: E731
     async with ControlLoop(parse_config(raw_config(segment.ifname))) as loop:
         driver = driver_of(loop)
-        run = asyncio.ensure_future(loop.run(ticks=1500))
+        loop.add_publisher(loop_ticks)
+        run = asyncio.ensure_future(loop.run(ticks=20_000))  # (ended below, once the transfers are done)
+        await asyncio.sleep(0.05)
+        ran_before = ran[0]
         rated = await driver.sdo_read("drive1", 0x6076, 0)
         encoder = await driver.sdo_read(3, 0x608F, 1)
         name = await driver.sdo_read("imu", 0x1008, 0)
@@ -279,13 +287,15 @@ async def test_sdo_round_trips_run_beside_the_ticks(segment):
         back = await driver.sdo_read("ft", 0x2001, 0, size=256)
         with pytest.raises(SdoAbortError) as missing:
             await driver.sdo_read("drive2", 0x5FFF, 0)
-        ticks_during = loop.robot.clock.tick
+        ran_during = ran[0] - ran_before
+        still_running = not run.done()
+        loop.request_stop("transfers done")
         report = await run
     assert struct.unpack("<I", rated)[0] == 1000 and struct.unpack("<I", encoder)[0] == 131072
     assert name.rstrip(b"\0") == b"AIOHAL-IMU"
     assert back[:200] == blob
     assert missing.value.abort_code == 0x06020000 and "0x5FFF" in str(missing.value)
-    assert ticks_during < 1500  # the transfers were done while the loop ran
+    assert still_running and ran_during > 0  # the loop ticked while the transfers ran (none if they blocked it)
     bus = report["drivers"]["bus"]
     assert report["faults"] == [] and bus["wkc_errors"] == bus["frames_lost"]  # late frames (stalls), never short
     assert bus["frames_lost"] <= max(10, bus["cycles"] // 20)

@@ -158,7 +158,8 @@ class Runner:
                         break
                     timeout = min(timeout, left)
                 events = ep.poll(timeout)
-                stalled = seg.clock() - last - round(timeout * 1e9)
+                mark = seg.clock()
+                stalled = mark - last - round(timeout * 1e9)
                 if stalled > STALL_GRACE_NS:
                     seg.discount_stall(stalled)
                 for fd, _ev in events:
@@ -176,6 +177,9 @@ class Runner:
                                 raise
                             if addr[2] == PACKET_OUTGOING:
                                 continue
+                            now = seg.clock()  # a stall since the poll (or the last frame) is not the master's
+                            if now - mark > STALL_GRACE_NS:
+                                seg.discount_stall(now - mark)
                             try:
                                 reply = handle(bytes(view[:n]))
                             except Exception:  # a model bug must not kill the segment
@@ -183,6 +187,7 @@ class Runner:
                                 if self.errors <= 5:
                                     traceback.print_exc()
                                 continue
+                            mark = seg.clock()
                             if reply is None:
                                 continue
                             if seg.last_delay_ns:
