@@ -122,19 +122,15 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
         assert driver.infos[0].device_name == "AIOHAL-Drive" and driver.infos[0].product_code == 0x402
         reach = np.zeros(loop.robot.dof)  # the largest command each joint was sent
         measured_reach = np.zeros(loop.robot.dof)  # and the largest position measured
-        ran = [0]
 
         def watch(loop):
-            """Ends the run after 2500 ticks run: the sine's ramp (1 s) and 1.5 s of motion
-            (a stall of the host skips ticks, which would count otherwise; bounded below)."""
             np.maximum(reach, np.abs(loop.robot.command.position), out=reach)
             np.maximum(measured_reach, np.abs(loop.robot.state.position), out=measured_reach)
-            ran[0] += 1
-            if ran[0] >= 2500:
-                loop.request_stop("2500 ticks run")
 
+        runs = TicksRun()
         loop.add_publisher(watch)
-        report = await loop.run(ticks=8000)
+        loop.add_publisher(runs)
+        report = await runs.run(loop, 2500, max_ticks=8000)  # the sine's ramp (1 s) and 1.5 s of motion
         last_tick = loop.robot.clock.tick
         state, cmd = loop.robot.state, loop.robot.command
         position = state.position.copy()
