@@ -103,6 +103,16 @@ class DriverSection(Options):
 class ControllerSection(Options):
     type: str = Field("hold", description="Controller name from `python -m aiohal plugins`.")
     params: dict[str, Any] = Field(default_factory=dict, description="The controller's parameters.")
+    every: int = Field(
+        1, ge=1, le=1000,
+        description="Run the controller on every n-th tick only (a bus faster than the controller); "
+        "the drivers still exchange data on every tick.",
+    )
+    extrapolate: bool = Field(
+        True,
+        description="With every > 1: on the ticks in between, move position targets on with the last "
+        "target velocity (false: hold the last command).",
+    )
 
 
 class _JointDefaults(Options):
@@ -143,6 +153,8 @@ class ControllerConfig:
     type: str
     cls: type
     params: Options
+    every: int = 1
+    extrapolate: bool = True
 
 
 @dataclass(frozen=True)
@@ -436,7 +448,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
             if params is not None:
                 for rel, msg in _plugin_checks(cls, "controller", params, tuple(joint_specs), robot or RobotSection()):
                     issues.append(ConfigIssue(f"controller.{rel}" if rel else "controller", msg))
-                controller = ControllerConfig(section.type, cls, params)
+                controller = ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
 
     if issues:
         raise ConfigError(issues, str(path) if path else None)

@@ -3,6 +3,8 @@
 One tick, in order::
 
     wake (absolute deadline k) -> read every driver -> check feedback -> controller.update
+    (or, with ``[controller] every = n``, on the ticks between two updates: the last command
+    with its position targets extrapolated, see :mod:`aiohal.multirate`)
     -> clamp commands to limits -> write every driver -> publish -> statistics
 
 Lifecycle: ``configure`` (build drivers and controller, nothing touches hardware) ->
@@ -33,6 +35,7 @@ from .errors import ControllerError, DriverError, LifecycleError
 from .hal import Controller, Driver
 from .limits import CommandLimiter
 from .logutil import RateLimitedLogger
+from .multirate import TargetExtrapolator
 from .robot import Fault, Mode
 from .realtime import RealtimeState
 from .realtime import apply as apply_realtime
@@ -83,6 +86,10 @@ class ControlLoop:
         self.ticker = Ticker(self.source, self.period_ns, config.loop.overrun)
         self.stats = TickStats(config.loop.stats_window)
         self.limiter = CommandLimiter(self.robot, self.period_s)
+        every = config.controller.every
+        #: a controller slower than the bus (None: it runs on every tick)
+        self.multirate = (TargetExtrapolator(self.robot.command, self.period_s, every, config.controller.extrapolate)
+                          if every > 1 else None)
         self.level = SafetyLevel.OFF
         self.faults: list[FaultRecord] = []
         self.slots: list[DriverSlot] = []
@@ -179,6 +186,8 @@ class ControlLoop:
         self.state = "active"
         self._k_start = 0  # controller time counts from activation, across run() calls
         self._last_update_k = 0
+        if self.multirate is not None:
+            self.multirate.force()
         try:
             self.controller.start(0.0)
         except Exception as exc:
@@ -338,6 +347,8 @@ class ControlLoop:
         np.copyto(cmd.position, measured, where=which)
         cmd.velocity[which] = 0.0
         self.limiter.follow_measured(which, np.zeros(n))
+        if self.multirate is not None:  # the controller sees the change this tick, not its old command
+            self.multirate.force()
         if self.controller is self._hold and self.state in ("active", "running"):
             self._hold.start((self.robot.clock.tick - self._k_start) * self.period_s)
 
@@ -425,6 +436,7 @@ class ControlLoop:
         mono = time.monotonic_ns
         now_ns = self.source.now_ns
         publishers = self._publishers
+        multirate = self.multirate
 
         ticker.start(lead_ns=period_ns)
         self._missed_before = ticker.missed
@@ -474,11 +486,17 @@ class ControlLoop:
             if self.level < SafetyLevel.HOLD:  # emergency stop: keep reading, command nothing
                 t3 = t4 = t5 = mono()
             else:
-                try:
-                    self.controller.update((k - k_start) * period_s, (k - self._last_update_k) * period_s)
-                except Exception as exc:
-                    self._controller_failed("update", exc)
-                self._last_update_k = k
+                # hold, the HAL's own safety controller, runs on every tick whatever ``every``
+                if multirate is None or multirate.due(k) or self.controller is self._hold:
+                    try:
+                        self.controller.update((k - k_start) * period_s, (k - self._last_update_k) * period_s)
+                    except Exception as exc:
+                        self._controller_failed("update", exc)
+                    self._last_update_k = k
+                    if multirate is not None:
+                        multirate.capture(k)
+                else:
+                    multirate.fill(k)
                 t3 = mono()
 
                 if not limiter.apply():
@@ -551,6 +569,9 @@ class ControlLoop:
         metrics: dict[str, Any] = {"type": self.controller_type}
         if self._given_controller is None and self.config.controller.type != self.controller_type:
             metrics["configured"] = self.config.controller.type
+        if self.multirate is not None:
+            metrics.update(every=self.multirate.every, extrapolate=self.multirate.extrapolate,
+                           updates=self.multirate.updates)
         if controller is not None:
             try:
                 metrics.update(controller.metrics())
