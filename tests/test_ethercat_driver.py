@@ -592,3 +592,76 @@ async def test_a_drive_whose_slave_drops_to_safeop_fails_the_driver(segment):
     assert len(failed) == 1 and "joint(s) a2" in failed[0]["error"]
     assert "slave 1 (drive2) in SAFEOP+ERROR, AL status 0x001A" in failed[0]["error"]
     assert report["safety_level"] == "estop"
+
+
+# ---------------------------------------------------------------- slaves without CoE (SII PDOs)
+
+
+def one_drive_and(ifname: str, *others: dict) -> dict:
+    """A 1-joint robot: drive ``a1`` behind the slaves ``others`` (bus order: others, then the drive)."""
+    raw = raw_config(ifname)
+    raw["joints"] = {"a1": {}}
+    raw["devices"] = {}
+    raw["driver"][0]["joints"] = ["a1"]
+    raw["driver"][0]["devices"] = []
+    raw["driver"][0]["options"]["sync0"] = False
+    raw["driver"][0]["options"]["slaves"] = [*others, {"name": "drive1", "kind": "cia402", "joint": "a1"}]
+    raw["controller"] = {"type": "hold"}
+    return raw
+
+
+@pytest.fixture(scope="module")
+def io_segment(sim):  # after the module's segment: one simulator at a time on this 2-core machine
+    from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
+
+    with SimulatedSegment("dio,drive", watchdog_ms=WATCHDOG_MS) as segment:
+        yield segment
+
+
+@pytest.mark.asyncio
+async def test_a_terminal_without_coe_is_mapped_from_its_sii_and_its_bits_are_linked_by_name(io_segment):
+    io_segment.control({"cmd": "clear"})
+    io_segment.control({"cmd": "power_cycle"})
+    io_segment.control({"cmd": "device", "slave": 0, "pattern": 0x0F})
+    raw = one_drive_and(io_segment.ifname, {"name": "dio", "product_code": 0x808})
+    loop = ControlLoop(parse_config(raw))
+    seen = []
+    counter = TicksRun()
+    loop.add_publisher(counter)
+    async with loop:
+        driver = driver_of(loop)
+        layout = next(info.layout for info in driver.infos if info.name == "dio")
+        assert [e.name for e in layout.outputs] == [f"Output.{i}" for i in range(1, 9)]
+        outputs = [driver.image.link(f"dio.Output.{i}", writable=True) for i in range(1, 9)]
+        inputs = [driver.image.link(f"dio.Input.{i}") for i in range(1, 9)]
+        for bit, value in zip(outputs, [1, 0, 1, 0, 0, 0, 0, 1], strict=True):
+            bit.set(bool(value))
+        loop.add_publisher(lambda lp: seen.append([int(b.get()) for b in inputs]))
+        report = await counter.run(loop, 50)
+        device = io_segment.status()["slaves"][0]["device"]  # in OP still (its outputs switch off after)
+    assert report["faults"] == []
+    assert device["outputs"] == 0b10000101
+    # the terminal reads its outputs back XOR its pattern 0x0F: 0b10000101 ^ 0b00001111
+    assert seen[-1] == [0, 1, 0, 1, 0, 0, 0, 1]
+
+
+@pytest.mark.asyncio
+async def test_a_terminal_without_coe_cannot_be_remapped_and_says_so(io_segment):
+    io_segment.control({"cmd": "clear"})
+    io_segment.control({"cmd": "power_cycle"})
+    raw = one_drive_and(io_segment.ifname, {"name": "dio", "rx_pdos": {"0x1600": ["0x7000:1:1"]}})
+    with pytest.raises(DriverError, match=r"slave 0 \(AIOHAL-DIO8\) has no CoE: its PDOs are fixed"):
+        async with ControlLoop(parse_config(raw)):
+            pass
+
+
+@pytest.mark.asyncio
+async def test_a_bit_packed_terminal_fails_the_bring_up_with_the_reason():
+    require_root("a veth pair and a network namespace for the simulated EtherCAT segment")
+    from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
+
+    with SimulatedSegment("dio4,drive", watchdog_ms=WATCHDOG_MS) as segment:
+        raw = one_drive_and(segment.ifname, {"name": "dio"})
+        with pytest.raises(DriverError, match=r"slave 0 \(AIOHAL-DIO4\) has 4 output and 4 input bits: SOEM packs"):
+            async with ControlLoop(parse_config(raw)):
+                pass

@@ -26,6 +26,8 @@ from typing import Any
 from aiohal.busvar import LayoutError, PdoLayout, names_for
 from aiohal.errors import AiohalError
 
+from . import sii as sii_layout
+
 log = logging.getLogger(__name__)
 
 INIT, PREOP, BOOT, SAFEOP, OP = 0x01, 0x02, 0x03, 0x04, 0x08
@@ -109,10 +111,17 @@ class Bus:
         return len(self.slaves)
 
     def read_layout(self, position: int, names_overrides: dict | None = None) -> PdoLayout:
-        """The slave's PDO layout from its CoE PDO assignment (0x1C12/0x1C13 and the mapping
-        objects), named from its name table; in PREOP, before the master maps it."""
+        """The slave's PDO layout, named from its name table; in PREOP, before the master maps
+        it. From its CoE PDO assignment (0x1C12/0x1C13 and the mapping objects), or from its
+        SII PDO categories for a slave without CoE (as SOEM maps it)."""
         slave = self.slaves[position]
         where = f"slave {position} ({slave.name})"
+        sii = self.sii(position)
+        if not sii_layout.has_coe(sii):
+            rx, tx = sii_layout.read_pdos(sii)
+            # device type 0: no object 0x1000 to say CiA 402, so no drive names are assumed
+            names = names_for(slave.man, slave.id, device_type=0, overrides=names_overrides)
+            return PdoLayout.from_sii(rx, tx, names)
         try:
             rx_assign = self._assignment(slave, 0x1C12)
             tx_assign = self._assignment(slave, 0x1C13)
@@ -129,6 +138,18 @@ class Bus:
             pass
         names = names_for(slave.man, slave.id, device_type=device_type, overrides=names_overrides)
         return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
+
+    def sii(self, position: int) -> sii_layout.SiiReader:
+        """The slave's SII EEPROM, read on demand (blocking; each read is a few frames)."""
+        slave = self.slaves[position]
+
+        def read(word: int) -> bytes:
+            try:
+                return slave.eeprom_read(word)
+            except Exception as exc:
+                raise LayoutError(f"slave {position} ({slave.name}): reading SII word 0x{word:04X} failed "
+                                  f"({type(exc).__name__}: {exc})") from exc
+        return sii_layout.SiiReader(read)
 
     def _sdo_retried(self, slave: Any, index: int, subindex: int, size: int = 0, attempts: int = 3) -> bytes:
         """An SDO read, tried again when its mailbox frame was lost (not when the slave aborts
@@ -147,6 +168,9 @@ class Bus:
         """Assign ``pdos`` (0x1C12: outputs, 0x1C13: inputs), in order, writing the mapping of
         each PDO given entries (CiA 301's sequence: count 0, entries, count); in PREOP."""
         slave = self.slaves[position]
+        if not sii_layout.has_coe(self.sii(position)):
+            raise LayoutError(f"slave {position} ({slave.name}) has no CoE: its PDOs are fixed in its SII and "
+                              "cannot be remapped (leave out its rx_pdos / tx_pdos)")
 
         def write(index: int, subindex: int, data: bytes) -> None:
             with self._sdo_errors(f"slave {position} ({slave.name}): PDO remapping, SDO write 0x{index:04X}:{subindex:02X}"):

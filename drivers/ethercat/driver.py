@@ -313,6 +313,12 @@ class EthercatDriver(Driver):
             for assign, pdos in s.pdo_assignments():
                 bus.write_pdo_assignment(i, assign, pdos)
         layouts = [bus.read_layout(i, s.names) for i, s in enumerate(opts.slaves)]
+        for i, layout in enumerate(layouts):
+            if 0 < layout.output_bits < 8 or 0 < layout.input_bits < 8:
+                raise BringUpError(
+                    f"slave {i} ({bus.slaves[i].name}) has {layout.output_bits} output and {layout.input_bits} input "
+                    "bits: SOEM packs a slave of fewer than 8 bits into a byte it shares with its neighbours, "
+                    "which this driver does not support (pysoem reads and writes whole bytes per slave)")
         bus.map(opts.dc, sync0=opts.sync0_slaves(), cycle_ns=self.view.clock.period_ns,
                 shift_ns=round(opts.sync0_shift_us * 1000))
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):

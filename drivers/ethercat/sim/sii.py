@@ -213,27 +213,3 @@ def build_sii(desc: SiiDescription) -> bytes:
     struct.pack_into("<HH", head, 0x7C, kbit - 1, 1)
     image = bytes(head) + cats
     return image + b"\xff" * (kbit * 128 - len(image))
-
-
-def parse_categories(image: bytes) -> dict[int, bytes]:
-    """Category type -> data (the first of each type); used by tests and diagnostics."""
-    out: dict[int, bytes] = {}
-    pos = 0x80
-    while pos + 4 <= len(image):
-        kind, words = struct.unpack_from("<HH", image, pos)
-        if kind == CAT_END:
-            break
-        out.setdefault(kind, image[pos + 4:pos + 4 + 2 * words])
-        pos += 4 + 2 * words
-    return out
-
-
-def parse_strings(data: bytes) -> list[str]:
-    n = data[0]
-    pos = 1
-    out = []
-    for _ in range(n):
-        ln = data[pos]
-        out.append(data[pos + 1:pos + 1 + ln].decode("latin-1"))
-        pos += 1 + ln
-    return out
