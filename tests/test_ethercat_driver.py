@@ -611,7 +611,7 @@ def one_drive_and(ifname: str, *others: dict) -> dict:
 
 
 @pytest.fixture(scope="module")
-def io_segment(sim):  # after the module's segment: one simulator at a time on this 2-core machine
+def io_segment(sim):  # sim: the same root and pysoem checks; each segment has its own namespace
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
 
     with SimulatedSegment("dio,drive", watchdog_ms=WATCHDOG_MS) as segment:
