@@ -436,10 +436,10 @@ def test_fast_side_with_a_slow_nrt_thread(peers, short_gil_slices):
         return len(answers) >= 5
 
     assert poll_until(tick, timeout=5.0, every=0.001)
-    # ~20 sends per 20 ms into 8 places: the pipe fills, and sends into it failed at once (a
-    # blocking send would have waited for the NRT side instead, and dropped nothing)
-    assert peer.fast.counters["dropped_full"] > 0
+    # one long call is tolerated: the drops below show that sends into the full pipe failed at
+    # once (a blocking send would have waited for the NRT side instead, and dropped nothing)
     assert_never_blocked(fast, host_stalls=1)
+    assert peer.fast.counters["dropped_full"] > 0  # ~20 sends per 20 ms into 8 places: the pipe fills, sends fail fast
     t0 = time.monotonic()
     peer.stop(timeout=2.0)
     assert time.monotonic() - t0 < 2.0 and not peer.alive()
