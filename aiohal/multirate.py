@@ -41,7 +41,6 @@ class TargetExtrapolator:
         self._any_moving = False
         self._modes = b""
         self.updates = 0  # controller updates since the start
-        self.filled = 0  # ticks whose command was extrapolated
 
     def due(self, k: int) -> bool:
         """The controller runs at tick ``k``: ``every`` ticks after its last update (or more,
@@ -73,4 +72,3 @@ class TargetExtrapolator:
         if self.extrapolate and self._any_moving:
             np.multiply(self._anchor[VEL], (k - self._anchor_k) * self.period_s, out=self._step)
             np.add(block[POS], self._step, out=block[POS], where=self._moving)
-        self.filled += 1

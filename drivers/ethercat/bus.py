@@ -129,8 +129,7 @@ class Bus:
         except self.pysoem.SdoError as exc:
             raise LayoutError(f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}") from exc
         except self.lost_frame as exc:
-            raise LayoutError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc}); "
-                              "slaves without CoE are not supported by this driver") from exc
+            raise LayoutError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc})") from exc
         device_type = None
         try:
             device_type = struct.unpack("<I", slave.sdo_read(0x1000, 0, release_gil=True)[:4])[0]
