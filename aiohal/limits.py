@@ -1,9 +1,9 @@
 """Clamp commands to the configured joint limits before any driver writes them.
 
-Vectorised over all joints with preallocated bounds, so a tick costs a handful of numpy calls
-whatever the number of joints. The bounds are two arrays shaped like the command block (one
-row per command quantity): fixed rows for velocity, effort, stiffness, damping (>= 0) and
-feed-forward, and rows recomputed each tick where a limit depends on the last command sent.
+One compiled call per tick (:mod:`aiohal.limit_kernel`) over all joints, whatever their
+number. The bounds are fixed for every command quantity (range, velocity, effort, stiffness and
+damping >= 0, feed-forward) and, for position and velocity, also move with the last command
+sent.
 
 Position commands are limited in range and, relative to the last command sent, in rate (the
 velocity limit), so a jump in a target becomes a ramp that stops exactly at the target. If a
@@ -20,24 +20,26 @@ other command.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from .robot import JOINT_COMMAND_FIELDS, Mode, Robot
+from .robot import JOINT_COMMAND_FIELDS, Robot
 
 _ROW = {name: i for i, name in enumerate(JOINT_COMMAND_FIELDS)}
 POS, VEL = _ROW["position"], _ROW["velocity"]
-assert (POS, VEL) == (0, 1)  # the two rows whose bounds move are adjacent: one slice
+assert (POS, VEL) == (0, 1)  # the kernel's POSITION_ROW and VELOCITY_ROW
 #: Stiffness and damping have no configured limit; this cap keeps every sum finite.
 GAIN_CAP = 1e12
 
 
 class CommandLimiter:
-    """Per tick: 2 calls move the bounds of position and velocity, 2 intersect them with the
-    fixed limits, 2 clamp the whole command block, 1 checks it is finite, 1 remembers it."""
+    """Per tick, one compiled call (:mod:`aiohal.limit_kernel`) clamps the command block to the
+    bounds: fixed ones, and for position and velocity a step from the last command sent."""
 
     def __init__(self, robot: Robot, period_s: float) -> None:
+        from . import limit_kernel as lk  # numba: loaded when a loop is built, not on import aiohal
+
+        self._kernel = lk.limit_commands
+        self._refused_bit, self._outside_bit = lk.REFUSED, lk.OUTSIDE
         self.cmd = robot.command
         self.state = robot.state
         n = robot.dof
@@ -45,30 +47,24 @@ class CommandLimiter:
         self.position_min = robot.position_min
         self.position_max = robot.position_max
         self.velocity_limit = robot.velocity_limit
-        lower = np.empty((len(JOINT_COMMAND_FIELDS), n))
-        upper = np.empty_like(lower)
+        table = np.zeros((lk.ROWS, n))
         for name, i in _ROW.items():
+            lower, upper = table[lk.LOWER + i], table[lk.UPPER + i]
             if name in ("effort", "feedforward"):
-                lower[i], upper[i] = -robot.effort_limit, robot.effort_limit
+                lower[:], upper[:] = -robot.effort_limit, robot.effort_limit
             elif name == "velocity":
-                lower[i], upper[i] = -robot.velocity_limit, robot.velocity_limit
+                lower[:], upper[:] = -robot.velocity_limit, robot.velocity_limit
             elif name == "position":
-                lower[i], upper[i] = robot.position_min, robot.position_max
+                lower[:], upper[:] = robot.position_min, robot.position_max
             else:  # stiffness, damping
-                lower[i], upper[i] = 0.0, GAIN_CAP
-        self.fixed_lower, self.fixed_upper = lower[:2].copy(), upper[:2].copy()
-        self.lower, self.upper = lower, upper
-        self._moving_lower, self._moving_upper = lower[:2], upper[:2]  # views, made once
+                lower[:], upper[:] = 0.0, GAIN_CAP
         # rows [position, velocity]: how far each may move from the last command in one tick
-        self.step = np.vstack([robot.velocity_limit * period_s, robot.acceleration_limit * period_s])
-        self.last = np.zeros((2, n))  # [position, velocity] sent last tick
-        self._before = np.zeros((2, n))  # the same, one tick earlier (the buffers swap)
+        table[lk.STEP + POS] = robot.velocity_limit * period_s
+        table[lk.STEP + VEL] = robot.acceleration_limit * period_s
+        self._table = table
+        self.last = table[lk.LAST : lk.LAST + 2]  # [position, velocity] sent last tick (views)
+        self._before = table[lk.BEFORE : lk.BEFORE + 2]  # the same, one tick earlier
         self._outside = False  # a joint's last command lies outside its range
-        self._finite = np.zeros(lower.shape, dtype=bool)
-        self._modes = b""
-        self._velocity_rows = np.zeros(n, dtype=bool)
-        self._any_velocity_mode = False
-        self._inside = np.zeros(n, dtype=bool)
         self.refused = 0  # ticks whose command was not finite
 
     @property
@@ -116,43 +112,9 @@ class CommandLimiter:
         """Clamp the command in place. False if some entry was not finite (it was replaced, see
         the module's docstring, then clamped)."""
         cmd = self.cmd
-        block = cmd.block
-        lower, upper, last = self.lower, self.upper, self.last
-        moving_lower, moving_upper = self._moving_lower, self._moving_upper
-        # position within a rate step of the last one, velocity within an acceleration step
-        np.subtract(last, self.step, out=moving_lower)
-        np.add(last, self.step, out=moving_upper)
-        if self._outside:  # the rate limit wins: move back into the range at the allowed rate
-            np.maximum(moving_lower, np.minimum(self.fixed_lower, moving_upper), out=moving_lower)
-            np.minimum(moving_upper, np.maximum(self.fixed_upper, moving_lower), out=moving_upper)
-        else:
-            np.maximum(moving_lower, self.fixed_lower, out=moving_lower)
-            np.minimum(moving_upper, self.fixed_upper, out=moving_upper)
-        modes = cmd.mode.tobytes()
-        if modes != self._modes:
-            self._modes = modes
-            np.equal(cmd.mode, Mode.VELOCITY, out=self._velocity_rows)
-            self._any_velocity_mode = bool(self._velocity_rows.any())
-        if self._any_velocity_mode:  # no velocity out of the range at its ends
-            position, rows, inside = self.state.position, self._velocity_rows, self._inside
-            np.less(position, self.position_max, out=inside)
-            np.minimum(upper[VEL], 0.0, out=upper[VEL], where=rows & ~inside)
-            np.greater(position, self.position_min, out=inside)
-            np.maximum(lower[VEL], 0.0, out=lower[VEL], where=rows & ~inside)
-        # NaN passes through maximum/minimum; ±inf does not (every bound is finite)
-        np.maximum(block, lower, out=block)
-        np.minimum(block, upper, out=block)
-        refused = not math.isfinite(np.add.reduce(block, axis=None))
-        if refused:  # rare: position and velocity fall back to what was sent, the rest to 0
-            finite = np.isfinite(block, out=self._finite)
-            np.copyto(block[:2], last, where=~finite[:2])
-            np.copyto(block[2:], 0.0, where=~finite[2:])
-            np.maximum(block, lower, out=block)
-            np.minimum(block, upper, out=block)
+        result = self._kernel(cmd.block, cmd.mode, self.state.position, self._table, self._outside)
+        self._outside = bool(result & self._outside_bit)
+        if result & self._refused_bit:  # rare
             self.refused += 1
-        self._before, self.last = last, self._before  # swap: no copy of the history
-        np.copyto(self.last, block[:2])
-        if self._outside:
-            p = cmd.position
-            self._outside = bool(((p < self.position_min) | (p > self.position_max)).any())
-        return not refused
+            return False
+        return True

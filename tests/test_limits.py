@@ -91,3 +91,63 @@ def test_finite_but_huge_commands_are_clamped_not_refused():
     robot.command.stiffness[:] = 1e308  # the sum overflows, yet every entry is finite
     assert limiter.apply() is True
     assert limiter.refused == 0
+
+
+class NumpyLimiter:
+    """The limiter's rules written as vectorised numpy (its earlier implementation): an
+    independent formulation that the compiled kernel must match bit for bit."""
+
+    def __init__(self, robot: Robot, start: np.ndarray) -> None:
+        self.robot = robot
+        n = robot.dof
+        eff, vel = robot.effort_limit, robot.velocity_limit
+        self.lower = np.array([robot.position_min, -vel, -eff, np.zeros(n), np.zeros(n), -eff])
+        self.upper = np.array([robot.position_max, vel, eff, np.full(n, 1e12), np.full(n, 1e12), eff])
+        self.fixed_lower, self.fixed_upper = self.lower[:2].copy(), self.upper[:2].copy()
+        self.step = np.vstack([vel * DT, robot.acceleration_limit * DT])
+        self.last = np.vstack([start, np.zeros(n)])
+        self.outside = bool(((start < robot.position_min) | (start > robot.position_max)).any())
+
+    def apply(self, block: np.ndarray, mode: np.ndarray, position: np.ndarray) -> bool:
+        r = self.robot
+        lower, upper = self.lower, self.upper
+        moving_lower, moving_upper = self.last - self.step, self.last + self.step
+        if self.outside:
+            moving_lower = np.maximum(moving_lower, np.minimum(self.fixed_lower, moving_upper))
+            moving_upper = np.minimum(moving_upper, np.maximum(self.fixed_upper, moving_lower))
+        else:
+            moving_lower = np.maximum(moving_lower, self.fixed_lower)
+            moving_upper = np.minimum(moving_upper, self.fixed_upper)
+        lower[:2], upper[:2] = moving_lower, moving_upper
+        velocity_rows = mode == Mode.VELOCITY
+        upper[1] = np.where(velocity_rows & ~(position < r.position_max), np.minimum(upper[1], 0.0), upper[1])
+        lower[1] = np.where(velocity_rows & ~(position > r.position_min), np.maximum(lower[1], 0.0), lower[1])
+        clamped = np.minimum(np.maximum(block, lower), upper)
+        finite = np.isfinite(clamped)
+        clamped[:2] = np.where(finite[:2], clamped[:2], self.last)
+        clamped[2:] = np.where(finite[2:], clamped[2:], 0.0)
+        block[:] = np.minimum(np.maximum(clamped, lower), upper)
+        self.last = block[:2].copy()
+        self.outside = bool(((block[0] < r.position_min) | (block[0] > r.position_max)).any())
+        return bool(finite.all())
+
+
+@settings(max_examples=300, deadline=None)
+@given(robot=robots(), data=st.data())
+def test_the_compiled_limiter_matches_the_numpy_formulation(robot, data):
+    n = robot.dof
+    start = np.array([data.draw(st.floats(-30, 30)) for _ in range(n)])  # often outside the range
+    limiter = CommandLimiter(robot, DT)
+    limiter.reset(start)
+    reference = NumpyLimiter(robot, start)
+    cmd = robot.command
+    for _ in range(data.draw(st.integers(1, 20))):
+        commands = np.array(data.draw(st.lists(any_float, min_size=6 * n, max_size=6 * n))).reshape(6, n)
+        cmd.mode[:] = data.draw(st.lists(st.sampled_from(list(Mode)), min_size=n, max_size=n))
+        robot.state.position[:] = data.draw(st.lists(st.floats(-30, 30) | st.just(math.nan), min_size=n, max_size=n))
+        expected = commands.copy()
+        expected_ok = reference.apply(expected, cmd.mode, robot.state.position)
+        cmd.block[:] = commands
+        assert limiter.apply() is expected_ok
+        np.testing.assert_array_equal(cmd.block, expected)
+        np.testing.assert_array_equal(limiter.last, expected[:2])
