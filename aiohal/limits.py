@@ -42,6 +42,8 @@ class CommandLimiter:
         self._refused_bit, self._outside_bit = lk.REFUSED, lk.OUTSIDE
         self.cmd = robot.command
         self.state = robot.state
+        if not all(a.flags.c_contiguous for a in (self.cmd.block, self.cmd.mode, self.state.position)):
+            raise ValueError("the limiter's kernel needs the robot's own (C-contiguous) command and state arrays")
         n = robot.dof
         self.period_s = period_s
         self.position_min = robot.position_min
