@@ -4,14 +4,17 @@ One mock driver, the hold controller, 33 joints. Each part (driver read, hold up
 limiter) is timed in a tight loop of 20 000 calls, then the same parts are read from the
 loop's per-phase statistics on the virtual clock (back to back: no waiting, only the event
 loop's own work between ticks). The ratio is what the rest of the loop costs the tick's code.
+Each part is also timed once after each of ``--sleep-calls`` sleeps of 0.9 ms (p50): what a
+call costs on the real clock, where a tick starts with the caches cold after the wait.
 
-    python -m benchmarks.isolated [--joints 33] [--json PATH]
+    python -m benchmarks.isolated [--joints 33] [--sleep-calls 2000] [--json PATH]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import statistics
 import time
 
 from aiohal.config import parse_config
@@ -38,6 +41,17 @@ def _time_us(fn, n: int = 20_000) -> float:
     return (time.perf_counter_ns() - t0) / n / 1e3
 
 
+def _after_sleep_us(fn, n: int) -> float:
+    """p50 of one call made after a 0.9 ms sleep, ``n`` times."""
+    times = []
+    for _ in range(n):
+        time.sleep(0.0009)
+        t0 = time.perf_counter_ns()
+        fn()
+        times.append(time.perf_counter_ns() - t0)
+    return statistics.median(times) / 1e3 if times else float("nan")
+
+
 def _run_coroutine(factory):
     def call():
         coro = factory()
@@ -48,7 +62,7 @@ def _run_coroutine(factory):
     return call
 
 
-async def measure(joints: int) -> list[dict]:
+async def measure(joints: int, sleep_calls: int = 2000) -> list[dict]:
     loop = ControlLoop(parse_config(arm(joints)))
     async with loop:
         report = await loop.run(ticks=5000)
@@ -58,25 +72,30 @@ async def measure(joints: int) -> list[dict]:
             clock.tick += 1
             _run_coroutine(driver.read)()
 
-        alone = {
-            "read": _time_us(read_one_tick),
-            "control": _time_us(lambda: loop.controller.update(1.0, 0.001)),
-            "limits": _time_us(loop.limiter.apply),
-            "write": _time_us(_run_coroutine(driver.write)),
+        parts = {
+            "read": read_one_tick,
+            "control": lambda: loop.controller.update(1.0, 0.001),
+            "limits": loop.limiter.apply,
+            "write": _run_coroutine(driver.write),
         }
+        alone = {part: _time_us(fn) for part, fn in parts.items()}
+        cold = {part: _after_sleep_us(fn, sleep_calls) for part, fn in parts.items()}
     phases = report["phases_us"]
     return [{"part": part, "alone_us": round(us, 2), "in_loop_us": phases[part]["p50"],
-             "ratio": round(phases[part]["p50"] / us, 2)} for part, us in alone.items()]
+             "ratio": round(phases[part]["p50"] / us, 2), "after_sleep_us": round(cold[part], 2)}
+            for part, us in alone.items()]
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--joints", type=int, default=33)
+    p.add_argument("--sleep-calls", type=int, default=2000, help="calls timed after a 0.9 ms sleep, per part")
     p.add_argument("--json", default=None)
     args = p.parse_args()
-    rows = asyncio.run(measure(args.joints))
+    rows = asyncio.run(measure(args.joints, args.sleep_calls))
     print(table(rows, [("part", "part"), ("alone_us", "alone µs (mean of 20 000)"),
-                       ("in_loop_us", "in the loop µs (p50, virtual clock)"), ("ratio", "ratio")]))
+                       ("in_loop_us", "in the loop µs (p50, virtual clock)"), ("ratio", "ratio"),
+                       ("after_sleep_us", "after a 0.9 ms sleep µs (p50)")]))
     write_json(args.json, {"joints": args.joints, "rows": rows})
 
 

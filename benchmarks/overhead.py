@@ -41,7 +41,14 @@ zero effort and feed-forward commands into the torque. The trajectories are comp
 end (final measured q, and the circle's RMS tracking error): equal values show that both
 loops did the same robot work.
 
-    python -m benchmarks.overhead [--seconds 5] [--warmup 1] [--repeat 5] [--only NAME ...] [--json PATH]
+With ``--interleave TICKS`` both loops are built in one process and run alternately, TICKS
+ticks at a time (which side goes first alternates), for ``--seconds``; each round's ratio then
+compares the two sides measured milliseconds apart. On a shared VM whose speed changes by
+1.5x from one minute to the next, separate runs pair a fast run with a slow one (pairs of
+0.8-2.5 for the same code); the rounds' median and quartiles do not.
+
+    python -m benchmarks.overhead [--seconds 5] [--warmup 1] [--repeat 5] [--only NAME ...]
+        [--interleave TICKS] [--json PATH]
 """
 
 from __future__ import annotations
@@ -88,6 +95,12 @@ def _measure(run_ticks, warmup: int, ticks: int) -> dict:
 
 
 def nohal_mujoco(spec: dict) -> dict:
+    run_ticks, finish = setup_nohal_mujoco(spec)
+    return {**_measure(run_ticks, spec["warmup_ticks"], spec["ticks"]), **finish()}
+
+
+def setup_nohal_mujoco(spec: dict):
+    """The no-HAL MuJoCo loop, ready: (run_ticks(k_from, k_to), finish() -> final values)."""
     import mujoco
 
     from aiohal.config import load_config
@@ -239,15 +252,23 @@ def nohal_mujoco(spec: dict) -> dict:
             mujoco.mj_step(model, data, nstep=substeps)
         acc["sum_sq"], acc["max"], acc["samples"] = sum_sq, max_err, samples
 
-    result = _measure(run_ticks, spec["warmup_ticks"], spec["ticks"])
-    rms = math.sqrt(acc["sum_sq"] / acc["samples"]) if acc["samples"] else None
-    return {**result, "final_position": q.tolist(), "rms_error_m": rms}
+    def finish() -> dict:
+        rms = math.sqrt(acc["sum_sq"] / acc["samples"]) if acc["samples"] else None
+        return {"final_position": q.tolist(), "rms_error_m": rms}
+
+    return run_ticks, finish
 
 
 # ---------------------------------------------------------------- no HAL: mock + hold
 
 
 def nohal_mock(spec: dict) -> dict:
+    run_ticks, finish = setup_nohal_mock(spec)
+    return {**_measure(run_ticks, spec["warmup_ticks"], spec["ticks"]), **finish()}
+
+
+def setup_nohal_mock(spec: dict):
+    """The no-HAL mock loop, ready: (run_ticks(k_from, k_to), finish() -> final values)."""
     from aiohal.config import parse_config
 
     config = parse_config(spec["raw"], base_dir=Path(spec["base_dir"]))
@@ -303,8 +324,61 @@ def nohal_mock(spec: dict) -> dict:
             np.copyto(cmd_pos, x_final)
             cmd_vel_[:] = 0.0
 
-    result = _measure(run_ticks, spec["warmup_ticks"], spec["ticks"])
-    return {**result, "final_position": pos.tolist(), "rms_error_m": None}
+    return run_ticks, lambda: {"final_position": pos.tolist(), "rms_error_m": None}
+
+
+# ---------------------------------------------------------------- both sides in one process
+
+
+async def _interleaved(spec: dict) -> dict:
+    """Both loops in one process, alternating in chunks of ``chunk`` ticks (the side that goes
+    first alternates too): each round's ratio compares the two sides a few milliseconds
+    apart, so a change of the host's speed between runs does not enter it."""
+    from aiohal.config import parse_config
+    from aiohal.loop import ControlLoop
+
+    hal, bare = spec["hal"], spec["nohal"]
+    chunk, rounds = spec["chunk"], spec["rounds"]
+    setup = setup_nohal_mujoco if bare["kind"] == "nohal_mujoco" else setup_nohal_mock
+    run_ticks, finish = setup(bare)
+    control = ControlLoop(parse_config(hal["raw"], base_dir=Path(hal["base_dir"])))
+    await control.activate()
+    k = 1
+
+    async def hal_chunk(ticks: int) -> float:
+        report = await control.run(ticks=ticks)  # collects and freezes the heap before its first tick
+        stats = control.stats
+        wall_s = (stats.stopped_wall_ns - stats.started_wall_ns) / 1e9
+        return report["cpu_percent"] / 100.0 * wall_s / report["ticks"]
+
+    def bare_chunk(ticks: int) -> float:
+        nonlocal k
+        gc.collect()  # as the loop does before its ticks
+        gc.freeze()
+        cpu0 = _cpu_s()
+        run_ticks(k, k + ticks)
+        cpu = _cpu_s() - cpu0
+        gc.unfreeze()
+        k += ticks
+        return cpu / ticks
+
+    try:
+        await hal_chunk(hal["warmup_ticks"])
+        bare_chunk(bare["warmup_ticks"])
+        pairs = []
+        for r in range(rounds):
+            if r % 2:
+                b = bare_chunk(chunk)
+                h = await hal_chunk(chunk)
+            else:
+                h = await hal_chunk(chunk)
+                b = bare_chunk(chunk)
+            pairs.append((h * 1e6, b * 1e6))
+        final = np.asarray(control.robot.state.position).tolist()
+        rms = control.report()["controller"].get("rms_error_m")
+    finally:
+        await control.deactivate()
+    return {"pairs": pairs, "final_position": final, "rms_error_m": rms, "nohal": finish()}
 
 
 def overhead_worker(spec: dict) -> dict:
@@ -312,6 +386,10 @@ def overhead_worker(spec: dict) -> dict:
         return nohal_mujoco(spec)
     if spec["kind"] == "nohal_mock":
         return nohal_mock(spec)
+    if spec["kind"] == "interleaved":
+        import asyncio
+
+        return asyncio.run(_interleaved(spec))
     return worker(spec)
 
 
@@ -347,6 +425,8 @@ def main() -> None:
     p.add_argument("--warmup", type=float, default=1.0, help="warm-up seconds before the measured ticks")
     p.add_argument("--repeat", type=int, default=5, help="runs of each side, alternating (default 5)")
     p.add_argument("--only", nargs="*", default=None, help=f"cases to run (default: all of {SIM + MOCK})")
+    p.add_argument("--interleave", type=int, default=0, metavar="TICKS",
+                   help="run both sides in one process, alternating every TICKS ticks (default 0: separate runs)")
     p.add_argument("--json", default=None)
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -355,6 +435,9 @@ def main() -> None:
         return
     started = time.monotonic()
     cases = _cases(args.seconds, args.warmup)
+    if args.interleave > 0:
+        _main_interleaved(args, cases, started)
+        return
     rows, raw_results = [], {}
     for name in args.only or list(cases):
         hal_spec, nohal_spec = cases[name]
@@ -400,6 +483,43 @@ def main() -> None:
     print(f"\nelapsed {elapsed:.1f} s")
     write_json(args.json, {"seconds": args.seconds, "warmup": args.warmup, "repeat": args.repeat,
                            "elapsed_s": round(elapsed, 1), "rows": rows, "runs": raw_results})
+
+
+def _main_interleaved(args, cases: dict, started: float) -> None:
+    rows, raw_results = [], {}
+    rounds = max(2, round(args.seconds * 1000 / args.interleave))
+    for name in args.only or list(cases):
+        hal_spec, nohal_spec = cases[name]
+        spec = {"kind": "interleaved", "hal": hal_spec, "nohal": nohal_spec, "chunk": args.interleave, "rounds": rounds}
+        runs = [spawn(MODULE, spec, timeout_for(args.seconds * 5)) for _ in range(max(1, args.repeat))]
+        pairs = [pair for r in runs for pair in r["pairs"]]
+        ratios = sorted(h / b for h, b in pairs)
+        q25, q50, q75 = (float(np.percentile(ratios, q)) for q in (25, 50, 75))
+        hal_med = statistics.median(h for h, _ in pairs)
+        bare_med = statistics.median(b for _, b in pairs)
+        last = runs[-1]
+        dq = float(np.max(np.abs(np.array(last["final_position"]) - np.array(last["nohal"]["final_position"]))))
+        rms_hal, rms_bare = last["rms_error_m"], last["nohal"]["rms_error_m"]
+        rows.append({
+            "robot": name, "joints": len(last["final_position"]), "rounds": len(pairs),
+            "hal_us": round(hal_med, 1), "bare_us": round(bare_med, 1), "added_us": round(hal_med - bare_med, 1),
+            "ratio": round(q50, 3), "iqr": f"{q25:.2f}–{q75:.2f}",
+            "rms": "–" if rms_hal is None else f"{rms_hal * 1e3:.3f} / {rms_bare * 1e3:.3f}", "dq": f"{dq:.1e}",
+        })
+        raw_results[name] = {"pairs_us": pairs}
+        print(f"{name}: done", flush=True)
+    elapsed = time.monotonic() - started
+    print()
+    print(f"CPU per tick in lockstep, both sides in one process alternating every {args.interleave} ticks "
+          f"({rounds} rounds per run, {args.repeat} runs): medians over the rounds")
+    print(table(rows, [
+        ("robot", "robot"), ("joints", "joints"), ("rounds", "rounds"), ("hal_us", "aiohal CPU µs/tick"),
+        ("bare_us", "no-HAL CPU µs/tick"), ("added_us", "HAL adds µs/tick"), ("ratio", "ratio aiohal/no-HAL (median of rounds)"),
+        ("iqr", "p25–p75 of rounds"), ("rms", "RMS error mm aiohal / no-HAL"), ("dq", "final max |Δq| rad"),
+    ]))
+    print(f"\nelapsed {elapsed:.1f} s")
+    write_json(args.json, {"seconds": args.seconds, "warmup": args.warmup, "repeat": args.repeat,
+                           "interleave": args.interleave, "elapsed_s": round(elapsed, 1), "rows": rows, "runs": raw_results})
 
 
 if __name__ == "__main__":
