@@ -412,14 +412,17 @@ class DriverView:
     def devices_of(self, kind: str) -> list[DeviceRecord]:
         return [rec for name, rec in self.devices.items() if self.device_kinds[name] == kind]
 
-    def mark_fresh(self) -> None:
+    def mark_fresh(self, stamp_rows: bool = True) -> None:
         """Stamp all joints of this driver with the current tick (call after a successful read).
 
         The loop's stale-feedback check reads ``fresh_tick``; controllers see per-joint stamps.
+        ``stamp_rows=False``: the driver already stamped every one of its rows itself (e.g. in
+        a compiled decode), only the driver's tick is recorded.
         """
         clock = self.clock
         self.fresh_tick = clock.tick
-        self.state.mark_fresh(clock.tick, clock.now_ns)
+        if stamp_rows:
+            self.state.mark_fresh(clock.tick, clock.now_ns)
 
     @property
     def dof(self) -> int:

@@ -161,7 +161,7 @@ def breakdown(n_slaves: int, ticks: int) -> dict:
                 if pause:
                     time.sleep(pause)
                 t = time.perf_counter_ns()
-                driver.drives.decode()
+                driver.drives.decode(0, 0)
                 total += time.perf_counter_ns() - t
             out[f"decode_{label}_us"] = round(total / 2000 / 1e3, 2)
         return out

@@ -95,13 +95,16 @@ def test_decode_unwraps_int32_positions_and_converts_units():
     joints = JointState(2)
     group.bind_state(joints)
     state = joints.block
-    group.decode()
+    group.decode(5, 500)
     before = state.copy()
     set_inputs(image, 0, position=-(2**31) + 100, velocity=4096, torque=500)  # wrapped: +200 counts
     set_inputs(image, 1, position=10)
-    group.decode(into_state=False)  # a cycle off the loop's thread: unwrapped, the state not touched
+    assert list(joints.updated_tick) == [5, 5] and list(joints.stamp_ns) == [500, 500]  # stamped by the decode
+    group.decode(7, 700, into_state=False)  # a cycle off the loop's thread: unwrapped, the state not touched
     assert np.array_equal(state, before, equal_nan=True)  # (temperature is NaN: not reported)
-    group.decode()
+    assert list(joints.updated_tick) == [5, 5] and list(joints.stamp_ns) == [500, 500]
+    group.decode(9, 900)
+    assert list(joints.updated_tick) == [9, 9] and list(joints.stamp_ns) == [900, 900]
     counts_per_rad = 4096 * 2 / (2 * np.pi)
     assert state[0, 0] == pytest.approx((2**31 + 100) / counts_per_rad)
     assert state[0, 1] == pytest.approx(10 / counts_per_rad)
@@ -115,7 +118,7 @@ def test_write_holds_drives_not_following_and_maps_modes():
     image, group = drives(3, units)
     for i in range(3):
         set_inputs(image, i, position=1234 + i)
-    group.decode()
+    group.decode(5, 500)
     group.controlwords[:] = [0x0F, 0x0F, 0x06]
     group.hold[:] = [False, False, True]
     command = JointCommand(3)
@@ -147,7 +150,7 @@ def test_rows_out_of_order_map_each_drive_to_its_joint():
         set_inputs(image, i, position=1000 * (i + 1))
     joints = JointState(3)
     group.bind_state(joints)
-    group.decode()
+    group.decode(5, 500)
     counts_per_rad = 131072 / (2 * np.pi)
     assert joints.position * counts_per_rad == pytest.approx([2000, 3000, 1000])
 
@@ -158,9 +161,10 @@ def test_bind_state_writes_the_drivers_rows_of_the_robots_state_and_refuses_too_
     set_inputs(image, 1, velocity=500)
     robot_state = JointState(5)
     group.bind_state(robot_state.view(slice(2, 4)))  # a driver's joints: a strided view of the robot's block
-    group.decode()
+    group.decode(5, 500)
     assert robot_state.velocity[3] == pytest.approx(500 * 2 * np.pi / 1000)
     assert np.count_nonzero(robot_state.block[:4]) == 1
+    assert list(robot_state.updated_tick) == [-1, -1, 5, 5, -1]  # only the driver's joints are stamped
     with pytest.raises(ValueError, match="the joint state has 1 joints, a drive writes row 1"):
         group.bind_state(JointState(1))
 
@@ -215,7 +219,7 @@ def test_force_torque_tare_holds_the_control_bit_for_a_few_cycles_then_clears_it
 
 def test_write_reads_the_drivers_rows_of_the_robots_command_as_they_are_at_each_call():
     image, group = drives(2)
-    group.decode()
+    group.decode(5, 500)
     group.hold[:] = [False, False]
     command = JointCommand(4)
     command.mode[:] = Mode.POSITION
@@ -246,7 +250,7 @@ def test_decode_matches_the_bytes_and_unwraps_any_step_of_less_than_half_a_turn_
     group.bind_state(joints)
     for i, (sw, pos, vel, tq, err) in enumerate(values):
         set_inputs(image, i, statusword=sw, position=pos, velocity=vel, torque=tq, error=err)
-    group.decode()
+    group.decode(5, 500)
     assert group.statuswords.tolist() == [v[0] for v in values] and group.error_codes.tolist() == [v[4] for v in values]
     assert group.counts.tolist() == [v[1] for v in values]
     assert joints.velocity == pytest.approx([v[2] * 2 * np.pi / (1 << 16) for v in values])
@@ -254,7 +258,7 @@ def test_decode_matches_the_bytes_and_unwraps_any_step_of_less_than_half_a_turn_
     for i, (sw, pos, vel, tq, err) in enumerate(values):
         wrapped = (pos + step + 2**31) % 2**32 - 2**31
         set_inputs(image, i, statusword=sw, position=wrapped, velocity=vel, torque=tq, error=err)
-    group.decode()
+    group.decode(5, 500)
     expected = [v[1] + step for v in values]
     assert group.counts.tolist() == expected
     assert joints.position == pytest.approx([c * 2 * np.pi / (1 << 16) for c in expected])
@@ -266,7 +270,7 @@ def test_encode_wraps_the_position_and_clamps_velocity_and_torque_as_the_drive_t
                                                                                           effort, mode):
     units = DriveUnits(counts_per_rev=1 << 16, rated_torque=2.0)
     image, group = drives(1, units)
-    group.decode()
+    group.decode(5, 500)
     group.hold[:] = [False]
     command = JointCommand(1)
     command.position[0], command.velocity[0], command.effort[0], command.mode[0] = position, velocity, effort, mode

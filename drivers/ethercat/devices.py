@@ -97,6 +97,8 @@ class DriveGroup:
         # once bound, and into these private rows when not (or when cycled off the loop's thread)
         self._scratch = np.zeros((4, max(self.rows) + 1))
         self._state = self._scratch
+        self._scratch_stamps = np.zeros((2, max(self.rows) + 1), dtype=np.int64)  # updated_tick, stamp_ns
+        self._ticks, self._stamps = self._scratch_stamps
         self._no_command = np.zeros((len(JOINT_COMMAND_FIELDS), max(self.rows) + 1))
         self._no_mode = np.zeros(max(self.rows) + 1, dtype=np.int8)
         self._checked_command: JointCommand | None = None
@@ -109,20 +111,29 @@ class DriveGroup:
 
     def bind_state(self, state: JointState) -> None:
         """The robot's joint state (the driver's rows) that :meth:`decode` writes: position,
-        velocity, effort (rad, rad/s, N·m) and motor position (rad)."""
+        velocity, effort (rad, rad/s, N·m) and motor position (rad), and each row's stamps."""
         block = state.block
         if block.dtype != np.float64 or block.ndim != 2 or not block.flags.writeable:
             raise ValueError("the joint state: a writable float64 block is needed")
         if block.shape[1] <= max(self.rows):
             raise ValueError(f"the joint state has {block.shape[1]} joints, a drive writes row {max(self.rows)}")
+        for stamps in (state.updated_tick, state.stamp_ns):
+            if stamps.dtype != np.int64 or stamps.shape != block.shape[1:] or not stamps.flags.writeable:
+                raise ValueError("the joint state: writable int64 stamps, one per joint, are needed")
         self._state = block
+        self._ticks, self._stamps = state.updated_tick, state.stamp_ns
 
-    def decode(self, into_state: bool = True) -> None:
+    def decode(self, tick: int, now_ns: int, into_state: bool = True) -> None:
         """Unpack every drive's inputs; unwrap the positions; convert to SI units and write
-        them into the bound state (``into_state=False``: into private rows, for a cycle made
-        off the loop's thread, which must not touch the robot's state)."""
-        if kernels.decode_drives(self._inputs, self._layout, self._constants, self.ints,
-                                 self._state if into_state else self._scratch):
+        them into the bound state, each drive's joint stamped measured at ``tick`` /
+        ``now_ns`` (``into_state=False``: into private rows, for a cycle made off the loop's
+        thread, which must not touch the robot's state)."""
+        if into_state:
+            state, ticks, stamps = self._state, self._ticks, self._stamps
+        else:
+            state, (ticks, stamps) = self._scratch, self._scratch_stamps
+        if kernels.decode_drives(self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps,
+                                 tick, now_ns):
             self._changed = True
 
     def update_machines(self, on_event: Callable[[int, DriveEvent], None]) -> None:

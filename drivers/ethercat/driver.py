@@ -391,7 +391,7 @@ class EthercatDriver(Driver):
         if wkc == self._expected:
             self._load_inputs()
             if self.drives is not None:
-                self.drives.decode(into_state=False)  # the robot's state is the loop's
+                self.drives.decode(0, 0, into_state=False)  # the robot's state is the loop's
                 self.drives.update_machines(self._on_drive_event)
         return wkc
 
@@ -512,13 +512,14 @@ class EthercatDriver(Driver):
         self._load_inputs()
         view = self.view
         clock = view.clock
+        tick, now_ns = clock.tick, clock.now_ns
         drives = self.drives
         if drives is not None:
-            drives.decode()  # straight into the state's rows
+            drives.decode(tick, now_ns)  # straight into the state's rows, each stamped (every joint is a drive)
             drives.update_machines(self._on_drive_event)  # after the rows: a resync sees this cycle's position
         for position, sensor in self.sensors:
-            sensor.read(clock.tick, clock.now_ns, position in self.lost)
-        view.mark_fresh()
+            sensor.read(tick, now_ns, position in self.lost)
+        view.mark_fresh(stamp_rows=False)
 
     def _activate(self) -> None:
         """The activation read (lock held): a good cycle is required, so that the loop starts

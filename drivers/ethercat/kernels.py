@@ -89,14 +89,17 @@ def _clamp(value, low, high):
 _U8, _I64_2D, _F64_2D = types.Array(types.uint8, 1, "A"), types.Array(types.int64, 2, "A"), types.Array(types.float64, 2, "A")
 _RO_U8, _RO_I64_2D, _RO_F64_2D = (types.Array(t.dtype, t.ndim, "A", readonly=True) for t in (_U8, _I64_2D, _F64_2D))
 _RO_I8 = types.Array(types.int8, 1, "A", readonly=True)
-_DECODE = types.boolean(_RO_U8, _RO_I64_2D, _RO_F64_2D, _I64_2D, _F64_2D)
+_I64_1D = types.Array(types.int64, 1, "A")
+_DECODE = types.boolean(_RO_U8, _RO_I64_2D, _RO_F64_2D, _I64_2D, _F64_2D, _I64_1D, _I64_1D, types.int64, types.int64)
 _ENCODE = types.void(_U8, _RO_I64_2D, _RO_F64_2D, _I64_2D, _RO_F64_2D, _RO_I8, types.boolean)
 
 
 @njit(_DECODE, cache=True, nogil=True)
-def decode_drives(inputs, layout, constants, ints, state):
+def decode_drives(inputs, layout, constants, ints, state, ticks, stamps, tick, now_ns):
     """Every drive's inputs → statusword, error code, unwrapped counts (``ints``) and SI
-    values into its column of ``state`` (rows: position, velocity, effort, motor position).
+    values into its column of ``state`` (rows: position, velocity, effort, motor position),
+    its joint stamped fresh (``ticks``, ``stamps``: the state's ``updated_tick`` and
+    ``stamp_ns``; two numpy calls fewer per cycle than stamping afterwards).
     Returns True when a statusword or error code changed."""
     changed = False
     for i in range(layout.shape[0]):
@@ -120,6 +123,8 @@ def decode_drives(inputs, layout, constants, ints, state):
         state[S_MOTOR_POSITION, row] = counts * k[MOTOR_RAD_PER_COUNT]
         state[S_VELOCITY, row] = speed * k[RAD_PER_COUNT]
         state[S_EFFORT, row] = torque * k[NM_PER_PER_MILLE]
+        ticks[row] = tick
+        stamps[row] = now_ns
     return changed
 
 
