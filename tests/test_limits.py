@@ -31,11 +31,23 @@ def robots(draw):
     return Robot("r", specs)
 
 
+@st.composite
+def robots_some_unlimited(draw):
+    """Like ``robots``, but any limit may be absent (inf), as a config may leave it."""
+    specs = []
+    for i in range(draw(st.integers(1, 3))):
+        lo = draw(st.floats(-10, 10) | st.just(-math.inf))
+        hi = draw(st.just(math.inf) | st.floats(0.01, 10).map(lambda d, lo=lo: (0.0 if math.isinf(lo) else lo) + d))
+        limit = lambda low, high: st.floats(low, high) | st.just(math.inf)
+        specs.append(JointSpec(f"j{i}", i, lo, hi, draw(limit(0.1, 10)), draw(limit(0.1, 100)), draw(limit(0.1, 100))))
+    return Robot("r", specs)
+
+
 any_float = st.one_of(st.floats(-1e6, 1e6), st.floats())  # includes NaN, inf, huge
 
 
 @settings(max_examples=300, deadline=None)
-@given(robot=robots(), data=st.data())
+@given(robot=robots() | robots_some_unlimited(), data=st.data())
 def test_limited_commands_are_finite_and_within_limits(robot, data):
     n = robot.dof
     limiter = CommandLimiter(robot, DT)
@@ -133,7 +145,7 @@ class NumpyLimiter:
 
 
 @settings(max_examples=300, deadline=None)
-@given(robot=robots(), data=st.data())
+@given(robot=robots() | robots_some_unlimited(), data=st.data())
 def test_the_compiled_limiter_matches_the_numpy_formulation(robot, data):
     n = robot.dof
     start = np.array([data.draw(st.floats(-30, 30)) for _ in range(n)])  # often outside the range
