@@ -36,8 +36,11 @@ if (JOINT_COMMAND_FIELDS[:2] != ("position", "velocity") or len(JOINT_COMMAND_FI
 
 @njit(cache=True, nogil=True, inline="always")
 def _clamp(x, lo, hi):
-    """``minimum(maximum(x, lo), hi)`` as numpy does it: NaN passes through, and ``hi`` wins
-    when the bounds cross (a joint more than one rate step below its range)."""
+    """``minimum(maximum(x, lo), hi)`` as numpy does it: NaN passes through (a NaN bound too:
+    Python's ``max`` would drop it), and ``hi`` wins when the bounds cross (a joint more than
+    one rate step below its range)."""
+    if lo != lo or hi != hi:
+        return lo + hi
     x = lo if x < lo else x
     return hi if x > hi else x
 

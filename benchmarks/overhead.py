@@ -45,7 +45,9 @@ With ``--interleave TICKS`` both loops are built in one process and run alternat
 ticks at a time (which side goes first alternates), for ``--seconds``; each round's ratio then
 compares the two sides measured milliseconds apart. On a shared VM whose speed changes by
 1.5x from one minute to the next, separate runs pair a fast run with a slow one (pairs of
-0.8-2.5 for the same code); the rounds' median and quartiles do not.
+0.8-2.5 for the same code); the rounds' median and quartiles do not. Each aiohal round is one
+``run()``, whose fixed cost (about 0.4 ms: the stall watchdog's thread started and joined)
+falls on the aiohal side: about 0.7 µs per tick at 500 ticks, more for shorter rounds.
 
     python -m benchmarks.overhead [--seconds 5] [--warmup 1] [--repeat 5] [--only NAME ...]
         [--interleave TICKS] [--json PATH]
@@ -363,8 +365,9 @@ async def _interleaved(spec: dict) -> dict:
         return cpu / ticks
 
     try:
-        await hal_chunk(hal["warmup_ticks"])
-        bare_chunk(bare["warmup_ticks"])
+        if hal["warmup_ticks"]:
+            await hal_chunk(hal["warmup_ticks"])
+            bare_chunk(bare["warmup_ticks"])
         pairs = []
         for r in range(rounds):
             if r % 2:
@@ -375,10 +378,11 @@ async def _interleaved(spec: dict) -> dict:
                 b = bare_chunk(chunk)
             pairs.append((h * 1e6, b * 1e6))
         final = np.asarray(control.robot.state.position).tolist()
-        rms = control.report()["controller"].get("rms_error_m")
+        report = control.report()
     finally:
         await control.deactivate()
-    return {"pairs": pairs, "final_position": final, "rms_error_m": rms, "nohal": finish()}
+    return {"pairs": pairs, "final_position": final, "rms_error_m": report["controller"].get("rms_error_m"),
+            "faults": len(report["faults"]), "nohal": finish()}
 
 
 def overhead_worker(spec: dict) -> dict:
@@ -504,7 +508,8 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
             "robot": name, "joints": len(last["final_position"]), "rounds": len(pairs),
             "hal_us": round(hal_med, 1), "bare_us": round(bare_med, 1), "added_us": round(hal_med - bare_med, 1),
             "ratio": round(q50, 3), "iqr": f"{q25:.2f}–{q75:.2f}",
-            "rms": "–" if rms_hal is None else f"{rms_hal * 1e3:.3f} / {rms_bare * 1e3:.3f}", "dq": f"{dq:.1e}",
+            "rms": "–" if rms_hal is None or rms_bare is None else f"{rms_hal * 1e3:.3f} / {rms_bare * 1e3:.3f}",
+            "dq": f"{dq:.1e}", "faults": sum(r["faults"] for r in runs),
         })
         raw_results[name] = {"pairs_us": pairs}
         print(f"{name}: done", flush=True)
@@ -516,6 +521,7 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
         ("robot", "robot"), ("joints", "joints"), ("rounds", "rounds"), ("hal_us", "aiohal CPU µs/tick"),
         ("bare_us", "no-HAL CPU µs/tick"), ("added_us", "HAL adds µs/tick"), ("ratio", "ratio aiohal/no-HAL (median of rounds)"),
         ("iqr", "p25–p75 of rounds"), ("rms", "RMS error mm aiohal / no-HAL"), ("dq", "final max |Δq| rad"),
+        ("faults", "faults"),
     ]))
     print(f"\nelapsed {elapsed:.1f} s")
     write_json(args.json, {"seconds": args.seconds, "warmup": args.warmup, "repeat": args.repeat,

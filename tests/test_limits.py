@@ -148,7 +148,7 @@ class NumpyLimiter:
 @given(robot=robots() | robots_some_unlimited(), data=st.data())
 def test_the_compiled_limiter_matches_the_numpy_formulation(robot, data):
     n = robot.dof
-    start = np.array([data.draw(st.floats(-30, 30)) for _ in range(n)])  # often outside the range
+    start = np.array([data.draw(st.floats(-30, 30) | st.just(math.nan)) for _ in range(n)])  # often outside the range; NaN: bounds NaN
     limiter = CommandLimiter(robot, DT)
     limiter.reset(start)
     reference = NumpyLimiter(robot, start)

@@ -367,6 +367,9 @@ class EthercatDriver(Driver):
                     control = FT_CONTROL
                 variables = {k: v for k, v in {**FT_VARIABLES, **s.variables}.items() if k != "control"}
                 self.sensors.append((i, ForceTorqueDevice(image, s.name, view.devices[s.device], variables, control)))
+        if sorted(s.row for s in specs) != list(range(view.dof)):  # check_config says so; decode relies on it
+            raise BringUpError(f"every joint of an ethercat driver needs one cia402 drive: joints "
+                               f"{list(view.joint_names)}, drives for {[s.joint for s in specs]}")
         if specs:
             stuck = max(1, round(opts.stuck_after_ms * 1e6 / self.view.clock.period_ns))
             target = Target.ENABLED if opts.enable_on_open and not self._estop_requested else Target.DISABLED
