@@ -174,6 +174,11 @@ class DeviceRecord:
         for field in group.fields:
             setattr(self, field, getattr(group, field)[index, ...])  # a view, 0-d for scalars
 
+    @property
+    def group(self) -> DeviceGroup:
+        """The group whose row ``index`` this record is (a driver may fill rows at once)."""
+        return self._group
+
     def mark_fresh(self, tick: int, stamp_ns: int) -> None:
         self._group.updated_tick[self.index] = tick
         self._group.stamp_ns[self.index] = stamp_ns
@@ -201,9 +206,24 @@ class DeviceGroup:
     def __init__(self, names: Sequence[str]) -> None:
         self.names = tuple(names)
         n = len(self.names)
-        for field in self.fields:
-            shape, dtype = self.shapes[field]
-            setattr(self, field, np.zeros((n, *shape), dtype=dtype))
+        #: When every field is a float64 vector (IMU, force/torque): one row of ``values`` per
+        #: device, the fields its column ranges (``columns``), so that a driver can fill a
+        #: device, or a run of them, with one call. None otherwise.
+        self.values: np.ndarray | None = None
+        self.columns: dict[str, slice] = {}
+        if self.fields and all(len(shape) == 1 and dtype is np.float64 for shape, dtype in self.shapes.values()):
+            start = 0
+            for field in self.fields:
+                width = self.shapes[field][0][0]
+                self.columns[field] = slice(start, start + width)
+                start += width
+            self.values = np.zeros((n, start))
+            for field, cols in self.columns.items():
+                setattr(self, field, self.values[:, cols])
+        else:
+            for field in self.fields:
+                shape, dtype = self.shapes[field]
+                setattr(self, field, np.zeros((n, *shape), dtype=dtype))
         self.stamp_ns = np.zeros(n, dtype=np.int64)
         self.updated_tick = np.full(n, -1, dtype=np.int64)
         self.fault = np.zeros(n, dtype=np.uint32)

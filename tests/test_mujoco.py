@@ -251,3 +251,42 @@ async def test_velocity_and_impedance_modes(tmp_path):
     async with loop:
         await loop.run(ticks=3000)
     assert loop.robot.state.position[0] == pytest.approx(0.3, abs=1e-3)
+
+
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_every_device_field_reads_its_own_sensor_when_another_driver_owns_a_device_between():
+    """The driver fills its devices with one gather per run of adjacent rows: a force/torque
+    device of another driver between two of its own splits its run, and each field still
+    reads the sensor it is named after (or mapped to in ``sensors``)."""
+    from aiohal.drivers.mujoco import SENSOR_FIELDS
+    from aiohal.drivers.mujoco_model import sensor_slice
+
+    raw = tomllib.loads((CONFIGS / "walkman_sim.toml").read_text())
+    raw["controller"] = {"type": "hold"}
+    sim_joints = list(raw["joints"])
+    raw["joints"]["extra"] = {"velocity": 1.0}
+    devices = raw.pop("devices")
+    raw["devices"] = {}
+    for name, spec in devices.items():  # the mock's F/T between the sim's l_wrist_ft and r_wrist_ft
+        raw["devices"][name] = spec
+        if name == "l_wrist_ft":
+            raw["devices"]["extra_ft"] = {"type": "force_torque"}
+    (sim,) = raw["driver"]
+    sim["joints"] = sim_joints
+    raw["driver"].append({"type": "mock", "name": "aux", "joints": ["extra"], "devices": ["extra_ft"],
+                          "options": {"force": [1.0, 2.0, 3.0], "torque": [4.0, 5.0, 6.0]}})
+    loop = await hold_still(parse_config(raw, base_dir=CONFIGS), ticks=50)
+    driver, robot = loop.slots[0].driver, loop.robot
+    assert [len(run[1]) for run in driver._sensor_runs] == [1, 1, 3]  # IMU; l_wrist; r_wrist, l_ankle, r_ankle
+    names = {"pelvis_imu": {"quaternion": "imu_quat", "angular_velocity": "imu_gyro", "linear_acceleration": "imu_accel"}}
+    for device in devices:
+        record = robot.device(device)
+        kind = robot.device_kind(device)
+        for field, (suffix, _dim) in SENSOR_FIELDS[kind].items():
+            sensor = names.get(device, {}).get(field, f"{device}_{suffix}")
+            expected = driver.data.sensordata[sensor_slice(driver.model, sensor)]
+            np.testing.assert_array_equal(getattr(record, field), expected, err_msg=f"{device}.{field}")
+        assert record.updated_tick == robot.clock.tick
+    extra = robot.device("extra_ft")
+    assert list(extra.force) == [1.0, 2.0, 3.0] and list(extra.torque) == [4.0, 5.0, 6.0]
+    assert np.linalg.norm(robot.device("l_ankle_ft").force) > 10.0  # a leg's weight: real sensor values
