@@ -48,7 +48,6 @@ class CommandLimiter:
         self.period_s = period_s
         self.position_min = robot.position_min
         self.position_max = robot.position_max
-        self.velocity_limit = robot.velocity_limit
         table = np.zeros((lk.ROWS, n))
         for name, i in _ROW.items():
             lower, upper = table[lk.LOWER + i], table[lk.UPPER + i]
@@ -82,7 +81,10 @@ class CommandLimiter:
         np.copyto(self.last[0], position)
         np.copyto(self.previous_position, position)
         self.last[1] = 0.0
-        self._outside = bool(((position < self.position_min) | (position > self.position_max)).any())
+        self._outside = self._out_of_range(position)
+
+    def _out_of_range(self, position: np.ndarray) -> bool:
+        return bool(((position < self.position_min) | (position > self.position_max)).any())
 
     def last_rate(self, out: np.ndarray) -> np.ndarray:
         """The rate of the last position command sent (per second)."""
@@ -108,7 +110,7 @@ class CommandLimiter:
         ok = rows & np.isfinite(measured)
         np.copyto(self.last[0], measured, where=ok)
         np.copyto(self.previous_position, measured - velocity * self.period_s, where=ok)
-        self._outside = bool(((self.last[0] < self.position_min) | (self.last[0] > self.position_max)).any())
+        self._outside = self._out_of_range(self.last[0])
 
     def apply(self) -> bool:
         """Clamp the command in place. False if some entry was not finite (it was replaced, see

@@ -163,14 +163,15 @@ class MujocoDriver(Driver):
             rows.setdefault(id(group), (group, {}))[1][record.index] = addresses
         runs = []
         for group, by_row in rows.values():
-            ordered = sorted(by_row)
-            start = 0
-            for i in range(1, len(ordered) + 1):
-                if i == len(ordered) or ordered[i] != ordered[i - 1] + 1:  # a run of adjacent rows ends
-                    a, b = ordered[start], ordered[i - 1] + 1
-                    index = np.array([by_row[r] for r in range(a, b)], dtype=np.intp)
+            run: list[int] = []
+            for row in [*sorted(by_row), None]:  # None ends the last run
+                if run and row != run[-1] + 1:
+                    a, b = run[0], run[-1] + 1
+                    index = np.array([by_row[r] for r in run], dtype=np.intp)
                     runs.append((group.values[a:b], index, group.updated_tick[a:b], group.stamp_ns[a:b]))
-                    start = i
+                    run = []
+                if row is not None:
+                    run.append(row)
         return runs
 
     def _open_viewer(self):
@@ -198,12 +199,10 @@ class MujocoDriver(Driver):
         data.qvel.take(self.dof_adr, out=state.velocity)
         np.copyto(state.effort, self.tau)
         view.mark_fresh()
-        if self._sensor_runs:
-            sensordata, clock = data.sensordata, view.clock
-            for values, index, ticks, stamps in self._sensor_runs:
-                sensordata.take(index, out=values, mode="clip")  # clip: valid addresses, no buffered copy
-                ticks.fill(clock.tick)
-                stamps.fill(clock.now_ns)
+        for values, index, ticks, stamps in self._sensor_runs:
+            data.sensordata.take(index, out=values, mode="clip")  # clip: valid addresses, no buffered copy
+            ticks.fill(view.clock.tick)
+            stamps.fill(view.clock.now_ns)
         if self._viewer is not None and view.clock.tick % 16 == 0:
             self._viewer.sync()
 
