@@ -1,10 +1,11 @@
 """The command limiter's per-tick work, compiled with numba (see :mod:`aiohal.limits`).
 
-Why compiled: as numpy calls the limiter was 9 calls per tick, 8–15 µs back to back on 33
-joints, and 30–75 µs on the real clock, where every tick starts with the caches and branch
-predictors cold after the wait (the guest's idle CPU exits to the host). One call of a
-kernel that loops over the joints costs 2.6 µs back to back and 20 µs after a sleep on the
-same machine (``python -m benchmarks.isolated``). It is imported only when a limiter is
+Why compiled: as numpy calls the limiter was 9 calls per tick, 9–14 µs back to back on 33
+joints, and 21–56 µs after a 0.9 ms sleep, which is how the real clock runs it: every tick
+starts with the caches and branch predictors cold after the wait (the guest's idle CPU exits
+to the host). One call of a kernel that loops over the joints costs 1.5–3.3 µs back to back
+and 6–18 µs after a sleep on the same machine (``python -m benchmarks.isolated``, both sides
+alternately; docs/performance.md). It is imported only when a limiter is
 built, so ``import aiohal`` and the processes of NRT drivers do not load numba.
 
 Everything the kernel needs besides the command is one float64 table (rows below): numba's
@@ -36,11 +37,9 @@ if (JOINT_COMMAND_FIELDS[:2] != ("position", "velocity") or len(JOINT_COMMAND_FI
 
 @njit(cache=True, nogil=True, inline="always")
 def _clamp(x, lo, hi):
-    """``minimum(maximum(x, lo), hi)`` as numpy does it: NaN passes through (a NaN bound too:
-    Python's ``max`` would drop it), and ``hi`` wins when the bounds cross (a joint more than
-    one rate step below its range)."""
-    if lo != lo or hi != hi:
-        return lo + hi
+    """``minimum(maximum(x, lo), hi)`` as numpy does it for bounds that are not NaN: a NaN
+    ``x`` passes through, and ``hi`` wins when the bounds cross (a joint more than one rate
+    step below its range)."""
     x = lo if x < lo else x
     return hi if x > hi else x
 
@@ -84,16 +83,20 @@ def limit_commands(block, mode, position, table, outside):
                     hi = min(hi, 0.0)
                 if not position[j] > p_min[j]:
                     lo = max(lo, 0.0)
-            x = _clamp(x_row[j], lo, hi)  # ±inf is clamped like any other value
-            if not math.isfinite(x):  # NaN, or ±inf where a bound is infinite: what was sent last
+            if lo != lo or hi != hi:  # a NaN bound (a NaN last command): numpy's clamp gives NaN
                 refused = True
-                x = _clamp(last, lo, hi)
+                x = math.nan
+            else:
+                x = _clamp(x_row[j], lo, hi)  # ±inf is clamped like any other value
+                if not math.isfinite(x):  # NaN, or ±inf where a bound is infinite: what was sent last
+                    refused = True
+                    x = _clamp(last, lo, hi)
             x_row[j] = x
             before_row[j] = last
             last_row[j] = x
             if not velocity and (x < p_min[j] or x > p_max[j]):
                 still_outside = True
-    for r in range(2, rows):
+    for r in range(2, rows):  # fixed bounds, never NaN (the config refuses NaN limits)
         x_row, lower, upper = block[r], table[LOWER + r], table[UPPER + r]
         for j in range(n):
             x = _clamp(x_row[j], lower[j], upper[j])
