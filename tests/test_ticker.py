@@ -177,3 +177,134 @@ async def test_precision_mode_spins_to_the_deadline_and_never_early():
     # the bound is loose and on a low percentile because a shared VM under load may wake later
     # than the guard (then there is nothing left to spin) for most ticks of a short run
     assert sorted(lateness)[len(lateness) // 10] < 50_000
+
+
+# ---------------------------------------------------------------- waiting on the timer itself
+
+
+def _on_asyncio_epoll_loop() -> bool:
+    loop = asyncio.get_running_loop()
+    return isinstance(loop, asyncio.SelectorEventLoop) and type(loop._selector).__name__ == "EpollSelector"
+
+
+@pytest.mark.asyncio
+async def test_an_idle_wait_blocks_on_the_timer_on_asyncio_and_goes_round_the_loop_elsewhere():
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    source = TimerfdTickSource()
+    ticker = Ticker(source, PERIOD)
+    ticker.start()
+    try:
+        ks = [await ticker.next() for _ in range(20)]
+        on_timer = source.waits_on_timer
+    finally:
+        ticker.close()
+    assert all(b > a for a, b in zip(ks, ks[1:]))  # every wait returned a later deadline
+    assert on_timer == _on_asyncio_epoll_loop()
+    assert not source.waits_on_timer  # closed
+    if on_timer:
+        assert source.idle_waits > 0
+    else:
+        assert source.idle_waits == 0 and source.loop_waits > 0
+
+
+@pytest.mark.asyncio
+async def test_idle_wait_can_be_turned_off():
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    source = TimerfdTickSource(idle_wait=False)
+    ticker = Ticker(source, PERIOD)
+    ticker.start()
+    try:
+        for _ in range(5):
+            await ticker.next()
+        assert not source.waits_on_timer
+    finally:
+        ticker.close()
+    assert source.idle_waits == 0 and source.loop_waits >= 1
+
+
+@pytest.mark.asyncio
+async def test_loop_timers_run_while_the_ticks_wait_on_the_timer():
+    """A task sleeping 2 ms at a time finishes ten sleeps while the ticks run; the ticks stop as
+    soon as it is done, long before their cap of 2000 (2 s)."""
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    done = asyncio.Event()
+
+    async def sleeper():
+        for _ in range(10):
+            await asyncio.sleep(0.002)
+        done.set()
+
+    source = TimerfdTickSource()
+    ticker = Ticker(source, PERIOD)
+    task = asyncio.create_task(sleeper())
+    ticker.start()
+    ticks = 0
+    try:
+        while not done.is_set() and ticks < 2000:
+            await ticker.next()
+            ticks += 1
+    finally:
+        ticker.close()
+        task.cancel()
+    assert done.is_set(), f"the sleeping task did not finish in {ticks} ticks"
+    assert ticks < 1000
+
+
+@pytest.mark.asyncio
+async def test_io_and_other_threads_reach_the_loop_while_the_ticks_wait_on_the_timer():
+    """A thread writes a socket the loop reads and calls ``call_soon_threadsafe`` while the
+    ticks run: both callbacks run within two ticks of the thread doing it."""
+    import socket
+    import threading
+
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    loop = asyncio.get_running_loop()
+    source = TimerfdTickSource()
+    ticker = Ticker(source, PERIOD)
+    r, w = socket.socketpair()
+    r.setblocking(False)
+    seen: dict[str, int] = {}
+    go = threading.Event()
+    sent_at: dict[str, int] = {}
+
+    io_seen = threading.Event()
+
+    def on_readable():
+        r.recv(16)
+        seen["io"] = ticker.k
+        io_seen.set()
+
+    def from_thread():  # the socket alone first: the loop must wake for it without any other help
+        go.wait(5.0)
+        sent_at["io"] = ticker.k
+        w.send(b"x")
+        if io_seen.wait(5.0):
+            sent_at["call"] = ticker.k
+            loop.call_soon_threadsafe(lambda: seen.setdefault("call", ticker.k))
+
+    loop.add_reader(r.fileno(), on_readable)
+    thread = threading.Thread(target=from_thread)
+    thread.start()
+    ticker.start()
+    ticks = 0
+    try:
+        while len(seen) < 2 and ticks < 2000:
+            await ticker.next()
+            ticks += 1
+            if ticks == 5:
+                go.set()
+    finally:
+        go.set()
+        io_seen.set()
+        ticker.close()
+        loop.remove_reader(r.fileno())
+        thread.join(5.0)
+        r.close()
+        w.close()
+    assert set(seen) == {"io", "call"}, f"after {ticks} ticks only {seen} ran"
+    assert seen["io"] - sent_at["io"] <= 2
+    assert seen["call"] - sent_at["call"] <= 2
