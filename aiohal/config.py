@@ -48,6 +48,11 @@ class LoopSection(Options):
         description="Wake source: timerfd (Linux), sleep (portable), virtual (as fast as possible, "
         "deterministic); auto picks timerfd where it exists.",
     )
+    idle_wait: bool = Field(
+        True,
+        description="timerfd on asyncio's own event loop: a wait with nothing else due blocks on the "
+        "timer instead of going round the event loop (less CPU per tick); false: always through the loop.",
+    )
     overrun: Literal["skip", "catch_up"] = Field(
         "skip", description="After a stall: skip the missed ticks (keep phase) or run them late."
     )

@@ -42,7 +42,7 @@ from .realtime import apply as apply_realtime
 from .realtime import restore as restore_realtime
 from .safety import FaultRecord, SafetyLevel
 from .stats import TickStats
-from .ticker import Ticker, TickSource, make_source
+from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ class ControlLoop:
         self.period_ns = config.period_ns
         self.period_s = self.period_ns / 1e9
         guard_ns = int(config.realtime.spin_guard_us * 1e3)
-        self.source = tick_source or make_source(config.loop.clock, guard_ns)
+        self.source = tick_source or make_source(config.loop.clock, guard_ns, config.loop.idle_wait)
         self.realtime: RealtimeState | None = None
         self.ticker = Ticker(self.source, self.period_ns, config.loop.overrun)
         self.stats = TickStats(config.loop.stats_window)
@@ -597,6 +597,7 @@ class ControlLoop:
             "robot": self.robot.name,
             "joints": self.robot.dof,
             "clock": self.source.kind,
+            **self._waits(),
             "overrun_policy": self.config.loop.overrun,
             "realtime": self.realtime.report() if self.realtime else {},
             "rate_hz_target": round(target, 3),
@@ -612,6 +613,14 @@ class ControlLoop:
             "drivers": drivers,
             "controller": metrics,
         }
+
+
+    def _waits(self) -> dict:
+        """How the timerfd's waits went: blocked on the timer, or round the event loop."""
+        source = self.source
+        if not isinstance(source, TimerfdTickSource):
+            return {}
+        return {"waits": {"on_timer": source.idle_waits, "through_loop": source.loop_waits}}
 
 
 class StallWatchdog:

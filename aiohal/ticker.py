@@ -126,6 +126,7 @@ class TimerfdTickSource(TickSource):
         self.t0_ns, self.period_ns = t0_ns, period_ns
         self._k = k0
         self._expirations = 0
+        self.idle_waits = self.loop_waits = 0
         self._loop = asyncio.get_running_loop()
         self._fd = _timerfd_create_settime(t0_ns + (k0 + 1) * period_ns - self.guard_ns, period_ns)
         self._loop.add_reader(self._fd, self._on_readable)
@@ -315,12 +316,12 @@ class VirtualTickSource(TickSource):
         return n
 
 
-def make_source(kind: str, guard_ns: int = 0) -> TickSource:
+def make_source(kind: str, guard_ns: int = 0, idle_wait: bool = True) -> TickSource:
     """A tick source by config name; ``auto`` is timerfd on Linux, sleep elsewhere."""
     if kind == "auto":
         kind = "timerfd" if timerfd_available() else "sleep"
     if kind == "timerfd":
-        return TimerfdTickSource(guard_ns)
+        return TimerfdTickSource(guard_ns, idle_wait)
     if kind == "sleep":
         return SleepTickSource()
     if kind == "virtual":

@@ -5,7 +5,9 @@ each in a fresh process, one after another, compared by the same statistics.
 it runs for the same S seconds of wall time as the others); (b) ``await asyncio.sleep(deadline -
 now)`` to integer-ns deadlines t0 + k·period; (c) a thread with ``time.sleep`` to those deadlines
 (no event loop: once per rate); (d) aiohal's ``ControlLoop``: mock 33-joint humanoid, ``hold``
-controller; (e) aiohal's timerfd ``Ticker`` alone, doing nothing: the floor.
+controller; (e) aiohal's timerfd ``Ticker`` alone, doing nothing: the floor; (f) the same with
+``idle_wait=False``, every wait round the event loop (what (e) does on uvloop): beside (e) on
+asyncio, its CPU % is what ``ticker.IdleWait`` saves.
 
 Lateness = ``time.monotonic_ns()`` right after the wake minus the ideal deadline. Workers write raw
 samples and the parent computes every statistic; for (d) the samples are the loop's own stats
@@ -16,7 +18,7 @@ default (the config's ``[realtime]`` is dropped; aiohal's built-in timer slack o
 ``--realtime`` gives every method SCHED_FIFO 80 + mlockall, as the humanoid config does.
 
     python -m benchmarks.tick [--seconds 10] [--rates 1000 2000] [--loops asyncio uvloop]
-                              [--realtime] [--json PATH] [--plot PNG]
+                              [--methods M ...] [--realtime] [--json PATH] [--plot PNG]
 """
 
 from __future__ import annotations
@@ -40,13 +42,14 @@ import numpy as np
 
 from .common import ROOT, table, write_json
 
-METHODS = ["naive", "abs_sleep", "thread", "aiohal", "ticker"]
+METHODS = ["naive", "abs_sleep", "thread", "aiohal", "ticker", "ticker_loop"]
 LABELS = {
     "naive": "(a) naive sleep(period)",
     "abs_sleep": "(b) abs-deadline sleep",
     "thread": "(c) thread + time.sleep",
     "aiohal": "(d) aiohal ControlLoop, humanoid+hold",
     "ticker": "(e) aiohal Ticker alone (floor)",
+    "ticker_loop": "(f) Ticker, every wait round the loop",
 }
 FIFO_PRIORITY = 80
 SAFETY_S = 1.0  # a deadline method that has not run its N ticks this long after the last deadline stops
@@ -168,11 +171,11 @@ def thread_sleep(n: int, period_ns: int, s: Samples, realtime: bool) -> None:
     t.join()
 
 
-async def bare_ticker(n: int, period_ns: int, s: Samples) -> None:
+async def bare_ticker(n: int, period_ns: int, s: Samples, idle_wait: bool = True) -> None:
     from aiohal.ticker import Ticker, TimerfdTickSource
 
     mono, lat = time.monotonic_ns, s.lateness
-    ticker = Ticker(TimerfdTickSource(), period_ns)
+    ticker = Ticker(TimerfdTickSource(idle_wait=idle_wait), period_ns)
     ticker.start(lead_ns=period_ns)
     s.begin(ticker.t0_ns)
     limit = ticker.t0_ns + n * period_ns + int(SAFETY_S * 1e9)
@@ -188,6 +191,7 @@ async def bare_ticker(n: int, period_ns: int, s: Samples) -> None:
         ticker.close()
     s.count, s.last_wake_ns = i, woke
     s.meta["missed"] = ticker.missed
+    s.meta["waits"] = {"on_timer": ticker.source.idle_waits, "through_loop": ticker.source.loop_waits}
 
 
 def humanoid_config(rate: float, n: int, realtime: bool):
@@ -217,7 +221,7 @@ async def aiohal_loop(n: int, period_ns: int, s: Samples, realtime: bool) -> Non
         "missed": report["missed_ticks"],
         "rate_hz": report["rate_hz_achieved"],
         "cpu_percent": report["cpu_percent"],
-        "report": {key: report[key] for key in ("lateness_us", "work_us", "drift_us", "realtime", "faults", "ticks")},
+        "report": {key: report[key] for key in ("lateness_us", "work_us", "drift_us", "realtime", "faults", "ticks", "waits")},
     })
 
 
@@ -234,6 +238,7 @@ def run_worker(method: str, rate: float, loop_name: str, seconds: float, out: st
             "naive": lambda: naive_sleep(n, period_ns, s),
             "abs_sleep": lambda: abs_deadline_sleep(n, period_ns, s),
             "ticker": lambda: bare_ticker(n, period_ns, s),
+            "ticker_loop": lambda: bare_ticker(n, period_ns, s, idle_wait=False),
             "aiohal": lambda: aiohal_loop(n, period_ns, s, realtime),
         }[method]
         if loop_name == "uvloop":
@@ -325,6 +330,7 @@ def main() -> None:
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--rates", type=float, nargs="+", default=[1000.0, 2000.0])
     p.add_argument("--loops", nargs="+", choices=("asyncio", "uvloop"), default=["asyncio", "uvloop"])
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=METHODS)
     p.add_argument("--realtime", action="store_true", help="SCHED_FIFO 80 + mlockall for every method")
     p.add_argument("--json", default=None)
     p.add_argument("--plot", default=None, metavar="PNG", help="lateness distributions at 1 kHz (or the first rate), asyncio")
@@ -343,7 +349,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="aiohal-tick-") as tmp:
         for rate in args.rates:
             period_ns = round(1e9 / rate)
-            for method in METHODS:
+            for method in args.methods:
                 for loop_name in (["-"] if method == "thread" else args.loops):
                     lat, meta = run_one(method, rate, loop_name, args.seconds, args.realtime, tmp)
                     stats = summarise(lat, period_ns)

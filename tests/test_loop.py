@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
+import sys
+
 import numpy as np
 import pytest
 
@@ -241,3 +244,27 @@ async def test_a_stall_past_the_last_deadline_counts_only_the_runs_own_deadlines
         report = await loop.run(ticks=10)
     assert report["ticks"] + report["missed_ticks"] == 10  # every deadline of the run, no more
     assert report["missed_ticks"] >= 1
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("idle_wait", [True, False])
+async def test_the_report_counts_how_the_real_clock_waited(idle_wait):
+    """On asyncio's epoll loop the ticks wait on the timer itself unless ``idle_wait = false``;
+    on uvloop they always go round the event loop. The report says which."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("timerfd is Linux only")
+    from aiohal.config import parse_config
+    from aiohal.loop import ControlLoop
+
+    raw = arm_raw(2)
+    raw["loop"].update(clock="timerfd", idle_wait=idle_wait)
+    asyncio_epoll = isinstance(asyncio.get_running_loop(), asyncio.SelectorEventLoop)
+    async with ControlLoop(parse_config(raw)) as loop:
+        report = await loop.run(ticks=30)
+    waits = report["waits"]
+    assert report["ticks"] + report["missed_ticks"] == 30
+    assert waits["on_timer"] + waits["through_loop"] >= 1
+    if idle_wait and asyncio_epoll:
+        assert waits["on_timer"] > 0
+    else:
+        assert waits["on_timer"] == 0 and waits["through_loop"] > 0
