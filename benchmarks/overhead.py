@@ -49,8 +49,14 @@ compares the two sides measured milliseconds apart. On a shared VM whose speed c
 ``run()``, whose fixed cost (about 0.4 ms: the stall watchdog's thread started and joined)
 falls on the aiohal side: about 0.7 µs per tick at 500 ticks, more for shorter rounds.
 
+``--clock realtime`` (with ``--interleave``) runs both sides at 1 kHz on real deadlines instead,
+as R-HAL's Table I measured a robot running: aiohal on its timerfd, the no-HAL loop with
+``time.sleep`` to absolute deadlines (the cheapest wait a Python loop has: one syscall per
+tick). CPU per tick then includes each side's wait and its cold start after it. Neither
+side gets the configs' ``[realtime]`` settings, so neither needs privileges.
+
     python -m benchmarks.overhead [--seconds 5] [--warmup 1] [--repeat 5] [--only NAME ...]
-        [--interleave TICKS] [--json PATH]
+        [--interleave TICKS [--clock virtual|realtime]] [--json PATH]
 """
 
 from __future__ import annotations
@@ -341,14 +347,19 @@ async def _interleaved(spec: dict) -> dict:
 
     hal, bare = spec["hal"], spec["nohal"]
     chunk, rounds = spec["chunk"], spec["rounds"]
+    realtime = spec.get("clock") == "realtime"
     setup = setup_nohal_mujoco if bare["kind"] == "nohal_mujoco" else setup_nohal_mock
     run_ticks, finish = setup(bare)
     control = ControlLoop(parse_config(hal["raw"], base_dir=Path(hal["base_dir"])))
     await control.activate()
     k = 1
 
+    missed = 0
+
     async def hal_chunk(ticks: int) -> float:
+        nonlocal missed
         report = await control.run(ticks=ticks)  # collects and freezes the heap before its first tick
+        missed += report["missed_ticks"]
         stats = control.stats
         wall_s = (stats.stopped_wall_ns - stats.started_wall_ns) / 1e9
         return report["cpu_percent"] / 100.0 * wall_s / report["ticks"]
@@ -358,7 +369,10 @@ async def _interleaved(spec: dict) -> dict:
         gc.collect()  # as the loop does before its ticks
         gc.freeze()
         cpu0 = _cpu_s()
-        run_ticks(k, k + ticks)
+        if realtime:
+            _at_deadlines(run_ticks, k, ticks, round(1e9 / hal["raw"]["loop"]["rate_hz"]))
+        else:
+            run_ticks(k, k + ticks)
         cpu = _cpu_s() - cpu0
         gc.unfreeze()
         k += ticks
@@ -382,7 +396,19 @@ async def _interleaved(spec: dict) -> dict:
     finally:
         await control.deactivate()
     return {"pairs": pairs, "final_position": final, "rms_error_m": report["controller"].get("rms_error_m"),
-            "faults": len(report["faults"]), "nohal": finish()}
+            "faults": len(report["faults"]), "missed": missed, "nohal": finish()}
+
+
+def _at_deadlines(run_ticks, k: int, ticks: int, period_ns: int) -> None:
+    """The no-HAL loop in real time: sleep to each absolute deadline, then run one tick."""
+    mono, sleep = time.monotonic_ns, time.sleep
+    deadline = mono()
+    for i in range(ticks):
+        deadline += period_ns
+        wait = deadline - mono()
+        if wait > 0:
+            sleep(wait / 1e9)
+        run_ticks(k + i, k + i + 1)
 
 
 def overhead_worker(spec: dict) -> dict:
@@ -400,14 +426,15 @@ def overhead_worker(spec: dict) -> dict:
 # ---------------------------------------------------------------- the benchmark
 
 
-def _cases(seconds: float, warmup: float) -> dict[str, tuple[dict, dict]]:
-    """name -> (aiohal spec, no-HAL spec)."""
+def _cases(seconds: float, warmup: float, clock: str = "virtual") -> dict[str, tuple[dict, dict]]:
+    """name -> (aiohal spec, no-HAL spec); ``clock`` virtual (lockstep) or timerfd."""
     ticks, warm = round(seconds * 1000), round(warmup * 1000)
     cases = {}
     for name in SIM:
         path = CONFIGS / f"{name}.toml"
         cases[name] = (
-            loop_spec(load_raw(path), base_dir=path.parent, clock="virtual", rate_hz=1000.0, seconds=seconds, warmup=warmup),
+            loop_spec(_no_realtime(load_raw(path)), base_dir=path.parent, clock=clock, rate_hz=1000.0, seconds=seconds,
+                      warmup=warmup),
             {"kind": "nohal_mujoco", "config": str(path), "warmup_ticks": warm, "ticks": ticks},
         )
     humanoid = CONFIGS / "mock_humanoid.toml"
@@ -415,10 +442,16 @@ def _cases(seconds: float, warmup: float) -> dict[str, tuple[dict, dict]]:
     raw["controller"] = {"type": "hold"}
     arm = robot_raw(33)
     for name, r, base in (("mock_humanoid_hold", raw, humanoid.parent), ("mock_33_hold", arm, ROOT)):
-        spec = loop_spec(r, base_dir=base, clock="virtual", rate_hz=1000.0, seconds=seconds, warmup=warmup)
+        spec = loop_spec(_no_realtime(r), base_dir=base, clock=clock, rate_hz=1000.0, seconds=seconds, warmup=warmup)
         cases[name] = (spec, {"kind": "nohal_mock", "raw": spec["raw"], "base_dir": str(base),
                               "warmup_ticks": warm, "ticks": ticks})
     return cases
+
+
+def _no_realtime(raw: dict) -> dict:
+    """The config without its [realtime] section: the no-HAL loop has none either (and a
+    virtual clock never applies it)."""
+    return {key: value for key, value in raw.items() if key != "realtime"}
 
 
 def main() -> None:
@@ -431,6 +464,9 @@ def main() -> None:
     p.add_argument("--only", nargs="*", default=None, help=f"cases to run (default: all of {SIM + MOCK})")
     p.add_argument("--interleave", type=int, default=0, metavar="TICKS",
                    help="run both sides in one process, alternating every TICKS ticks (default 0: separate runs)")
+    p.add_argument("--clock", choices=("virtual", "realtime"), default="virtual",
+                   help="virtual: lockstep, back to back (default); realtime: both sides at 1 kHz on real "
+                        "deadlines (needs --interleave)")
     p.add_argument("--json", default=None)
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -438,7 +474,9 @@ def main() -> None:
         worker_main(overhead_worker)
         return
     started = time.monotonic()
-    cases = _cases(args.seconds, args.warmup)
+    if args.clock == "realtime" and args.interleave <= 0:
+        p.error("--clock realtime needs --interleave TICKS")
+    cases = _cases(args.seconds, args.warmup, "timerfd" if args.clock == "realtime" else "virtual")
     if args.interleave > 0:
         _main_interleaved(args, cases, started)
         return
@@ -494,7 +532,8 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
     rounds = max(2, round(args.seconds * 1000 / args.interleave))
     for name in args.only or list(cases):
         hal_spec, nohal_spec = cases[name]
-        spec = {"kind": "interleaved", "hal": hal_spec, "nohal": nohal_spec, "chunk": args.interleave, "rounds": rounds}
+        spec = {"kind": "interleaved", "hal": hal_spec, "nohal": nohal_spec, "chunk": args.interleave, "rounds": rounds,
+                "clock": args.clock}
         runs = [spawn(MODULE, spec, timeout_for(args.seconds * 5)) for _ in range(max(1, args.repeat))]
         pairs = [pair for r in runs for pair in r["pairs"]]
         ratios = sorted(h / b for h, b in pairs)
@@ -509,22 +548,25 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
             "hal_us": round(hal_med, 1), "bare_us": round(bare_med, 1), "added_us": round(hal_med - bare_med, 1),
             "ratio": round(q50, 3), "iqr": f"{q25:.2f}–{q75:.2f}",
             "rms": "–" if rms_hal is None or rms_bare is None else f"{rms_hal * 1e3:.3f} / {rms_bare * 1e3:.3f}",
-            "dq": f"{dq:.1e}", "faults": sum(r["faults"] for r in runs),
+            "hal_cpu": round(hal_med / 10, 1), "bare_cpu": round(bare_med / 10, 1),
+            "dq": f"{dq:.1e}", "faults": sum(r["faults"] for r in runs), "missed": sum(r["missed"] for r in runs),
         })
         raw_results[name] = {"pairs_us": pairs}
         print(f"{name}: done", flush=True)
     elapsed = time.monotonic() - started
     print()
-    print(f"CPU per tick in lockstep, both sides in one process alternating every {args.interleave} ticks "
+    how = "in lockstep" if args.clock == "virtual" else "at 1 kHz on real deadlines (wait included)"
+    print(f"CPU per tick {how}, both sides in one process alternating every {args.interleave} ticks "
           f"({rounds} rounds per run, {args.repeat} runs): medians over the rounds")
     print(table(rows, [
         ("robot", "robot"), ("joints", "joints"), ("rounds", "rounds"), ("hal_us", "aiohal CPU µs/tick"),
         ("bare_us", "no-HAL CPU µs/tick"), ("added_us", "HAL adds µs/tick"), ("ratio", "ratio aiohal/no-HAL (median of rounds)"),
-        ("iqr", "p25–p75 of rounds"), ("rms", "RMS error mm aiohal / no-HAL"), ("dq", "final max |Δq| rad"),
+        ("iqr", "p25–p75 of rounds"), ("hal_cpu", "CPU % at 1 kHz aiohal"), ("bare_cpu", "no-HAL"),
+        ("rms", "RMS error mm aiohal / no-HAL"), ("dq", "final max |Δq| rad"), ("missed", "aiohal missed ticks"),
         ("faults", "faults"),
     ]))
     print(f"\nelapsed {elapsed:.1f} s")
-    write_json(args.json, {"seconds": args.seconds, "warmup": args.warmup, "repeat": args.repeat,
+    write_json(args.json, {"seconds": args.seconds, "warmup": args.warmup, "repeat": args.repeat, "clock": args.clock,
                            "interleave": args.interleave, "elapsed_s": round(elapsed, 1), "rows": rows, "runs": raw_results})
 
 
