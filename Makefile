@@ -31,6 +31,8 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.breakdown --json bench-results/breakdown.json
 	$(PY) -m benchmarks.scaling --json bench-results/scaling.json
 	$(PY) -m benchmarks.overhead --json bench-results/overhead.json
+	$(PY) -m benchmarks.overhead --interleave 500 --clock realtime --json bench-results/overhead_realtime.json
+	$(PY) -m benchmarks.idle_wait --json bench-results/idle_wait.json
 	$(PY) -m benchmarks.robots --json bench-results/robots.json
 	$(PY) -m benchmarks.gc_pauses --json bench-results/gc_pauses.json
 	$(PY) -m benchmarks.isolated --json bench-results/isolated.json

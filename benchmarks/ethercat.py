@@ -3,7 +3,7 @@
 For 1, 7 and 25 slaves (a drive; 7 drives; 23 drives + IMU + F/T, LOLA's count) at 1 and
 2 kHz, the shipped CLI runs a config like configs/ethercat_sim.toml (sine on every joint,
 SCHED_FIFO 80, memory locked) against ``python -m aiohal.drivers.ethercat.sim`` behind a veth
-pair (needs root), each in a fresh process:
+pair (needs root), each in a fresh process (on uvloop, or each of ``--loops``):
 
 * ``exchange = "immediate"`` gives the round trip: send, then wait for the frame in the tick
   (``rtt_us`` = from the send's return to the receive's);
@@ -86,7 +86,8 @@ ramp = 0.5
 """
 
 
-def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float, spin_guard_us: float = 0.0) -> dict:
+def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float, spin_guard_us: float = 0.0,
+             loop: str = "uvloop") -> dict:
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
 
     with SimulatedSegment(LINES[n_slaves], watchdog_ms=100) as sim, tempfile.TemporaryDirectory() as tmp:
@@ -94,7 +95,7 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float, spin_gu
         config = Path(tmp) / "bench.toml"
         config.write_text(config_text(n_slaves, sim.ifname, rate_hz, exchange, spin_guard_us))
         steal = StealMeter()
-        report = run_cli(config, "--duration", str(seconds), "--loop", "uvloop", prefix=("taskset", "-c", str(LOOP_CPU)),
+        report = run_cli(config, "--duration", str(seconds), "--loop", loop, prefix=("taskset", "-c", str(LOOP_CPU)),
                          timeout=seconds + 120)
         steal_percent = steal.percent()
     bus = report["drivers"]["bus"]
@@ -102,7 +103,7 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float, spin_gu
     key = "rtt_us" if exchange == "immediate" else "receive_wait_us"
     wait_p50, wait_p99 = bus.get(key, [None, None])
     return {
-        "slaves": n_slaves, "rate_hz": rate_hz, "exchange": exchange, "seconds": seconds, "spin_guard_us": spin_guard_us,
+        "slaves": n_slaves, "loop": loop, "rate_hz": rate_hz, "exchange": exchange, "seconds": seconds, "spin_guard_us": spin_guard_us,
         "process_data_bytes": bus.get("process_data_bytes"), "ticks": report["ticks"], "missed": report["missed_ticks"],
         "cycles": bus.get("cycles"), "wkc_errors": bus.get("wkc_errors"), "frames_lost": bus.get("frames_lost"),
         "faults": len(report["faults"]), "lateness_p99_us": report["lateness_us"]["p99"],
@@ -262,6 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--soak", type=float, default=60.0, help="25 slaves at 1 kHz for this long (0: skip)")
     p.add_argument("--slaves", type=int, nargs="+", choices=sorted(LINES), default=[1, 7, 25])
     p.add_argument("--rates", type=int, nargs="+", default=[1000, 2000])
+    p.add_argument("--loops", nargs="+", choices=("uvloop", "asyncio"), default=["uvloop"],
+                   help="event loop(s) of the runs, each case on each (default uvloop)")
     p.add_argument("--json", default=None)
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--breakdown", type=int, choices=sorted(LINES), default=None,
@@ -300,12 +303,13 @@ def main(argv: list[str] | None = None) -> int:
     for n in args.slaves:
         for rate in args.rates:
             for exchange in ("immediate", "split"):
-                rows.append(run_case(n, rate, exchange, args.seconds, args.spin_guard_us))
-                print(json.dumps(rows[-1]), flush=True)
+                for loop in args.loops:
+                    rows.append(run_case(n, rate, exchange, args.seconds, args.spin_guard_us, loop))
+                    print(json.dumps(rows[-1]), flush=True)
     if args.soak:
-        rows.append(run_case(25, 1000, "split", args.soak, args.spin_guard_us))
+        rows.append(run_case(25, 1000, "split", args.soak, args.spin_guard_us, args.loops[0]))
         print(json.dumps(rows[-1]), flush=True)
-    columns = [("slaves", "slaves"), ("process_data_bytes", "PD bytes"), ("rate_hz", "Hz"), ("exchange", "exchange"),
+    columns = [("slaves", "slaves"), ("loop", "loop"), ("process_data_bytes", "PD bytes"), ("rate_hz", "Hz"), ("exchange", "exchange"),
                ("seconds", "s"), ("ticks", "ticks"), ("missed", "missed"), ("wkc_errors", "WKC errors"), ("frames_lost", "of which lost"),
                ("rtt_us_p50", "RTT p50 µs"), ("rtt_us_p99", "RTT p99 µs"),
                ("receive_wait_us_p50", "wait p50 µs"), ("receive_wait_us_p99", "wait p99 µs"),

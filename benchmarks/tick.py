@@ -7,7 +7,7 @@ now)`` to integer-ns deadlines t0 + k·period; (c) a thread with ``time.sleep`` 
 (no event loop: once per rate); (d) aiohal's ``ControlLoop``: mock 33-joint humanoid, ``hold``
 controller; (e) aiohal's timerfd ``Ticker`` alone, doing nothing: the floor; (f) the same with
 ``idle_wait=False``, every wait round the event loop (what (e) does on uvloop): beside (e) on
-asyncio, its CPU % is what ``ticker.IdleWait`` saves.
+asyncio, its CPU % is what ``ticker.IdleWait`` saves; (g) (d) with ``[loop] idle_wait = false``.
 
 Lateness = ``time.monotonic_ns()`` right after the wake minus the ideal deadline. Workers write raw
 samples and the parent computes every statistic; for (d) the samples are the loop's own stats
@@ -42,7 +42,7 @@ import numpy as np
 
 from .common import ROOT, table, write_json
 
-METHODS = ["naive", "abs_sleep", "thread", "aiohal", "ticker", "ticker_loop"]
+METHODS = ["naive", "abs_sleep", "thread", "aiohal", "ticker", "ticker_loop", "aiohal_loop"]
 LABELS = {
     "naive": "(a) naive sleep(period)",
     "abs_sleep": "(b) abs-deadline sleep",
@@ -50,6 +50,7 @@ LABELS = {
     "aiohal": "(d) aiohal ControlLoop, humanoid+hold",
     "ticker": "(e) aiohal Ticker alone (floor)",
     "ticker_loop": "(f) Ticker, every wait round the loop",
+    "aiohal_loop": "(g) ControlLoop, idle_wait = false",
 }
 FIFO_PRIORITY = 80
 SAFETY_S = 1.0  # a deadline method that has not run its N ticks this long after the last deadline stops
@@ -194,7 +195,7 @@ async def bare_ticker(n: int, period_ns: int, s: Samples, idle_wait: bool = True
     s.meta["waits"] = {"on_timer": ticker.source.idle_waits, "through_loop": ticker.source.loop_waits}
 
 
-def humanoid_config(rate: float, n: int, realtime: bool):
+def humanoid_config(rate: float, n: int, realtime: bool, idle_wait: bool = True):
     """configs/mock_humanoid.toml with the hold controller, at ``rate``, [realtime] kept or dropped."""
     from aiohal import parse_config
 
@@ -202,16 +203,17 @@ def humanoid_config(rate: float, n: int, realtime: bool):
     raw = tomllib.loads(path.read_text())
     raw["controller"] = {"type": "hold"}
     raw.setdefault("loop", {})["rate_hz"] = rate
+    raw["loop"]["idle_wait"] = idle_wait
     raw["loop"]["stats_window"] = max(1 << 17, n + 1024)  # keep every tick: no ring wrap
     if not realtime:
         raw.pop("realtime", None)
     return parse_config(raw, base_dir=path.parent, path=path)
 
 
-async def aiohal_loop(n: int, period_ns: int, s: Samples, realtime: bool) -> None:
+async def aiohal_loop(n: int, period_ns: int, s: Samples, realtime: bool, idle_wait: bool = True) -> None:
     from aiohal import ControlLoop
 
-    config = humanoid_config(1e9 / period_ns, n, realtime)
+    config = humanoid_config(1e9 / period_ns, n, realtime, idle_wait)
     async with ControlLoop(config) as robot:
         report = await robot.run(ticks=n)
     count = robot.stats.count
@@ -232,7 +234,7 @@ def run_worker(method: str, rate: float, loop_name: str, seconds: float, out: st
     if method == "thread":
         thread_sleep(n, period_ns, s, realtime)
     else:
-        if realtime and method != "aiohal":  # aiohal applies its config's [realtime] itself
+        if realtime and not method.startswith("aiohal"):  # aiohal applies its config's [realtime] itself
             s.meta["realtime_notes"] = _go_realtime()
         coro = {
             "naive": lambda: naive_sleep(n, period_ns, s),
@@ -240,6 +242,7 @@ def run_worker(method: str, rate: float, loop_name: str, seconds: float, out: st
             "ticker": lambda: bare_ticker(n, period_ns, s),
             "ticker_loop": lambda: bare_ticker(n, period_ns, s, idle_wait=False),
             "aiohal": lambda: aiohal_loop(n, period_ns, s, realtime),
+            "aiohal_loop": lambda: aiohal_loop(n, period_ns, s, realtime, idle_wait=False),
         }[method]
         if loop_name == "uvloop":
             import uvloop
