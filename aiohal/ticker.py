@@ -203,7 +203,9 @@ class IdleWait:
     __slots__ = ("_loop", "_fd", "_epoll", "_ready", "_scheduled")
 
     @classmethod
-    def attach(cls, loop: asyncio.AbstractEventLoop, fd: int) -> IdleWait | None:
+    def attach(cls, loop: asyncio.AbstractEventLoop, fd: int = -1) -> IdleWait | None:
+        """For ``loop`` and the timerfd ``fd`` (-1: none, only :meth:`loop_has_work`), or None
+        if ``loop`` is not asyncio's epoll loop."""
         selector = getattr(loop, "_selector", None)
         if not isinstance(selector, selectors.EpollSelector):
             return None
@@ -217,7 +219,8 @@ class IdleWait:
         self._ready = loop._ready  # type: ignore[attr-defined]
         self._scheduled = loop._scheduled  # type: ignore[attr-defined]
         self._epoll = select.epoll(2)
-        self._epoll.register(fd, select.EPOLLIN)
+        if fd >= 0:
+            self._epoll.register(fd, select.EPOLLIN)
         self._epoll.register(loop_fd, select.EPOLLIN)  # readable when any of the loop's fds is
 
     def wait(self) -> bool:
@@ -235,6 +238,16 @@ class IdleWait:
             if ready_fd == fd:
                 return True
         return False
+
+    def loop_has_work(self) -> bool:
+        """Whether one iteration of the loop would run anything now (a ready callback, a due
+        timer, a ready fd). The virtual clock yields to the loop only then: an iteration that
+        finds nothing costs a lockstep tick more than the tick's own bookkeeping."""
+        if self._ready:
+            return True
+        if self._scheduled and self._scheduled[0].when() <= self._loop.time():
+            return True
+        return bool(self._epoll.poll(0))
 
     def close(self) -> None:
         self._epoll.close()
@@ -274,9 +287,10 @@ class VirtualTickSource(TickSource):
     """Virtual time: each wait advances exactly one period (or more after :meth:`stall`).
 
     It never sleeps: a lockstep simulation runs as fast as the CPU allows, deterministically.
-    It yields to the event loop at least every ``yield_every_ms`` of wall time, so other tasks
-    (a stop request, a signal handler, a test) still run; yielding on every tick would cost a
-    round trip through the event loop (12-23 µs measured) on each one.
+    Every ``yield_every_ms`` of wall time it yields to the event loop, so other tasks (a stop
+    request, a signal handler, a test) still run; yielding on every tick would cost a round
+    trip through the event loop (12-23 µs measured) on each one. On asyncio's own loop it
+    yields only when the loop has something to run (:meth:`IdleWait.loop_has_work`).
     """
 
     kind = "virtual"
@@ -287,6 +301,8 @@ class VirtualTickSource(TickSource):
         self._stall = 0
         self._yield_every_ns = int(yield_every_ms * 1e6)
         self._last_yield = 0
+        self._idle: IdleWait | None = None
+        self.yields = 0  # waits that went round the event loop
 
     def now_ns(self) -> int:
         return self._now
@@ -295,6 +311,17 @@ class VirtualTickSource(TickSource):
         self.t0_ns, self.period_ns = t0_ns, period_ns
         self._k = k0
         self._now = max(self._now, t0_ns + k0 * period_ns)
+        self.close()
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # started outside a loop (a test driving the source by hand)
+            return
+        self._idle = IdleWait.attach(loop)
+
+    def close(self) -> None:
+        if self._idle is not None:
+            self._idle.close()
+            self._idle = None
 
     def stall(self, periods: int) -> None:
         """Make the next wait return late by ``periods`` whole periods (overrun tests)."""
@@ -308,7 +335,9 @@ class VirtualTickSource(TickSource):
         wall = time.monotonic_ns()
         if wall - self._last_yield >= self._yield_every_ns:
             self._last_yield = wall
-            await asyncio.sleep(0)
+            if self._idle is None or self._idle.loop_has_work():
+                self.yields += 1
+                await asyncio.sleep(0)
         n = 1 + self._stall
         self._stall = 0
         self._k += n

@@ -308,3 +308,35 @@ async def test_io_and_other_threads_reach_the_loop_while_the_ticks_wait_on_the_t
     assert set(seen) == {"io", "call"}, f"after {ticks} ticks only {seen} ran"
     assert seen["io"] - sent_at["io"] <= 2
     assert seen["call"] - sent_at["call"] <= 2
+
+
+@pytest.mark.asyncio
+async def test_the_virtual_clock_yields_only_when_the_loop_has_something_to_run():
+    """Checked on every wait (``yield_every_ms=0``): with nothing else in the loop, asyncio's
+    loop is never entered; a task that keeps itself ready runs to its end between ticks. On
+    other loops every check yields."""
+    source = VirtualTickSource(yield_every_ms=0)
+    ticker = Ticker(source, PERIOD)
+    ticker.start()
+    for _ in range(50):
+        await ticker.next()
+    idle_yields = source.yields
+
+    hops = 0
+
+    async def hopper():
+        nonlocal hops
+        for _ in range(20):
+            hops += 1
+            await asyncio.sleep(0)
+
+    task = asyncio.create_task(hopper())
+    for _ in range(50):
+        await ticker.next()
+    ticker.close()
+    assert task.done() and hops == 20
+    if _on_asyncio_epoll_loop():
+        assert idle_yields == 0
+        assert 20 <= source.yields <= 30  # one per hop, give or take the task's start and end
+    else:
+        assert idle_yields == 50 and source.yields == 100
