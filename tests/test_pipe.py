@@ -558,9 +558,9 @@ def test_subprocess_echo_and_clean_stop(peers):
     assert answers == [Grip(grasp=1.0), Beat()]
     assert [m.seq for m in answers] == [0, 1]
     assert answers[0].stamp_ns == sent.stamp_ns < fast.last_receive_ns  # the echo keeps the sender's stamp
-    t0 = time.monotonic()
-    peer.stop(timeout=2.0)
-    assert time.monotonic() - t0 < 2.0
+    peer.stop(timeout=10.0)
+    # exit code 0: it returned on the closed pipe; a SIGTERM or SIGKILL from stop() would show
+    # as -15 or -9 (a fixed time bound here failed once when the host stalled the VM for 2 s)
     assert not peer.alive() and peer.exitcode == 0
     peer.stop()  # idempotent
 
