@@ -161,6 +161,8 @@ class TimerfdTickSource(TickSource):
                     self._waiter = None
             else:
                 self.idle_waits += 1
+                if idle.loop_has_io():  # e.g. ticks that overrun: the timer is always ready first
+                    await asyncio.sleep(0)
         n = self._expirations
         self._expirations = 0
         self._k += n
@@ -193,21 +195,29 @@ class IdleWait:
     in one epoll on the timerfd and on the loop's own epoll: the timer resumes the tick at once;
     anything else (I/O, a thread's ``call_soon_threadsafe`` or a signal, both of which write
     the loop's self-pipe, or a loop timer falling due) hands the wait back to the loop, which
-    runs it and wakes the tick as before. Something that comes in with the timer runs just
-    after the tick instead of just before it; nothing else waits longer than it would have.
+    runs it and wakes the tick as before. I/O that is pending when the timer fires (ticks that
+    overrun find the timer already expired) gets one loop iteration right after the wait
+    (:meth:`loop_has_io`), so it runs just after the tick's wake instead of just before it.
 
-    It reads asyncio's ready queue and timer heap, so it attaches only to asyncio's own epoll
-    loop; on any other loop (uvloop) every wait goes through the loop.
+    It reads asyncio's ready queue, timer heap and stop flag, so it attaches only to asyncio's
+    own epoll loop, and not in debug mode (there a task step that spans many ticks would be
+    reported as a slow callback); on any other loop (uvloop) every wait goes through the loop.
+    With no ``asyncio.Runner`` and Python's default SIGINT handler, Ctrl-C raises
+    KeyboardInterrupt inside the tick's task rather than in the loop's select.
     """
 
-    __slots__ = ("_loop", "_fd", "_epoll", "_ready", "_scheduled")
+    __slots__ = ("_loop", "_fd", "_loop_fd", "_epoll")
+
+    #: the longest a wait blocks without looking at the loop again (asyncio caps its own
+    #: select timeout at a day; epoll refuses more than about 24.8 days)
+    MAX_TIMEOUT_S = 86_400.0
 
     @classmethod
     def attach(cls, loop: asyncio.AbstractEventLoop, fd: int = -1) -> IdleWait | None:
         """For ``loop`` and the timerfd ``fd`` (-1: none, only :meth:`loop_has_work`), or None
-        if ``loop`` is not asyncio's epoll loop."""
+        if ``loop`` is not asyncio's epoll loop or runs in debug mode."""
         selector = getattr(loop, "_selector", None)
-        if not isinstance(selector, selectors.EpollSelector):
+        if not isinstance(selector, selectors.EpollSelector) or loop.get_debug():
             return None
         if not isinstance(getattr(loop, "_ready", None), deque) or not isinstance(getattr(loop, "_scheduled", None), list):
             return None
@@ -216,38 +226,48 @@ class IdleWait:
     def __init__(self, loop: asyncio.AbstractEventLoop, fd: int, loop_fd: int) -> None:
         self._loop = loop
         self._fd = fd
-        self._ready = loop._ready  # type: ignore[attr-defined]
-        self._scheduled = loop._scheduled  # type: ignore[attr-defined]
+        self._loop_fd = loop_fd
         self._epoll = select.epoll(2)
         if fd >= 0:
             self._epoll.register(fd, select.EPOLLIN)
         self._epoll.register(loop_fd, select.EPOLLIN)  # readable when any of the loop's fds is
 
+    def _due(self) -> float:
+        """Seconds until the loop's next timer (``MAX_TIMEOUT_S`` if none), or 0 if the loop
+        has something to run now (a ready callback, a due timer, a stop request). The loop's
+        attributes are read each time: ``_run_once`` replaces its timer heap when it prunes
+        cancelled timers."""
+        loop = self._loop
+        if loop._ready or loop._stopping:  # type: ignore[attr-defined]
+            return 0.0
+        scheduled = loop._scheduled  # type: ignore[attr-defined]
+        if not scheduled:
+            return self.MAX_TIMEOUT_S
+        return min(max(0.0, scheduled[0].when() - loop.time()), self.MAX_TIMEOUT_S)
+
     def wait(self) -> bool:
         """Block until the timer fires (True), or return False at once or as soon as the loop
         has something to run: the caller then waits through the loop."""
-        if self._ready:
+        timeout = self._due()
+        if timeout <= 0.0:
             return False
-        timeout = -1.0
-        if self._scheduled:
-            timeout = self._scheduled[0].when() - self._loop.time()
-            if timeout <= 0:
-                return False
         fd = self._fd
         for ready_fd, _ in self._epoll.poll(timeout):
             if ready_fd == fd:
                 return True
         return False
 
+    def loop_has_io(self) -> bool:
+        """Whether one of the loop's fds is ready (after the timerfd was read: then only
+        other I/O, a signal or a thread's wake-up make the loop's epoll readable)."""
+        loop_fd = self._loop_fd
+        return any(ready_fd == loop_fd for ready_fd, _ in self._epoll.poll(0))
+
     def loop_has_work(self) -> bool:
         """Whether one iteration of the loop would run anything now (a ready callback, a due
-        timer, a ready fd). The virtual clock yields to the loop only then: an iteration that
-        finds nothing costs a lockstep tick more than the tick's own bookkeeping."""
-        if self._ready:
-            return True
-        if self._scheduled and self._scheduled[0].when() <= self._loop.time():
-            return True
-        return bool(self._epoll.poll(0))
+        timer, a stop request, a ready fd). The virtual clock yields to the loop only then: an
+        iteration that finds nothing costs a lockstep tick more than the tick's own bookkeeping."""
+        return self._due() <= 0.0 or self.loop_has_io()
 
     def close(self) -> None:
         self._epoll.close()

@@ -255,47 +255,46 @@ async def test_loop_timers_run_while_the_ticks_wait_on_the_timer():
 
 @pytest.mark.asyncio
 async def test_io_and_other_threads_reach_the_loop_while_the_ticks_wait_on_the_timer():
-    """A thread writes a socket the loop reads and calls ``call_soon_threadsafe`` while the
-    ticks run: both callbacks run within two ticks of the thread doing it."""
+    """A thread writes a socket the loop reads, then calls ``call_soon_threadsafe``, while the
+    ticks run: each callback runs within two ticks (waits returned, not deadlines: a stall of
+    the host skips deadlines) of the thread doing it. The socket alone can reach the loop only
+    through its epoll, which the wait on the timer watches."""
     import socket
     import threading
 
     if not timerfd_available():
         pytest.skip("timerfd is Linux only")
     loop = asyncio.get_running_loop()
-    source = TimerfdTickSource()
-    ticker = Ticker(source, PERIOD)
+    ticker = Ticker(TimerfdTickSource(), PERIOD)
     r, w = socket.socketpair()
     r.setblocking(False)
+    waits = 0
     seen: dict[str, int] = {}
-    go = threading.Event()
     sent_at: dict[str, int] = {}
-
-    io_seen = threading.Event()
+    go, io_seen = threading.Event(), threading.Event()
 
     def on_readable():
         r.recv(16)
-        seen["io"] = ticker.k
+        seen["io"] = waits
         io_seen.set()
 
-    def from_thread():  # the socket alone first: the loop must wake for it without any other help
+    def from_thread():
         go.wait(5.0)
-        sent_at["io"] = ticker.k
         w.send(b"x")
+        sent_at["io"] = waits
         if io_seen.wait(5.0):
-            sent_at["call"] = ticker.k
-            loop.call_soon_threadsafe(lambda: seen.setdefault("call", ticker.k))
+            loop.call_soon_threadsafe(lambda: seen.setdefault("call", waits))
+            sent_at["call"] = waits
 
     loop.add_reader(r.fileno(), on_readable)
     thread = threading.Thread(target=from_thread)
     thread.start()
     ticker.start()
-    ticks = 0
     try:
-        while len(seen) < 2 and ticks < 2000:
+        while len(seen) < 2 and waits < 2000:
             await ticker.next()
-            ticks += 1
-            if ticks == 5:
+            waits += 1
+            if waits == 5:
                 go.set()
     finally:
         go.set()
@@ -305,9 +304,92 @@ async def test_io_and_other_threads_reach_the_loop_while_the_ticks_wait_on_the_t
         thread.join(5.0)
         r.close()
         w.close()
-    assert set(seen) == {"io", "call"}, f"after {ticks} ticks only {seen} ran"
+    assert set(seen) == {"io", "call"}, f"after {waits} waits only {seen} ran"
     assert seen["io"] - sent_at["io"] <= 2
     assert seen["call"] - sent_at["call"] <= 2
+
+
+@pytest.mark.asyncio
+async def test_io_reaches_the_loop_when_every_tick_overruns():
+    """Ticks that take longer than the period find the timer already expired at every wait;
+    a socket written at tick 10 is still read within three ticks."""
+    import socket
+
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    loop = asyncio.get_running_loop()
+    ticker = Ticker(TimerfdTickSource(), PERIOD)
+    r, w = socket.socketpair()
+    r.setblocking(False)
+    seen: list[int] = []
+    ticks = 0
+
+    def on_readable():
+        r.recv(16)
+        seen.append(ticks)
+
+    loop.add_reader(r.fileno(), on_readable)
+    ticker.start()
+    try:
+        while not seen and ticks < 200:
+            await ticker.next()
+            ticks += 1
+            time.sleep(0.0015)  # 1.5 periods of work
+            if ticks == 10:
+                w.send(b"x")
+    finally:
+        ticker.close()
+        loop.remove_reader(r.fileno())
+        r.close()
+        w.close()
+    assert seen and seen[0] - 10 <= 3, f"read at tick {seen[0] if seen else None}"
+
+
+@pytest.mark.asyncio
+async def test_a_timer_set_after_the_loop_pruned_its_timer_heap_still_runs():
+    """``_run_once`` replaces its heap when most of it is cancelled timers; a wait on the timer
+    must look at the new one."""
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    loop = asyncio.get_running_loop()
+    ticker = Ticker(TimerfdTickSource(), PERIOD)
+    ticker.start()
+    fired = asyncio.Event()
+    far = []
+    waits = 0
+    try:
+        for _ in range(3):
+            await ticker.next()
+        far = [loop.call_later(60.0, lambda: None) for _ in range(200)]
+        for handle in far[:150]:
+            handle.cancel()
+        await asyncio.sleep(0)  # one loop iteration: the heap is rebuilt without the cancelled timers
+        loop.call_later(0.005, fired.set)
+        while not fired.is_set() and waits < 500:
+            await ticker.next()
+            waits += 1
+    finally:
+        ticker.close()
+        for handle in far:
+            handle.cancel()
+    assert fired.is_set(), f"a 5 ms timer had not run after {waits} ticks"
+
+
+@pytest.mark.asyncio
+async def test_a_timer_weeks_away_does_not_break_the_wait():
+    """epoll refuses timeouts above about 24.8 days; asyncio caps its own at a day."""
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    loop = asyncio.get_running_loop()
+    handle = loop.call_later(30 * 86_400, lambda: None)
+    ticker = Ticker(TimerfdTickSource(), PERIOD)
+    ticker.start()
+    try:
+        ks = [await ticker.next() for _ in range(10)]
+    finally:
+        ticker.close()
+        handle.cancel()
+    assert all(b > a for a, b in zip(ks, ks[1:]))
 
 
 @pytest.mark.asyncio
@@ -340,3 +422,25 @@ async def test_the_virtual_clock_yields_only_when_the_loop_has_something_to_run(
         assert 20 <= source.yields <= 30  # one per hop, give or take the task's start and end
     else:
         assert idle_yields == 50 and source.yields == 100
+
+
+@pytest.mark.asyncio
+async def test_no_wait_on_the_timer_in_debug_mode():
+    """asyncio's debug mode reports a task step longer than 0.1 s as slow: a step that spans
+    many ticks would be, so there every wait goes round the loop."""
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    loop = asyncio.get_running_loop()
+    was = loop.get_debug()
+    loop.set_debug(True)
+    source = TimerfdTickSource()
+    ticker = Ticker(source, PERIOD)
+    try:
+        ticker.start()
+        for _ in range(3):
+            await ticker.next()
+        on_timer = source.waits_on_timer
+    finally:
+        ticker.close()
+        loop.set_debug(was)
+    assert not on_timer and source.idle_waits == 0
