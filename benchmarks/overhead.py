@@ -354,7 +354,7 @@ async def _interleaved(spec: dict) -> dict:
     await control.activate()
     k = 1
 
-    missed = 0
+    missed = late = 0
 
     async def hal_chunk(ticks: int) -> float:
         nonlocal missed
@@ -365,12 +365,12 @@ async def _interleaved(spec: dict) -> dict:
         return report["cpu_percent"] / 100.0 * wall_s / report["ticks"]
 
     def bare_chunk(ticks: int) -> float:
-        nonlocal k
+        nonlocal k, late
         gc.collect()  # as the loop does before its ticks
         gc.freeze()
         cpu0 = _cpu_s()
         if realtime:
-            _at_deadlines(run_ticks, k, ticks, round(1e9 / hal["raw"]["loop"]["rate_hz"]))
+            late += _at_deadlines(run_ticks, k, ticks, round(1e9 / hal["raw"]["loop"]["rate_hz"]))
         else:
             run_ticks(k, k + ticks)
         cpu = _cpu_s() - cpu0
@@ -396,19 +396,24 @@ async def _interleaved(spec: dict) -> dict:
     finally:
         await control.deactivate()
     return {"pairs": pairs, "final_position": final, "rms_error_m": report["controller"].get("rms_error_m"),
-            "faults": len(report["faults"]), "missed": missed, "nohal": finish()}
+            "faults": len(report["faults"]), "missed": missed, "nohal_late": late, "nohal": finish()}
 
 
-def _at_deadlines(run_ticks, k: int, ticks: int, period_ns: int) -> None:
-    """The no-HAL loop in real time: sleep to each absolute deadline, then run one tick."""
+def _at_deadlines(run_ticks, k: int, ticks: int, period_ns: int) -> int:
+    """The no-HAL loop in real time: sleep to each absolute deadline, then run one tick.
+    Returns how many ticks started a period or more late (it runs them all, late)."""
     mono, sleep = time.monotonic_ns, time.sleep
     deadline = mono()
+    late = 0
     for i in range(ticks):
         deadline += period_ns
         wait = deadline - mono()
         if wait > 0:
             sleep(wait / 1e9)
+        elif wait <= -period_ns:
+            late += 1
         run_ticks(k + i, k + i + 1)
+    return late
 
 
 def overhead_worker(spec: dict) -> dict:
@@ -550,6 +555,7 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
             "rms": "–" if rms_hal is None or rms_bare is None else f"{rms_hal * 1e3:.3f} / {rms_bare * 1e3:.3f}",
             "hal_cpu": round(hal_med / 10, 1), "bare_cpu": round(bare_med / 10, 1),
             "dq": f"{dq:.1e}", "faults": sum(r["faults"] for r in runs), "missed": sum(r["missed"] for r in runs),
+            "late": sum(r["nohal_late"] for r in runs),
         })
         raw_results[name] = {"pairs_us": pairs}
         print(f"{name}: done", flush=True)
@@ -563,6 +569,7 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
         ("bare_us", "no-HAL CPU µs/tick"), ("added_us", "HAL adds µs/tick"), ("ratio", "ratio aiohal/no-HAL (median of rounds)"),
         ("iqr", "p25–p75 of rounds"), ("hal_cpu", "CPU % at 1 kHz aiohal"), ("bare_cpu", "no-HAL"),
         ("rms", "RMS error mm aiohal / no-HAL"), ("dq", "final max |Δq| rad"), ("missed", "aiohal missed ticks"),
+        ("late", "no-HAL ticks ≥ 1 period late"),
         ("faults", "faults"),
     ]))
     print(f"\nelapsed {elapsed:.1f} s")
