@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import socket
 import sys
 import time
 
@@ -187,6 +189,27 @@ def _on_asyncio_epoll_loop() -> bool:
     return isinstance(loop, asyncio.SelectorEventLoop) and type(loop._selector).__name__ == "EpollSelector"
 
 
+@contextlib.contextmanager
+def _socket_read_by_the_loop(on_data):
+    """A socket pair whose reading end the running loop watches: ``on_data()`` runs after each
+    datagram is consumed. Yields the writing end."""
+    loop = asyncio.get_running_loop()
+    r, w = socket.socketpair()
+    r.setblocking(False)
+
+    def on_readable():
+        r.recv(16)
+        on_data()
+
+    loop.add_reader(r.fileno(), on_readable)
+    try:
+        yield w
+    finally:
+        loop.remove_reader(r.fileno())
+        r.close()
+        w.close()
+
+
 @pytest.mark.asyncio
 async def test_an_idle_wait_blocks_on_the_timer_on_asyncio_and_goes_round_the_loop_elsewhere():
     if not timerfd_available():
@@ -259,51 +282,45 @@ async def test_io_and_other_threads_reach_the_loop_while_the_ticks_wait_on_the_t
     ticks run: each callback runs within two ticks (waits returned, not deadlines: a stall of
     the host skips deadlines) of the thread doing it. The socket alone can reach the loop only
     through its epoll, which the wait on the timer watches."""
-    import socket
     import threading
 
     if not timerfd_available():
         pytest.skip("timerfd is Linux only")
     loop = asyncio.get_running_loop()
     ticker = Ticker(TimerfdTickSource(), PERIOD)
-    r, w = socket.socketpair()
-    r.setblocking(False)
     waits = 0
     seen: dict[str, int] = {}
     sent_at: dict[str, int] = {}
     go, io_seen = threading.Event(), threading.Event()
 
-    def on_readable():
-        r.recv(16)
+    def on_data():
         seen["io"] = waits
         io_seen.set()
 
-    def from_thread():
-        go.wait(5.0)
-        w.send(b"x")
-        sent_at["io"] = waits
-        if io_seen.wait(5.0):
-            loop.call_soon_threadsafe(lambda: seen.setdefault("call", waits))
-            sent_at["call"] = waits
+    with _socket_read_by_the_loop(on_data) as w:
 
-    loop.add_reader(r.fileno(), on_readable)
-    thread = threading.Thread(target=from_thread)
-    thread.start()
-    ticker.start()
-    try:
-        while len(seen) < 2 and waits < 2000:
-            await ticker.next()
-            waits += 1
-            if waits == 5:
-                go.set()
-    finally:
-        go.set()
-        io_seen.set()
-        ticker.close()
-        loop.remove_reader(r.fileno())
-        thread.join(5.0)
-        r.close()
-        w.close()
+        def from_thread():
+            go.wait(5.0)
+            w.send(b"x")
+            sent_at["io"] = waits
+            if io_seen.wait(5.0):
+                loop.call_soon_threadsafe(lambda: seen.setdefault("call", waits))
+                sent_at["call"] = waits
+
+        thread = threading.Thread(target=from_thread)
+        thread.start()
+        ticker.start()
+        try:
+            while len(seen) < 2 and waits < 2000:
+                await ticker.next()
+                waits += 1
+                if waits == 5:
+                    go.set()
+        finally:
+            go.set()
+            io_seen.set()
+            ticker.close()
+            thread.join(5.0)
     assert set(seen) == {"io", "call"}, f"after {waits} waits only {seen} ran"
     assert seen["io"] - sent_at["io"] <= 2
     assert seen["call"] - sent_at["call"] <= 2
@@ -313,35 +330,22 @@ async def test_io_and_other_threads_reach_the_loop_while_the_ticks_wait_on_the_t
 async def test_io_reaches_the_loop_when_every_tick_overruns():
     """Ticks that take longer than the period find the timer already expired at every wait;
     a socket written at tick 10 is still read within three ticks."""
-    import socket
-
     if not timerfd_available():
         pytest.skip("timerfd is Linux only")
-    loop = asyncio.get_running_loop()
     ticker = Ticker(TimerfdTickSource(), PERIOD)
-    r, w = socket.socketpair()
-    r.setblocking(False)
     seen: list[int] = []
     ticks = 0
-
-    def on_readable():
-        r.recv(16)
-        seen.append(ticks)
-
-    loop.add_reader(r.fileno(), on_readable)
-    ticker.start()
-    try:
-        while not seen and ticks < 200:
-            await ticker.next()
-            ticks += 1
-            time.sleep(0.0015)  # 1.5 periods of work
-            if ticks == 10:
-                w.send(b"x")
-    finally:
-        ticker.close()
-        loop.remove_reader(r.fileno())
-        r.close()
-        w.close()
+    with _socket_read_by_the_loop(lambda: seen.append(ticks)) as w:
+        ticker.start()
+        try:
+            while not seen and ticks < 200:
+                await ticker.next()
+                ticks += 1
+                time.sleep(0.0015)  # 1.5 periods of work
+                if ticks == 10:
+                    w.send(b"x")
+        finally:
+            ticker.close()
     assert seen and seen[0] - 10 <= 3, f"read at tick {seen[0] if seen else None}"
 
 
