@@ -475,22 +475,24 @@ def test_25_slaves_at_1khz(pysoem):
             master.to_op()
             drives = master.m.slaves[:21]
             _command_drives(master, drives, (0x06, 0x0F))
-            for attempt in range(2):
+            attempts = 3
+            for attempt in range(attempts):
                 trips = sim.status()["counters"]["watchdog_trips"]
                 master.bad.clear()
                 good = master.consecutive_good(1000, 3000)
                 status = sim.status()
-                if status["counters"]["watchdog_trips"] == trips or attempt == 1:
+                if status["counters"]["watchdog_trips"] == trips or attempt == attempts - 1:
                     break
                 # this process stalled longer than the SM watchdog (250 ms) while the simulator ran
                 # (its own stalls it discounts): the slaves dropped to SAFEOP+error and the drives
                 # disabled, as on a real segment, and a slave in SAFEOP still counts in the working
-                # counter. Acknowledge, back to OP, enable, and run the 1000 cycles again, once.
+                # counter. Acknowledge, back to OP, enable, and run the 1000 cycles again (at most
+                # three attempts: a fresh-clone run on a host stalling 10-55 % tripped it twice).
                 master.acknowledge_and_op()
                 _command_drives(master, drives, (0x06, 0x0F))
             assert good == 1000, (master.bad, status["counters"])
             assert not master.wrong, master.bad
-            assert status["counters"]["watchdog_trips"] == trips, ("the watchdog tripped in both attempts", master.bad)
+            assert status["counters"]["watchdog_trips"] == trips, ("the watchdog tripped in every attempt", master.bad)
             states = [s["device"].get("state") for s in status["slaves"][:21]]
             assert states == ["operation_enabled"] * 21, (states, master.bad)
         finally:
