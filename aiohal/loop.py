@@ -614,7 +614,6 @@ class ControlLoop:
             "controller": metrics,
         }
 
-
     def _waits(self) -> dict:
         """How the timerfd's waits went: blocked on the timer, or round the event loop."""
         source = self.source

@@ -129,8 +129,9 @@ class TimerfdTickSource(TickSource):
         self.idle_waits = self.loop_waits = 0
         self._loop = asyncio.get_running_loop()
         self._fd = _timerfd_create_settime(t0_ns + (k0 + 1) * period_ns - self.guard_ns, period_ns)
-        self._loop.add_reader(self._fd, self._on_readable)
         self._idle = IdleWait.attach(self._loop, self._fd) if self.idle_wait else None
+        if self._idle is None:  # with an IdleWait the loop watches the timer only while a wait is handed to it
+            self._loop.add_reader(self._fd, self._on_readable)
 
     @property
     def waits_on_timer(self) -> bool:
@@ -150,19 +151,22 @@ class TimerfdTickSource(TickSource):
     async def wait(self) -> int:
         if self._expirations == 0:
             idle = self._idle
-            if idle is not None and idle.wait():
-                self._on_readable()
-            if self._expirations == 0:
-                self.loop_waits += 1
-                self._waiter = self._loop.create_future()
-                try:
-                    await self._waiter
-                finally:
-                    self._waiter = None
+            if idle is None:
+                await self._through_loop()
             else:
-                self.idle_waits += 1
-                if idle.loop_has_io():  # e.g. ticks that overrun: the timer is always ready first
-                    await asyncio.sleep(0)
+                timer, loop_io = idle.wait()
+                if timer:
+                    self._on_readable()
+                if self._expirations:
+                    self.idle_waits += 1
+                    if loop_io:  # I/O came with the timer (ticks that overrun find it expired): one iteration
+                        await asyncio.sleep(0)
+                else:  # the loop has something to run: it runs it, and wakes the tick on the timer
+                    self._loop.add_reader(self._fd, self._on_readable)
+                    try:
+                        await self._through_loop()
+                    finally:
+                        self._loop.remove_reader(self._fd)
         n = self._expirations
         self._expirations = 0
         self._k += n
@@ -172,6 +176,15 @@ class TimerfdTickSource(TickSource):
             while mono() < deadline:
                 pass
         return n
+
+    async def _through_loop(self) -> None:
+        """Wait for the loop's reader callback on the timerfd (``_on_readable``)."""
+        self.loop_waits += 1
+        self._waiter = self._loop.create_future()
+        try:
+            await self._waiter
+        finally:
+            self._waiter = None
 
     def close(self) -> None:
         if self._idle is not None:
@@ -195,9 +208,11 @@ class IdleWait:
     in one epoll on the timerfd and on the loop's own epoll: the timer resumes the tick at once;
     anything else (I/O, a thread's ``call_soon_threadsafe`` or a signal, both of which write
     the loop's self-pipe, or a loop timer falling due) hands the wait back to the loop, which
-    runs it and wakes the tick as before. I/O that is pending when the timer fires (ticks that
-    overrun find the timer already expired) gets one loop iteration right after the wait
-    (:meth:`loop_has_io`), so it runs just after the tick's wake instead of just before it.
+    runs it and wakes the tick as before. The loop watches the timerfd only during such a
+    handed-back wait, so the loop's epoll is readable only for its own business: I/O that is
+    pending when the timer fires (ticks that overrun find the timer already expired) shows in
+    the same poll and gets one loop iteration right after the wait, so it runs just after the
+    tick's wake instead of just before it.
 
     It reads asyncio's ready queue, timer heap and stop flag, so it attaches only to asyncio's
     own epoll loop, and not in debug mode (there a task step that spans many ticks would be
@@ -206,7 +221,7 @@ class IdleWait:
     KeyboardInterrupt inside the tick's task rather than in the loop's select.
     """
 
-    __slots__ = ("_loop", "_fd", "_loop_fd", "_epoll")
+    __slots__ = ("_loop", "_fd", "_epoll")
 
     #: the longest a wait blocks without looking at the loop again (asyncio caps its own
     #: select timeout at a day; epoll refuses more than about 24.8 days)
@@ -226,7 +241,6 @@ class IdleWait:
     def __init__(self, loop: asyncio.AbstractEventLoop, fd: int, loop_fd: int) -> None:
         self._loop = loop
         self._fd = fd
-        self._loop_fd = loop_fd
         self._epoll = select.epoll(2)
         if fd >= 0:
             self._epoll.register(fd, select.EPOLLIN)
@@ -245,29 +259,28 @@ class IdleWait:
             return self.MAX_TIMEOUT_S
         return min(max(0.0, scheduled[0].when() - loop.time()), self.MAX_TIMEOUT_S)
 
-    def wait(self) -> bool:
-        """Block until the timer fires (True), or return False at once or as soon as the loop
-        has something to run: the caller then waits through the loop."""
+    def wait(self) -> tuple[bool, bool]:
+        """Block until the timer fires or the loop has something to run, whichever comes
+        first: (the timer fired, the loop has I/O). (False, _): the caller waits through the
+        loop. Returns at once if the loop has something to run now."""
         timeout = self._due()
         if timeout <= 0.0:
-            return False
+            return False, True
+        timer = loop_io = False
         fd = self._fd
         for ready_fd, _ in self._epoll.poll(timeout):
             if ready_fd == fd:
-                return True
-        return False
-
-    def loop_has_io(self) -> bool:
-        """Whether one of the loop's fds is ready (after the timerfd was read: then only
-        other I/O, a signal or a thread's wake-up make the loop's epoll readable)."""
-        loop_fd = self._loop_fd
-        return any(ready_fd == loop_fd for ready_fd, _ in self._epoll.poll(0))
+                timer = True
+            else:
+                loop_io = True
+        return timer, loop_io
 
     def loop_has_work(self) -> bool:
         """Whether one iteration of the loop would run anything now (a ready callback, a due
-        timer, a stop request, a ready fd). The virtual clock yields to the loop only then: an
-        iteration that finds nothing costs a lockstep tick more than the tick's own bookkeeping."""
-        return self._due() <= 0.0 or self.loop_has_io()
+        timer, a stop request, a ready fd); for an IdleWait without a timer. The virtual clock
+        yields to the loop only then: an iteration that finds nothing costs a lockstep tick
+        more than the tick's own bookkeeping."""
+        return self._due() <= 0.0 or bool(self._epoll.poll(0))
 
     def close(self) -> None:
         self._epoll.close()
