@@ -50,8 +50,9 @@ class LoopSection(Options):
     )
     idle_wait: bool = Field(
         True,
-        description="timerfd on asyncio's own event loop: a wait with nothing else due blocks on the "
-        "timer instead of going round the event loop (less CPU per tick); false: always through the loop.",
+        description="On asyncio's own event loop: a timerfd wait with nothing else due blocks on the "
+        "timer instead of going round the event loop (less CPU per tick), and the virtual clock yields "
+        "only when the loop has something to run; false: always through the loop.",
     )
     overrun: Literal["skip", "catch_up"] = Field(
         "skip", description="After a stall: skip the missed ticks (keep phase) or run them late."

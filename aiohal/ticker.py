@@ -328,7 +328,9 @@ class VirtualTickSource(TickSource):
 
     kind = "virtual"
 
-    def __init__(self, start_ns: int = 0, yield_every_ms: float = 1.0) -> None:
+    def __init__(self, start_ns: int = 0, yield_every_ms: float = 1.0, idle_wait: bool = True) -> None:
+        """``idle_wait=False``: yield every ``yield_every_ms`` whether the loop has work or not."""
+        self.idle_wait = idle_wait
         self._now = start_ns
         self._k = 0
         self._stall = 0
@@ -349,7 +351,7 @@ class VirtualTickSource(TickSource):
             loop = asyncio.get_running_loop()
         except RuntimeError:  # started outside a loop (a test driving the source by hand)
             return
-        self._idle = IdleWait.attach(loop)
+        self._idle = IdleWait.attach(loop) if self.idle_wait else None
 
     def close(self) -> None:
         if self._idle is not None:
@@ -387,7 +389,7 @@ def make_source(kind: str, guard_ns: int = 0, idle_wait: bool = True) -> TickSou
     if kind == "sleep":
         return SleepTickSource()
     if kind == "virtual":
-        return VirtualTickSource()
+        return VirtualTickSource(idle_wait=idle_wait)
     raise ValueError(f"unknown clock {kind!r}")
 
 

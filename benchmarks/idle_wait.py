@@ -1,8 +1,10 @@
 """What waiting on the timer itself saves: aiohal's loop with ``[loop] idle_wait`` on and off,
 side by side in one process.
 
-One ``ControlLoop`` on the real clock (timerfd, 1 kHz) runs ``--rounds`` rounds of ``--ticks``
-ticks, switching its tick source's ``idle_wait`` between rounds (which goes first alternates),
+One ``ControlLoop`` on the real clock (timerfd, 1 kHz; or in lockstep with ``--clock virtual``,
+where ``idle_wait`` decides whether the virtual clock's periodic yield skips an idle loop)
+runs ``--rounds`` rounds of ``--ticks`` ticks, switching its tick source's ``idle_wait`` between
+rounds (which goes first alternates),
 so each pair of rounds is measured a few hundred milliseconds apart and a change of the
 host's speed between processes does not enter the comparison. Per round: CPU per tick
 (process CPU over the round, the wait included), lateness and work p50 from the loop's own
@@ -10,7 +12,7 @@ statistics, and how the waits went. The config's ``[realtime]`` section is dropp
 ``--realtime`` (then SCHED_FIFO and mlockall need root).
 
     python -m benchmarks.idle_wait [--config configs/mock_humanoid.toml] [--controller hold]
-        [--rounds 10] [--ticks 1000] [--loop asyncio] [--realtime] [--json PATH]
+        [--rounds 10] [--ticks 1000] [--loop asyncio] [--clock timerfd|virtual] [--realtime] [--json PATH]
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=10)
     p.add_argument("--ticks", type=int, default=1000, help="ticks per round and setting")
     p.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio")
+    p.add_argument("--clock", choices=("timerfd", "virtual"), default="timerfd")
     p.add_argument("--realtime", action="store_true", help="keep the config's [realtime] settings")
     p.add_argument("--json", default=None)
     args = p.parse_args()
@@ -60,7 +63,7 @@ def main() -> None:
     from aiohal.config import parse_config
 
     raw = tomllib.loads(args.config.read_text())
-    raw.setdefault("loop", {}).update(clock="timerfd", rate_hz=1000.0)
+    raw.setdefault("loop", {}).update(clock=args.clock, rate_hz=1000.0)
     if args.controller != "config":
         raw["controller"] = {"type": args.controller}
     if not args.realtime:
@@ -85,14 +88,14 @@ def main() -> None:
         })
     by_round = {(r["round"], r["idle_wait"]): r["cpu_us"] for r in rows}
     saved = sorted(by_round[r, False] - by_round[r, True] for r in range(args.rounds))
-    print(f"{args.config.name}, controller {args.controller}, {args.loop}, 1 kHz, "
+    print(f"{args.config.name}, controller {args.controller}, {args.loop}, {args.clock} clock, 1 kHz, "
           f"{args.rounds} rounds of {args.ticks} ticks per setting, alternating; medians over the rounds:")
     print(table(summary, [("setting", "setting"), ("cpu_us", "CPU µs/tick"), ("lateness_p50", "lateness p50 µs"),
                           ("lateness_p99", "p99 µs"), ("work_p50", "work p50 µs"), ("missed", "missed"),
                           ("on_timer", "waits on the timer"), ("through_loop", "waits round the loop")]))
     print(f"\nCPU saved per tick, pair by pair: median {statistics.median(saved):.1f} µs "
           f"(min {saved[0]:.1f}, max {saved[-1]:.1f})")
-    write_json(args.json, {"config": str(args.config), "controller": args.controller, "loop": args.loop,
+    write_json(args.json, {"config": str(args.config), "controller": args.controller, "loop": args.loop, "clock": args.clock,
                            "rounds": rows, "summary": summary})
 
 

@@ -448,3 +448,14 @@ async def test_no_wait_on_the_timer_in_debug_mode():
         ticker.close()
         loop.set_debug(was)
     assert not on_timer and source.idle_waits == 0
+
+
+@pytest.mark.asyncio
+async def test_the_virtual_clock_without_idle_wait_yields_on_every_check():
+    source = VirtualTickSource(yield_every_ms=0, idle_wait=False)
+    ticker = Ticker(source, PERIOD)
+    ticker.start()
+    for _ in range(30):
+        await ticker.next()
+    ticker.close()
+    assert source.yields == 30
