@@ -26,6 +26,9 @@ LINE = "dio,drive*2,imu,ft"  # bus order: 0 dio, 1-2 drives, 3 imu, 4 ft
 # SM watchdog of the e2e segments: longer than the default 100 ms (exact semantics are unit
 # tested) so that a stall of the shared test machine does not disable the drives mid-test
 WATCHDOG_MS = 250
+# the 25-slave run's: a CI host stalled this process past 250 ms in each of three attempts
+# (frames lost for 50-180 ms in a row); the scale test is about working counters, not watchdogs
+SCALE_WATCHDOG_MS = 1000
 
 
 def _environment():
@@ -93,18 +96,28 @@ class Master:
         return n
 
     def to_safeop(self):
+        """config_map asks for SAFEOP once; the driver's wait (which asks again a slave left
+        behind by a frame lost in a stall: seen in CI, state 0x06) with a CI-sized timeout."""
+        from aiohal.drivers.ethercat.bus import reach_state
+
         size = self.m.config_overlap_map() if self.overlap else self.m.config_map()
-        assert self.m.state_check(self.p.SAFEOP_STATE, 200_000) == self.p.SAFEOP_STATE
+        assert reach_state(self.m, self.p.SAFEOP_STATE, 5.0), [hex(s.state) for s in self.m.slaves]
         return size
 
     def to_op(self):
+        """Request OP with process data cycling, again every 50 cycles (a lost request), for at
+        most 5 s."""
         self.cycle(1)
-        self.m.state = self.p.OP_STATE
-        self.m.write_state()
-        for _ in range(50):
+        deadline = time.monotonic() + 5.0
+        for i in range(5000):
+            if i % 50 == 0:
+                self.m.state = self.p.OP_STATE
+                self.m.write_state()
             self.cycle(1)
             if self.m.state_check(self.p.OP_STATE, 5_000) == self.p.OP_STATE:
                 return
+            if time.monotonic() > deadline:
+                break
         raise AssertionError([hex(s.al_status) for s in self.m.slaves])
 
     def acknowledge_and_op(self):
@@ -466,7 +479,7 @@ def test_frame_faults_drop_delay_wrong_wkc(master, pysoem):
 
 
 def test_25_slaves_at_1khz(pysoem):
-    with _start("drive*21,imu,ft,dio,dio", watchdog_ms=WATCHDOG_MS) as sim:
+    with _start("drive*21,imu,ft,dio,dio", watchdog_ms=SCALE_WATCHDOG_MS) as sim:
         master = Master(pysoem, sim)
         try:
             assert master.init() == 25
@@ -483,7 +496,7 @@ def test_25_slaves_at_1khz(pysoem):
                 status = sim.status()
                 if status["counters"]["watchdog_trips"] == trips or attempt == attempts - 1:
                     break
-                # this process stalled longer than the SM watchdog (250 ms) while the simulator ran
+                # this process stalled longer than the SM watchdog (1 s) while the simulator ran
                 # (its own stalls it discounts): the slaves dropped to SAFEOP+error and the drives
                 # disabled, as on a real segment, and a slave in SAFEOP still counts in the working
                 # counter. Acknowledge, back to OP, enable, and run the 1000 cycles again (at most

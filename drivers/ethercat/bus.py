@@ -196,7 +196,8 @@ class Bus:
         count = self._sdo_retried(slave, index, 0)[0]
         return [struct.unpack("<I", self._sdo_retried(slave, index, sub)[:4])[0] for sub in range(1, count + 1)]
 
-    def map(self, dc: bool, sync0: Sequence[int] = (), cycle_ns: int = 0, shift_ns: int = 0) -> int:
+    def map(self, dc: bool, sync0: Sequence[int] = (), cycle_ns: int = 0, shift_ns: int = 0,
+            safeop_timeout_s: float = 2.0) -> int:
         """Map the process data (the masters's IO map), set DC up (SYNC0 on the slaves at
         ``sync0``), reach SAFEOP; the map's size."""
         try:
@@ -207,9 +208,9 @@ class Bus:
             self.master.config_dc()
             for position in sync0:
                 self._activate_sync0(position, cycle_ns, shift_ns)
-        if self.master.state_check(SAFEOP, 50_000) != SAFEOP:
-            self.master.read_state()
-            raise BringUpError("slaves did not reach SAFEOP: " + self.describe_not_in(SAFEOP))
+        if not reach_state(self.master, SAFEOP, safeop_timeout_s):
+            raise BringUpError(f"slaves did not reach SAFEOP within {safeop_timeout_s:g} s: "
+                               + self.describe_not_in(SAFEOP))
         return size
 
     def _activate_sync0(self, position: int, cycle_ns: int, shift_ns: int) -> None:
@@ -329,6 +330,23 @@ class Bus:
         except Exception as exc:  # the bus may be gone: closing must still release the socket
             log.warning("ethercat %s: writing INIT failed: %s", self.ifname, exc)
         self.master.close()
+
+
+def reach_state(master: Any, state: int, timeout_s: float, poll_us: int = 50_000) -> bool:
+    """Wait until every slave is in ``state`` (after ``read_state`` when not), asking again each
+    slave still below it without an error: SOEM sends a state request once, and a frame lost in
+    a stall of the machine would leave its slave behind for good. Not for OP, which needs
+    process data cycling meanwhile (``Bus.request_op``)."""
+    deadline = time.monotonic() + timeout_s
+    while master.state_check(state, poll_us) != state:
+        master.read_state()
+        if time.monotonic() >= deadline:
+            return False
+        for slave in master.slaves:
+            if slave.state & 0x0F < state and not slave.state & STATE_ERROR:
+                slave.state = state
+                slave.write_state()
+    return True
 
 
 def check_identity(position: int, device_name: str, name: str, vendor_id: int, product_code: int,

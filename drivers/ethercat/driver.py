@@ -172,6 +172,8 @@ class EthercatOptions(Options):
     keepalive_after_ms: FiniteFloat = Field(20.0, gt=0, le=1000,
                                             description="The driver cycles the bus itself when the loop has not for this long.")
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
+    safeop_timeout_s: FiniteFloat = Field(2.0, gt=0, description="Mapped slaves reach SAFEOP within this (a request "
+                                                                   "lost in a stall is sent again).")
     op_timeout_s: FiniteFloat = Field(5.0, gt=0)
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
 
@@ -320,7 +322,7 @@ class EthercatDriver(Driver):
                     "bits: SOEM packs a slave of fewer than 8 bits into a byte it shares with its neighbours, "
                     "which this driver does not support (pysoem reads and writes whole bytes per slave)")
         bus.map(opts.dc, sync0=opts.sync0_slaves(), cycle_ns=self.view.clock.period_ns,
-                shift_ns=round(opts.sync0_shift_us * 1000))
+                shift_ns=round(opts.sync0_shift_us * 1000), safeop_timeout_s=opts.safeop_timeout_s)
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
             self.infos.append(SlaveInfo(i, s.name, slave.name, slave.man, slave.id, slave.rev, layout,
                                         len(slave.output), len(slave.input)))
