@@ -36,9 +36,9 @@ class CommandLimiter:
     bounds: fixed ones, and for position and velocity a step from the last command sent."""
 
     def __init__(self, robot: Robot, period_s: float) -> None:
+        from . import kernel_call
         from . import limit_kernel as lk  # numba: loaded when a loop is built, not on import aiohal
 
-        self._kernel = lk.limit_commands
         self._refused_bit, self._outside_bit = lk.REFUSED, lk.OUTSIDE
         self.cmd = robot.command
         self.state = robot.state
@@ -67,6 +67,10 @@ class CommandLimiter:
         self._before = table[lk.BEFORE : lk.BEFORE + 2]  # the same, one tick earlier
         self._outside = False  # a joint's last command lies outside its range
         self.refused = 0  # ticks whose command was not finite
+        # the robot's arrays are fixed for its life: checked once here, then called directly
+        self._args = (self.cmd.block, self.cmd.mode, self.state.position, table)
+        kernel_call.check(lk.limit_commands, (*self._args, False))
+        self._kernel = kernel_call.direct(lk.limit_commands)
 
     @property
     def last_position(self) -> np.ndarray:
@@ -115,8 +119,8 @@ class CommandLimiter:
     def apply(self) -> bool:
         """Clamp the command in place. False if some entry was not finite (it was replaced, see
         the module's docstring, then clamped)."""
-        cmd = self.cmd
-        result = self._kernel(cmd.block, cmd.mode, self.state.position, self._table, self._outside)
+        block, mode, position, table = self._args
+        result = self._kernel(block, mode, position, table, self._outside)
         self._outside = bool(result & self._outside_bit)
         if result & self._refused_bit:  # rare
             self.refused += 1

@@ -281,3 +281,29 @@ def test_encode_wraps_the_position_and_clamps_velocity_and_torque_as_the_drive_t
     speed = min(max(round(velocity * counts_per_rad), -2**31), 2**31 - 1) if cia != CSP else 0
     torque = min(max(round(effort * 500.0), -2**15), 2**15 - 1) if cia != CSP else 0
     assert outputs(image, 0) == (0, target, speed, torque, cia)
+
+
+def test_the_kernels_are_called_directly_only_on_arrays_checked_first():
+    image, group = drives(2)
+    group.hold[:] = False
+    plain = JointCommand(2)
+    plain.position[:] = [0.5, 0.25]
+    plain.mode[:] = Mode.POSITION
+    group.write(plain)
+    expected = [outputs(image, i) for i in range(2)]
+    strided = JointCommand(4)
+    strided.block = strided.block[:, ::2]  # 2 joints, every other column: the encode takes any layout
+    strided.mode = strided.mode[::2]
+    strided.block[0] = [0.5, 0.25]
+    strided.mode[:] = Mode.POSITION
+    group.write(JointCommand(2))  # zeros in between
+    group.write(strided)
+    assert [outputs(image, i) for i in range(2)] == expected and expected[0][1] != 0
+    wrong = JointCommand(2)
+    wrong.mode = wrong.mode.astype(np.int32)  # the kernel reads int8 modes
+    with pytest.raises(TypeError, match="encode_drives, argument 5: a 1-d int32 array"):
+        group.write(wrong)
+    state = JointState(2)
+    state.block.flags.writeable = False
+    with pytest.raises(ValueError, match="writable float64 block"):
+        group.bind_state(state)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aiohal import kernel_call
 from aiohal.busvar import ProcessImage, VariableTypeError
 from aiohal.cia402 import Cia402Drive, DriveEvent, DriveUnits, Target
 from aiohal.robot import (
@@ -102,7 +103,20 @@ class DriveGroup:
         self._no_command = np.zeros((len(JOINT_COMMAND_FIELDS), max(self.rows) + 1))
         self._no_mode = np.zeros(max(self.rows) + 1, dtype=np.int8)
         self._checked_command: JointCommand | None = None
+        # the kernels are called directly (numba's dispatch would be most of the call): every
+        # array they are given is checked first, here, in bind_state and for each new command
+        self._decode, self._encode = kernel_call.direct(kernels.decode_drives), kernel_call.direct(kernels.encode_drives)
+        self._check_decode(self._scratch, *self._scratch_stamps)
+        self._check_encode(self._no_command, self._no_mode)
         self.write_holding()
+
+    def _check_decode(self, state: np.ndarray, ticks: np.ndarray, stamps: np.ndarray) -> None:
+        kernel_call.check(kernels.decode_drives,
+                          (self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps, 0, 0))
+
+    def _check_encode(self, block: np.ndarray, mode: np.ndarray) -> None:
+        kernel_call.check(kernels.encode_drives,
+                          (self._outputs, self._layout, self._constants, self.ints, block, mode, False))
 
     def __len__(self) -> int:
         return len(self.specs)
@@ -120,6 +134,7 @@ class DriveGroup:
         for stamps in (state.updated_tick, state.stamp_ns):
             if stamps.dtype != np.int64 or stamps.shape != block.shape[1:] or not stamps.flags.writeable:
                 raise ValueError("the joint state: writable int64 stamps, one per joint, are needed")
+        self._check_decode(block, state.updated_tick, state.stamp_ns)
         self._state = block
         self._ticks, self._stamps = state.updated_tick, state.stamp_ns
 
@@ -132,8 +147,7 @@ class DriveGroup:
             state, ticks, stamps = self._state, self._ticks, self._stamps
         else:
             state, (ticks, stamps) = self._scratch, self._scratch_stamps
-        if kernels.decode_drives(self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps,
-                                 tick, now_ns):
+        if self._decode(self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps, tick, now_ns):
             self._changed = True
 
     def update_machines(self, on_event: Callable[[int, DriveEvent], None]) -> None:
@@ -166,14 +180,13 @@ class DriveGroup:
             if command.block.shape[-1] <= max(self.rows) or command.mode.shape[-1] <= max(self.rows):
                 raise ValueError(f"the joint command has {command.block.shape[-1]} joints, a drive reads row "
                                  f"{max(self.rows)}")
+            self._check_encode(command.block, command.mode)
             self._checked_command = command
-        kernels.encode_drives(self._outputs, self._layout, self._constants, self.ints, command.block, command.mode,
-                              False)
+        self._encode(self._outputs, self._layout, self._constants, self.ints, command.block, command.mode, False)
 
     def write_holding(self) -> None:
         """Every drive: its controlword, target = actual (before the first tick, and in a stop)."""
-        kernels.encode_drives(self._outputs, self._layout, self._constants, self.ints, self._no_command,
-                              self._no_mode, True)
+        self._encode(self._outputs, self._layout, self._constants, self.ints, self._no_command, self._no_mode, True)
 
     def request(self, target: Target) -> None:
         for machine in self.machines:
