@@ -36,6 +36,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.robots --json bench-results/robots.json
 	$(PY) -m benchmarks.gc_pauses --json bench-results/gc_pauses.json
 	$(PY) -m benchmarks.isolated --json bench-results/isolated.json
+	$(PY) -m benchmarks.kernel_call --json bench-results/kernel_call.json
 	$(PY) -m benchmarks.pipe --json bench-results/pipe.json
 	$(PY) -m benchmarks.host_gaps --json bench-results/host_gaps.json
 	@if [ "$$(id -u)" = 0 ]; then $(PY) -m benchmarks.ethercat --json bench-results/ethercat.json; else echo "benchmarks.ethercat skipped: needs root"; fi
