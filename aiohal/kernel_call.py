@@ -4,11 +4,12 @@ numba's dispatcher types every argument on every call to choose a compiled versi
 kernel of nine arguments that is most of the call (the EtherCAT decode of 7 drives: 4.2 µs
 through the dispatcher, 1.5 µs direct, ``python -m benchmarks.kernel_call``). aiohal's
 kernels have one explicit signature, so the choice is known in advance: :func:`direct`
-returns that version's entry point. It refuses an array of the wrong dtype or dimensions,
-but not one of the wrong layout (a strided array in a C-contiguous kernel: the wrong memory
-is read) nor a read-only array the kernel writes (written anyway), and it truncates a float
-passed for an integer. Its callers therefore check their arrays once with :func:`check`
-(they hold them for their life, or check again when one changes).
+returns that version's entry point. That entry point checks almost nothing: an array of
+another dtype of the same item size is misread, a strided array in a C-contiguous kernel
+reads the wrong memory, a read-only array is written, and an array of more dimensions than
+the signature's can crash the process. So :func:`check` is not optional: every array a
+direct call gets must have been checked (callers check the arrays they hold once, and again
+whenever they are handed another one).
 """
 
 from __future__ import annotations

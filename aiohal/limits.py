@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernel_call
 from .robot import JOINT_COMMAND_FIELDS, Robot
 
 _ROW = {name: i for i, name in enumerate(JOINT_COMMAND_FIELDS)}
@@ -36,14 +37,11 @@ class CommandLimiter:
     bounds: fixed ones, and for position and velocity a step from the last command sent."""
 
     def __init__(self, robot: Robot, period_s: float) -> None:
-        from . import kernel_call
         from . import limit_kernel as lk  # numba: loaded when a loop is built, not on import aiohal
 
         self._refused_bit, self._outside_bit = lk.REFUSED, lk.OUTSIDE
         self.cmd = robot.command
         self.state = robot.state
-        if not all(a.flags.c_contiguous for a in (self.cmd.block, self.cmd.mode, self.state.position)):
-            raise ValueError("the limiter's kernel needs the robot's own (C-contiguous) command and state arrays")
         n = robot.dof
         self.period_s = period_s
         self.position_min = robot.position_min
@@ -67,10 +65,20 @@ class CommandLimiter:
         self._before = table[lk.BEFORE : lk.BEFORE + 2]  # the same, one tick earlier
         self._outside = False  # a joint's last command lies outside its range
         self.refused = 0  # ticks whose command was not finite
-        # the robot's arrays are fixed for its life: checked once here, then called directly
-        self._args = (self.cmd.block, self.cmd.mode, self.state.position, table)
-        kernel_call.check(lk.limit_commands, (*self._args, False))
         self._kernel = kernel_call.direct(lk.limit_commands)
+        self._rebind()
+
+    def _rebind(self) -> None:
+        """Check the robot's arrays for the kernel, which is called directly (no numba dispatch)."""
+        from . import limit_kernel as lk
+
+        args = (self.cmd.block, self.cmd.mode, self.state.position, self._table)
+        kernel_call.check(lk.limit_commands, (*args, False))
+        n = self._table.shape[1]
+        if args[0].shape != (len(_ROW), n) or args[1].shape != (n,) or args[2].shape != (n,):
+            raise ValueError(f"the limiter's kernel needs the robot's command block {(len(_ROW), n)}, modes and "
+                             f"positions ({n},): got {args[0].shape}, {args[1].shape}, {args[2].shape}")
+        self._args = args
 
     @property
     def last_position(self) -> np.ndarray:
@@ -120,6 +128,9 @@ class CommandLimiter:
         """Clamp the command in place. False if some entry was not finite (it was replaced, see
         the module's docstring, then clamped)."""
         block, mode, position, table = self._args
+        if self.cmd.block is not block or self.cmd.mode is not mode or self.state.position is not position:
+            self._rebind()  # an array of the robot was replaced: the kernel checks nothing itself
+            block, mode, position, table = self._args
         result = self._kernel(block, mode, position, table, self._outside)
         self._outside = bool(result & self._outside_bit)
         if result & self._refused_bit:  # rare

@@ -1,8 +1,10 @@
-"""The bus's state wait against a scripted master (no root, no pysoem)."""
+"""The bus's SAFEOP wait against a scripted master (no root, no pysoem)."""
 
 from __future__ import annotations
 
-from aiohal.drivers.ethercat.bus import PREOP, SAFEOP, STATE_ERROR, reach_state
+import time
+
+from aiohal.drivers.ethercat.bus import BOOT, INIT, PREOP, SAFEOP, STATE_ERROR, reach_safeop
 
 
 class Slave:
@@ -14,7 +16,7 @@ class Slave:
 
     def write_state(self) -> None:
         self.requests += 1
-        if self.requests > self.lose_requests:
+        if self.requests > self.lose_requests and self.actual == PREOP:
             self.actual = self.state
 
 
@@ -29,9 +31,13 @@ class ScriptedMaster:
             slave.write_state()
 
     def state_check(self, state: int, timeout_us: int) -> int:
+        """As SOEM's: one broadcast read ORs every slave's AL status; the error bit is masked."""
         self.checks += 1
-        states = {s.actual for s in self.slaves}
-        return states.pop() if len(states) == 1 else _or(states)
+        assert timeout_us >= 1000  # SOEM sleeps 1 ms between its reads: the wait never spins
+        seen = 0
+        for slave in self.slaves:
+            seen |= slave.actual
+        return seen & 0x0F
 
     def read_state(self) -> int:
         for slave in self.slaves:
@@ -39,25 +45,29 @@ class ScriptedMaster:
         return min(s.actual for s in self.slaves)
 
 
-def _or(states: set[int]) -> int:
-    out = 0
-    for state in states:
-        out |= state
-    return out
-
-
 def test_a_slave_whose_request_was_lost_is_asked_again():
     slaves = [Slave(), Slave(lose_requests=2), Slave()]
     master = ScriptedMaster(slaves)
-    assert reach_state(master, SAFEOP, timeout_s=5.0, poll_us=0)
+    assert reach_safeop(master, timeout_s=5.0, poll_us=0)
     assert [s.actual for s in slaves] == [SAFEOP] * 3
     assert [s.requests for s in slaves] == [1, 3, 1]  # only the one left behind, twice more
     assert master.checks == 3
 
 
-def test_a_slave_in_error_is_not_asked_again_and_the_wait_ends_at_its_timeout():
-    refused = Slave(lose_requests=10**6, state=PREOP | STATE_ERROR)
+def test_a_slave_in_error_ends_the_wait_at_once_though_the_broadcast_reads_safeop():
+    refused = Slave(state=SAFEOP | STATE_ERROR)  # e.g. its SyncManager settings refused
     master = ScriptedMaster([Slave(), refused])
-    assert not reach_state(master, SAFEOP, timeout_s=0.05, poll_us=0)
+    assert master.state_check(SAFEOP, 1000) == SAFEOP  # SOEM's check alone would call it done
+    t0 = time.monotonic()
+    assert not reach_safeop(master, timeout_s=5.0)
+    assert time.monotonic() - t0 < 1.0
     assert refused.requests == 1  # config_map's own request only
-    assert refused.state == PREOP | STATE_ERROR  # read back for the error message
+    assert refused.state == SAFEOP | STATE_ERROR  # read back, for the error message
+
+
+def test_slaves_in_init_boot_or_silent_are_not_asked_and_the_wait_ends_at_its_timeout():
+    slaves = [Slave(state=INIT), Slave(state=BOOT), Slave(state=0), Slave()]
+    master = ScriptedMaster(slaves)
+    assert not reach_safeop(master, timeout_s=0.05)
+    assert [s.requests for s in slaves] == [1, 1, 1, 1]  # an INIT or BOOT -> SAFEOP request is invalid
+    assert [s.state for s in slaves] == [INIT, BOOT, 0, SAFEOP]

@@ -303,7 +303,18 @@ def test_the_kernels_are_called_directly_only_on_arrays_checked_first():
     wrong.mode = wrong.mode.astype(np.int32)  # the kernel reads int8 modes
     with pytest.raises(TypeError, match="encode_drives, argument 5: a 1-d int32 array"):
         group.write(wrong)
+    wrong.mode = np.zeros(2, dtype=np.int8)
+    group.write(wrong)
+    wrong.mode = np.zeros(2, dtype=np.uint8)  # replaced on a command already written: checked again
+    with pytest.raises(TypeError, match="encode_drives, argument 5: a 1-d uint8 array"):
+        group.write(wrong)
+    wrong.mode = np.zeros(2, dtype=np.int8)
+    wrong.block = np.zeros((6, 1))  # too few joints: the kernel would read past the end
+    with pytest.raises(ValueError, match="the joint command has 1 joints"):
+        group.write(wrong)
     state = JointState(2)
-    state.block.flags.writeable = False
-    with pytest.raises(ValueError, match="writable float64 block"):
+    unaligned = np.frombuffer(bytearray(state.block.nbytes + 1), offset=1).reshape(state.block.shape)
+    state.block = unaligned  # passes bind_state's own checks (float64, 2-d, writable)
+    assert unaligned.flags.writeable and not unaligned.flags.aligned
+    with pytest.raises(TypeError, match="decode_drives, argument 4: not aligned"):
         group.bind_state(state)

@@ -98,10 +98,10 @@ class Master:
     def to_safeop(self):
         """config_map asks for SAFEOP once; the driver's wait (which asks again a slave left
         behind by a frame lost in a stall: seen in CI, state 0x06) with a CI-sized timeout."""
-        from aiohal.drivers.ethercat.bus import reach_state
+        from aiohal.drivers.ethercat.bus import reach_safeop
 
         size = self.m.config_overlap_map() if self.overlap else self.m.config_map()
-        assert reach_state(self.m, self.p.SAFEOP_STATE, 5.0), [hex(s.state) for s in self.m.slaves]
+        assert reach_safeop(self.m, 5.0), [hex(s.state) for s in self.m.slaves]
         return size
 
     def to_op(self):

@@ -208,7 +208,7 @@ class Bus:
             self.master.config_dc()
             for position in sync0:
                 self._activate_sync0(position, cycle_ns, shift_ns)
-        if not reach_state(self.master, SAFEOP, safeop_timeout_s):
+        if not reach_safeop(self.master, safeop_timeout_s):
             raise BringUpError(f"slaves did not reach SAFEOP within {safeop_timeout_s:g} s: "
                                + self.describe_not_in(SAFEOP))
         return size
@@ -332,21 +332,28 @@ class Bus:
         self.master.close()
 
 
-def reach_state(master: Any, state: int, timeout_s: float, poll_us: int = 50_000) -> bool:
-    """Wait until every slave is in ``state`` (after ``read_state`` when not), asking again each
-    slave still below it without an error: SOEM sends a state request once, and a frame lost in
-    a stall of the machine would leave its slave behind for good. Not for OP, which needs
-    process data cycling meanwhile (``Bus.request_op``)."""
+def reach_safeop(master: Any, timeout_s: float, poll_us: int = 50_000) -> bool:
+    """Wait until every slave is in SAFEOP without an error (``read_state`` done either way),
+    asking again each slave still in PREOP without one: SOEM asks once, at the end of
+    ``config_map``, and a frame lost in a stall of the machine would leave its slave behind for
+    good. A slave in another state is not asked, and one in error ends the wait at once (its AL
+    status says why)."""
     deadline = time.monotonic() + timeout_s
-    while master.state_check(state, poll_us) != state:
-        master.read_state()
-        if time.monotonic() >= deadline:
+    poll_us = max(poll_us, 1000)
+    while True:
+        # SOEM's check ORs every slave's state and masks the error bit: confirmed slave by slave
+        if master.state_check(SAFEOP, poll_us) == SAFEOP:
+            master.read_state()
+            if all(slave.state == SAFEOP for slave in master.slaves):
+                return True
+        else:
+            master.read_state()
+        if time.monotonic() >= deadline or any(slave.state & STATE_ERROR for slave in master.slaves):
             return False
         for slave in master.slaves:
-            if slave.state & 0x0F < state and not slave.state & STATE_ERROR:
-                slave.state = state
+            if slave.state == PREOP:
+                slave.state = SAFEOP
                 slave.write_state()
-    return True
 
 
 def check_identity(position: int, device_name: str, name: str, vendor_id: int, product_code: int,

@@ -102,7 +102,8 @@ class DriveGroup:
         self._ticks, self._stamps = self._scratch_stamps
         self._no_command = np.zeros((len(JOINT_COMMAND_FIELDS), max(self.rows) + 1))
         self._no_mode = np.zeros(max(self.rows) + 1, dtype=np.int8)
-        self._checked_command: JointCommand | None = None
+        self._checked_block: np.ndarray | None = None  # the command arrays checked for the encode kernel
+        self._checked_mode: np.ndarray | None = None
         # the kernels are called directly (numba's dispatch would be most of the call): every
         # array they are given is checked first, here, in bind_state and for each new command
         self._decode, self._encode = kernel_call.direct(kernels.decode_drives), kernel_call.direct(kernels.encode_drives)
@@ -127,8 +128,8 @@ class DriveGroup:
         """The robot's joint state (the driver's rows) that :meth:`decode` writes: position,
         velocity, effort (rad, rad/s, N·m) and motor position (rad), and each row's stamps."""
         block = state.block
-        if block.dtype != np.float64 or block.ndim != 2 or not block.flags.writeable:
-            raise ValueError("the joint state: a writable float64 block is needed")
+        if block.dtype != np.float64 or block.ndim != 2 or not block.flags.writeable or block.shape[0] < 4:
+            raise ValueError("the joint state: a writable float64 block of at least 4 rows is needed")
         if block.shape[1] <= max(self.rows):
             raise ValueError(f"the joint state has {block.shape[1]} joints, a drive writes row {max(self.rows)}")
         for stamps in (state.updated_tick, state.stamp_ns):
@@ -176,13 +177,17 @@ class DriveGroup:
     def write(self, command: JointCommand) -> None:
         """Commands → targets, modes and controlwords; a drive in ``hold`` gets target = actual,
         and only the values the drive's mode uses are sent (the others are 0)."""
-        if command is not self._checked_command:  # the kernel does not check bounds: once per command object
-            if command.block.shape[-1] <= max(self.rows) or command.mode.shape[-1] <= max(self.rows):
-                raise ValueError(f"the joint command has {command.block.shape[-1]} joints, a drive reads row "
+        block, mode = command.block, command.mode
+        if block is not self._checked_block or mode is not self._checked_mode:  # the kernel checks nothing
+            if block.shape[-1] <= max(self.rows) or mode.shape[-1] <= max(self.rows):
+                raise ValueError(f"the joint command has {block.shape[-1]} joints, a drive reads row "
                                  f"{max(self.rows)}")
-            self._check_encode(command.block, command.mode)
-            self._checked_command = command
-        self._encode(self._outputs, self._layout, self._constants, self.ints, command.block, command.mode, False)
+            if block.ndim != 2 or block.shape[0] < len(JOINT_COMMAND_FIELDS):
+                raise ValueError(f"the joint command block has shape {block.shape}, "
+                                 f"{len(JOINT_COMMAND_FIELDS)} rows are needed")
+            self._check_encode(block, mode)
+            self._checked_block, self._checked_mode = block, mode
+        self._encode(self._outputs, self._layout, self._constants, self.ints, block, mode, False)
 
     def write_holding(self) -> None:
         """Every drive: its controlword, target = actual (before the first tick, and in a stop)."""
