@@ -54,7 +54,16 @@ def sim():
 def segment(sim):
     sim.control({"cmd": "clear"})
     sim.control({"cmd": "power_cycle"})
+    sim.control({"cmd": "reset_counters"})
     return sim
+
+
+def frames_lost_allowed(segment, cycles: int, least: int) -> int:
+    """Frames a run may lose: at most 5 % of its cycles (or ``least``), plus one per reply the
+    simulator sent more than 1 ms after its frame arrived (it was not run: a stall of this
+    shared machine; these tests wait 2 ms for a frame). A driver that loses frames itself
+    (a send without its receive, a mismatched index) loses far more."""
+    return max(least, cycles // 20) + segment.status()["counters"]["late_1000us"]
 
 
 def raw_config(ifname: str, **options) -> dict:
@@ -143,7 +152,7 @@ async def test_bring_up_to_op_drives_enabled_and_following(segment):
     # a frame later than the receive timeout (a stall of this shared host) costs one cycle; a
     # frame that came back short of a slave never happens
     assert health["cycles"] >= report["ticks"] and health["wkc_errors"] == health["frames_lost"]
-    assert health["frames_lost"] <= max(5, health["cycles"] // 20)
+    assert health["frames_lost"] <= frames_lost_allowed(segment, health["cycles"], 5)
     # the drives follow: the sine moved every joint, and the measured position is where it was sent
     assert np.all(reach > 0.1) and np.all(measured_reach > 0.1), (reach, measured_reach)
     assert position == pytest.approx(commanded, abs=0.02)
@@ -294,7 +303,7 @@ async def test_sdo_round_trips_run_beside_the_ticks(segment):
     assert still_running and ran_during > 0  # the loop ticked while the transfers ran (none if they blocked it)
     bus = report["drivers"]["bus"]
     assert report["faults"] == [] and bus["wkc_errors"] == bus["frames_lost"]  # late frames (stalls), never short
-    assert bus["frames_lost"] <= max(10, bus["cycles"] // 20)
+    assert bus["frames_lost"] <= frames_lost_allowed(segment, bus["cycles"], 10)
 
 
 @pytest.mark.asyncio

@@ -12,6 +12,7 @@ from __future__ import annotations
 import gc
 import os
 import shutil
+import signal
 import struct
 import subprocess
 import time
@@ -473,6 +474,28 @@ def test_frame_faults_drop_delay_wrong_wkc(master, pysoem):
     master.sim.control({"cmd": "al_error", "slave": 4, "code": 0x0020})
     assert m.read_state() == pysoem.SAFEOP_STATE
     assert m.slaves[4].al_status == 0x0020
+
+
+def test_a_reply_held_up_by_a_stalled_simulator_is_counted_late(master, pysoem):
+    """The simulator counts replies that left long after their frame arrived (the kernel's
+    stamp): how a test tells frames lost to a stall of this machine from a driver's fault."""
+    master.up()
+    m = master.m
+    late = [f"late_{us}us" for us in (200, 500, 1000, 10_000)]
+    before = master.sim.status()["counters"]
+    os.kill(master.sim.pid, signal.SIGSTOP)  # a stall of the simulator alone
+    try:
+        m.send_processdata()
+        assert m.receive_processdata(20_000) == -1  # nobody answered within 20 ms
+    finally:
+        os.kill(master.sim.pid, signal.SIGCONT)
+    # the late reply is stale now: SOEM drops it (its datagram index was released), and the
+    # cycles after it come back again
+    assert master.consecutive_good(20, 2000) == 20
+    after = master.sim.status()["counters"]
+    grown = [after[k] - before[k] for k in late]
+    assert all(g >= 1 for g in grown), grown  # the one reply, > 20 ms late, counts at every threshold
+    assert grown == sorted(grown, reverse=True), grown  # a reply later than 10 ms is later than 200 µs
 
 
 # ====================================================================== scale

@@ -36,6 +36,9 @@ POLL_S = 0.005
 # slaves' watchdogs, as hardware slaves would not have stalled with it
 STALL_GRACE_NS = 50_000_000
 MAX_FRAME = 2048
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; the kernel stamps each frame's arrival
+TIMESPEC = struct.Struct("@qq")
+ANCILLARY = socket.CMSG_SPACE(TIMESPEC.size)
 MAX_REQUEST = 65536
 
 
@@ -93,6 +96,7 @@ class Runner:
         sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ECAT))
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             sock.bind((self.ifname, ETH_P_ECAT))
             sock.setblocking(False)
         except OSError:
@@ -139,8 +143,11 @@ class Runner:
             ep.register(ctrl_fd, select.EPOLLIN)
         buf = bytearray(MAX_FRAME)
         view = memoryview(buf)
-        recv = self.sock.recvfrom_into
+        recv = self.sock.recvmsg_into
+        buffers = [buf]
         send = self.sock.send
+        wall_ns = time.time_ns
+        stamp = TIMESPEC.unpack_from
         handle = self.segment.handle_frame
         seg = self.segment
         end = None if duration_s is None else time.monotonic() + duration_s
@@ -166,7 +173,7 @@ class Runner:
                     if fd == raw_fd:
                         for _ in range(256):  # drain, bounded
                             try:
-                                n, addr = recv(buf)
+                                n, ancillary, _flags, addr = recv(buffers, ANCILLARY)
                             except BlockingIOError:
                                 break
                             except OSError as exc:
@@ -199,6 +206,9 @@ class Runner:
                                 except OSError as exc:
                                     if exc.errno not in (errno.ENOBUFS, errno.EAGAIN, errno.ENETDOWN):
                                         raise
+                                if ancillary and ancillary[0][1] == SO_TIMESTAMPNS:
+                                    sec, nsec = stamp(ancillary[0][2])
+                                    seg.note_reply_latency(wall_ns() - sec * 1_000_000_000 - nsec)
                     elif fd == ctrl_fd:
                         self._accept(ep)
                     else:

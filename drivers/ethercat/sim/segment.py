@@ -32,6 +32,12 @@ NOP, APRD, APWR, APRW, FPRD, FPWR, FPRW, BRD, BWR, BRW, LRD, LWR, LRW, ARMW, FRM
 COMMANDS = ("NOP", "APRD", "APWR", "APRW", "FPRD", "FPWR", "FPRW", "BRD", "BWR", "BRW", "LRD",
             "LWR", "LRW", "ARMW", "FRMW")
 POLL_NS = 1_000_000
+#: replies later than these (µs after the frame arrived) are counted, as ``late_<N>us``
+LATE_REPLY_US = (200, 500, 1000, 10_000)
+
+
+def _late_key(us: int) -> str:
+    return f"late_{us}us"
 
 
 class Faults:
@@ -94,7 +100,8 @@ class Segment:
     # ------------------------------------------------------------------ bookkeeping
     def reset_counters(self) -> None:
         self.counters = {"frames": 0, "replied": 0, "dropped": 0, "delayed": 0, "ignored": 0,
-                         "wkc_corrupted": 0, "watchdog_trips": 0, "datagrams": 0, "stalls_discounted": 0}
+                         "wkc_corrupted": 0, "watchdog_trips": 0, "datagrams": 0, "stalls_discounted": 0,
+                         **{_late_key(us): 0 for us in LATE_REPLY_US}}
         self.command_counts = [0] * 16
 
     def _on_change(self, what: str) -> None:
@@ -221,6 +228,16 @@ class Segment:
         for esc in self.slaves:
             if esc.al_state == OP and esc.check_watchdog(now):
                 self.counters["watchdog_trips"] += 1
+
+    def note_reply_latency(self, ns: int) -> None:
+        """A reply went out ``ns`` after its frame reached this host's socket (kernel stamp).
+        Hardware answers in microseconds; a late reply here is this process descheduled (a
+        stall of the machine), and a master waiting less than that counted the frame lost."""
+        if ns > LATE_REPLY_US[0] * 1000:
+            c = self.counters
+            for us in LATE_REPLY_US:
+                if ns > us * 1000:
+                    c[_late_key(us)] += 1
 
     def discount_stall(self, ns: int) -> None:
         """The simulator was not run for ``ns`` (the host stalled it, and the master with it):
