@@ -1,10 +1,12 @@
-"""The bus's SAFEOP wait against a scripted master (no root, no pysoem)."""
+"""The bus's state requests against a scripted master (no root, no pysoem)."""
 
 from __future__ import annotations
 
 import time
 
-from aiohal.drivers.ethercat.bus import BOOT, INIT, PREOP, SAFEOP, STATE_ERROR, reach_safeop
+import pytest
+
+from aiohal.drivers.ethercat.bus import BOOT, INIT, OP, PREOP, SAFEOP, STATE_ERROR, BringUpError, Bus, reach_safeop
 
 
 class Slave:
@@ -71,3 +73,58 @@ def test_slaves_in_init_boot_or_silent_are_not_asked_and_the_wait_ends_at_its_ti
     assert not reach_safeop(master, timeout_s=0.05)
     assert [s.requests for s in slaves] == [1, 1, 1, 1]  # an INIT or BOOT -> SAFEOP request is invalid
     assert [s.state for s in slaves] == [INIT, BOOT, 0, SAFEOP]
+
+
+class OpMaster:
+    """A master whose bus is in SAFEOP; the first ``lose`` OP requests are lost on the wire."""
+
+    def __init__(self, slaves: int, lose: int) -> None:
+        self.slaves = [Slave(state=SAFEOP) for _ in range(slaves)]
+        self.state = SAFEOP
+        self.lose = lose
+        self.requests = 0
+
+    def write_state(self) -> None:
+        self.requests += 1
+        if self.requests > self.lose and self.state == OP:
+            for slave in self.slaves:
+                slave.actual = OP
+
+    def state_check(self, state: int, timeout_us: int) -> int:
+        seen = 0
+        for slave in self.slaves:
+            seen |= slave.actual
+        self.state = seen & 0x0F  # as SOEM: the check leaves what it read in slave 0's state
+        return self.state
+
+    def read_state(self) -> int:
+        for slave in self.slaves:
+            slave.state = slave.actual
+        return min(s.actual for s in self.slaves)
+
+
+def _bus(master):
+    from types import SimpleNamespace
+
+    errors = SimpleNamespace(MailboxError=OSError, PacketError=OSError, WkcError=OSError,
+                             al_status_code_to_string=lambda code: "no error")
+    bus = Bus(errors, "scripted")
+    bus.master, bus.slaves = master, master.slaves
+    for slave in master.slaves:
+        slave.name, slave.al_status = "AIOHAL-Drive", 0
+    return bus
+
+
+def test_the_op_request_is_sent_again_until_the_bus_is_in_op():
+    master = OpMaster(3, lose=2)
+    cycles = []
+    _bus(master).request_op(lambda: cycles.append(1), timeout_s=5.0, period_s=0.001, again_s=0.01)
+    assert master.requests == 3 and [s.actual for s in master.slaves] == [OP] * 3
+    assert len(cycles) >= 3 + 2  # process data cycled before and all along
+
+
+def test_op_not_reached_names_the_slaves_left_behind():
+    master = OpMaster(2, lose=10**6)
+    with pytest.raises(BringUpError, match=r"did not reach OP within 0.05 s: slave 0 \(AIOHAL-Drive\) in SAFEOP"):
+        _bus(master).request_op(lambda: None, timeout_s=0.05, period_s=0.001, again_s=0.01)
+    assert master.requests >= 3

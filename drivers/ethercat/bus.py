@@ -228,15 +228,20 @@ class Bus:
             raise BringUpError(f"slave {position} ({slave.name}) did not take SYNC0 at {cycle_ns} ns (no distributed "
                                f"clock?); options.slaves[{position}].sync0 = false leaves it out")
 
-    def request_op(self, exchange: Any, timeout_s: float, period_s: float) -> None:
-        """SAFEOP → OP, with process data cycling (``exchange()``) before and during the request."""
+    def request_op(self, exchange: Any, timeout_s: float, period_s: float, again_s: float = 0.1) -> None:
+        """SAFEOP → OP, with process data cycling (``exchange()``) before and during the request,
+        which is sent again every ``again_s`` until every slave is there (a request lost in a
+        stall of the machine would otherwise leave the bus in SAFEOP until the timeout)."""
         for _ in range(3):
             exchange()
             time.sleep(period_s)
-        self.master.state = OP
-        self.master.write_state()
-        deadline = time.monotonic() + timeout_s
+        now = time.monotonic()
+        deadline, again = now + timeout_s, now
         while time.monotonic() < deadline:
+            if time.monotonic() >= again:
+                self.master.state = OP  # (a state check overwrites it with what it read)
+                self.master.write_state()
+                again = time.monotonic() + again_s
             exchange()
             if self.master.state_check(OP, 1000) == OP:
                 return
