@@ -158,6 +158,19 @@ class Master:
                 return run
         return run
 
+    def good_cycles(self, n, max_cycles, period=0.001):
+        """Cycle until n cycles had the expected working counter (bounded by max_cycles); the
+        good ones. For long runs on a machine that stalls more often than n cycles last: the
+        caller holds each lost frame against the simulator's late replies."""
+        good = 0
+        for _ in range(max_cycles):
+            before = len(self.bad)
+            self.cycle(1, period)
+            good += len(self.bad) == before
+            if good >= n:
+                break
+        return good
+
     def cycle(self, n=1, period=0.001, on_cycle=None):
         """n process-data cycles paced at ``period`` (deadline based); returns the last WKC.
         The collector is off meanwhile, as in a real-time loop (a long gen-2 pause of the big
@@ -513,9 +526,10 @@ def test_25_slaves_at_1khz(pysoem):
             _command_drives(master, drives, (0x06, 0x0F))
             attempts = 3
             for attempt in range(attempts):
-                trips = sim.status()["counters"]["watchdog_trips"]
+                before = sim.status()["counters"]
+                trips = before["watchdog_trips"]
                 master.bad.clear()
-                good = master.consecutive_good(1000, 3000)
+                good = master.good_cycles(1000, 3000)
                 status = sim.status()
                 if status["counters"]["watchdog_trips"] == trips or attempt == attempts - 1:
                     break
@@ -528,6 +542,11 @@ def test_25_slaves_at_1khz(pysoem):
                 _command_drives(master, drives, (0x06, 0x0F))
             assert good == 1000, (master.bad, status["counters"])
             assert not master.wrong, master.bad
+            # every frame lost (none came back within 50 ms) is a reply the simulator sent late:
+            # it was not run (a stall of this machine); a few more for a stall that caught the
+            # master between its last look at the socket and its timeout
+            late = status["counters"]["late_10000us"] - before["late_10000us"]
+            assert len(master.lost) <= late + 5, (master.lost, late)
             assert status["counters"]["watchdog_trips"] == trips, ("the watchdog tripped in every attempt", master.bad)
             states = [s["device"].get("state") for s in status["slaves"][:21]]
             assert states == ["operation_enabled"] * 21, (states, master.bad)
