@@ -78,29 +78,56 @@ def test_slaves_in_init_boot_or_silent_are_not_asked_and_the_wait_ends_at_its_ti
 class OpMaster:
     """A master whose bus is in SAFEOP; the first ``lose`` OP requests are lost on the wire."""
 
-    def __init__(self, slaves: int, lose: int) -> None:
+    def __init__(self, slaves: int, lose: int, error_at: int | None = None) -> None:
         self.slaves = [Slave(state=SAFEOP) for _ in range(slaves)]
         self.state = SAFEOP
         self.lose = lose
-        self.requests = 0
+        self.error_at = error_at  # after this many requests, slave 0 raises an AL error
+        self.written: list[int] = []
 
     def write_state(self) -> None:
-        self.requests += 1
-        if self.requests > self.lose and self.state == OP:
+        self.written.append(self.state)
+        if self.error_at is not None and len(self.written) >= self.error_at:
+            self.slaves[0].actual = SAFEOP | STATE_ERROR
+        if len(self.written) > self.lose and self.state == OP:
             for slave in self.slaves:
-                slave.actual = OP
+                if slave.actual == SAFEOP:
+                    slave.actual = OP
 
     def state_check(self, state: int, timeout_us: int) -> int:
         seen = 0
         for slave in self.slaves:
             seen |= slave.actual
-        self.state = seen & 0x0F  # as SOEM: the check leaves what it read in slave 0's state
-        return self.state
+        self.state = seen  # as SOEM: the check leaves what it read (the error bit too) in slave 0's state
+        return seen & 0x0F
 
     def read_state(self) -> int:
         for slave in self.slaves:
             slave.state = slave.actual
         return min(s.actual for s in self.slaves)
+
+
+class FakeClock:
+    """``time`` for the bus module: sleeping advances it, nothing waits."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def monotonic(self) -> float:
+        self.now += 1e-6
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    from aiohal.drivers.ethercat import bus
+
+    fake = FakeClock()
+    monkeypatch.setattr(bus, "time", fake)
+    return fake
 
 
 def _bus(master):
@@ -115,16 +142,24 @@ def _bus(master):
     return bus
 
 
-def test_the_op_request_is_sent_again_until_the_bus_is_in_op():
+def test_the_op_request_is_sent_again_until_the_bus_is_in_op(clock):
     master = OpMaster(3, lose=2)
     cycles = []
-    _bus(master).request_op(lambda: cycles.append(1), timeout_s=5.0, period_s=0.001, again_s=0.01)
-    assert master.requests == 3 and [s.actual for s in master.slaves] == [OP] * 3
-    assert len(cycles) >= 3 + 2  # process data cycled before and all along
+    _bus(master).request_op(lambda: cycles.append(1), timeout_s=5.0, period_s=0.001, again_s=0.1)
+    assert master.written == [OP] * 3  # never the acknowledge bit a state check read back
+    assert [s.actual for s in master.slaves] == [OP] * 3
+    assert 0.2 <= clock.now < 0.25 and len(cycles) > 200  # again every 0.1 s, the process data cycling all along
 
 
-def test_op_not_reached_names_the_slaves_left_behind():
+def test_op_not_reached_names_the_slaves_left_behind(clock):
     master = OpMaster(2, lose=10**6)
-    with pytest.raises(BringUpError, match=r"did not reach OP within 0.05 s: slave 0 \(AIOHAL-Drive\) in SAFEOP"):
-        _bus(master).request_op(lambda: None, timeout_s=0.05, period_s=0.001, again_s=0.01)
-    assert master.requests >= 3
+    with pytest.raises(BringUpError, match=r"did not reach OP within 0.5 s: slave 0 \(AIOHAL-Drive\) in SAFEOP"):
+        _bus(master).request_op(lambda: None, timeout_s=0.5, period_s=0.001, again_s=0.1)
+    assert master.written == [OP] * 5
+
+
+def test_a_slave_in_error_ends_the_op_wait_at_once(clock):
+    master = OpMaster(2, lose=10**6, error_at=2)
+    with pytest.raises(BringUpError, match=r"did not reach OP: slave 0 \(AIOHAL-Drive\) in SAFEOP"):
+        _bus(master).request_op(lambda: None, timeout_s=5.0, period_s=0.001, again_s=0.1)
+    assert master.written == [OP] * 2 and clock.now < 0.25

@@ -59,11 +59,12 @@ def segment(sim):
 
 
 def frames_lost_allowed(segment, cycles: int, least: int) -> int:
-    """Frames a run may lose: at most 5 % of its cycles (or ``least``), plus one per reply the
-    simulator sent more than 1 ms after its frame arrived (it was not run: a stall of this
-    shared machine; these tests wait 2 ms for a frame). A driver that loses frames itself
-    (a send without its receive, a mismatched index) loses far more."""
-    return max(least, cycles // 20) + segment.status()["counters"]["late_1000us"]
+    """Frames a run may lose: at most 5 % of its cycles (or ``least``), plus one per
+    process-data reply the simulator sent more than 2 ms after its frame arrived (it was not
+    run: a stall of this shared machine; these tests wait 2 ms for a frame, counters reset by
+    the ``segment`` fixture). A driver that loses frames itself (a send without its receive, a
+    mismatched index) loses far more."""
+    return max(least, cycles // 20) + segment.status()["counters"]["late_2000us"]
 
 
 def raw_config(ifname: str, **options) -> dict:

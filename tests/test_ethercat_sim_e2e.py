@@ -490,25 +490,32 @@ def test_frame_faults_drop_delay_wrong_wkc(master, pysoem):
 
 
 def test_a_reply_held_up_by_a_stalled_simulator_is_counted_late(master, pysoem):
-    """The simulator counts replies that left long after their frame arrived (the kernel's
-    stamp): how a test tells frames lost to a stall of this machine from a driver's fault."""
+    """The simulator counts process-data replies that left long after their frame arrived
+    (the kernel's stamp): how a test tells frames lost to a stall of this machine from a
+    driver's fault."""
     master.up()
     m = master.m
-    late = [f"late_{us}us" for us in (200, 500, 1000, 10_000)]
+    late = [f"late_{us}us" for us in (200, 1000, 2000, 10_000)]
     before = master.sim.status()["counters"]
-    os.kill(master.sim.pid, signal.SIGSTOP)  # a stall of the simulator alone
-    try:
-        m.send_processdata()
-        assert m.receive_processdata(20_000) == -1  # nobody answered within 20 ms
-    finally:
-        os.kill(master.sim.pid, signal.SIGCONT)
+    for _attempt in range(3):  # (a SIGCONT from elsewhere could end the stall early: try again)
+        os.kill(master.sim.pid, signal.SIGSTOP)  # a stall of the simulator alone
+        try:
+            m.send_processdata()
+            wkc = m.receive_processdata(20_000)
+        finally:
+            os.kill(master.sim.pid, signal.SIGCONT)
+        if wkc == -1:  # nobody answered within 20 ms
+            break
+    assert wkc == -1
     # the late reply is stale now: SOEM drops it (its datagram index was released), and the
     # cycles after it come back again
+    cycles_before = master.cycles
     assert master.consecutive_good(20, 2000) == 20
     after = master.sim.status()["counters"]
-    grown = [after[k] - before[k] for k in late]
-    assert all(g >= 1 for g in grown), grown  # the one reply, > 20 ms late, counts at every threshold
-    assert grown == sorted(grown, reverse=True), grown  # a reply later than 10 ms is later than 200 µs
+    grown = {k: after[k] - before[k] for k in late}
+    assert all(g >= 1 for g in grown.values()), grown  # the reply, > 20 ms late, counts at each threshold
+    # not every reply: the cycles after it were answered within a few ms (bar a stall of 10 ms)
+    assert grown["late_10000us"] <= 1 + (master.cycles - cycles_before) // 2, grown
 
 
 # ====================================================================== scale
@@ -542,10 +549,10 @@ def test_25_slaves_at_1khz(pysoem):
                 _command_drives(master, drives, (0x06, 0x0F))
             assert good == 1000, (master.bad, status["counters"])
             assert not master.wrong, master.bad
-            # every frame lost (none came back within 50 ms) is a reply the simulator sent late:
-            # it was not run (a stall of this machine); a few more for a stall that caught the
-            # master between its last look at the socket and its timeout
-            late = status["counters"]["late_10000us"] - before["late_10000us"]
+            # every frame lost (none came back within 50 ms) is a reply the simulator sent more
+            # than 50 ms late: it was not run (a stall of this machine); a few more for a stall
+            # that caught the master between its last look at the socket and its timeout
+            late = status["counters"]["late_50000us"] - before["late_50000us"]
             assert len(master.lost) <= late + 5, (master.lost, late)
             assert status["counters"]["watchdog_trips"] == trips, ("the watchdog tripped in every attempt", master.bad)
             states = [s["device"].get("state") for s in status["slaves"][:21]]

@@ -229,19 +229,24 @@ class Bus:
                                f"clock?); options.slaves[{position}].sync0 = false leaves it out")
 
     def request_op(self, exchange: Any, timeout_s: float, period_s: float, again_s: float = 0.1) -> None:
-        """SAFEOP → OP, with process data cycling (``exchange()``) before and during the request,
-        which is sent again every ``again_s`` until every slave is there (a request lost in a
-        stall of the machine would otherwise leave the bus in SAFEOP until the timeout)."""
+        """SAFEOP → OP, with process data cycling (``exchange()``) before and during the request.
+        The request (a broadcast) goes out again every ``again_s`` while the bus is not there,
+        since a frame lost in a stall of the machine would leave it in SAFEOP until the timeout;
+        before each repeat the states are read, and a slave in error ends the wait at once."""
         for _ in range(3):
             exchange()
             time.sleep(period_s)
         now = time.monotonic()
-        deadline, again = now + timeout_s, now
+        deadline, again, first = now + timeout_s, now, True
         while time.monotonic() < deadline:
             if time.monotonic() >= again:
+                if not first:
+                    self.master.read_state()
+                    if any(slave.state & STATE_ERROR for slave in self.slaves):
+                        raise BringUpError("slaves did not reach OP: " + self.describe_not_in(OP))
                 self.master.state = OP  # (a state check overwrites it with what it read)
                 self.master.write_state()
-                again = time.monotonic() + again_s
+                again, first = time.monotonic() + again_s, False
             exchange()
             if self.master.state_check(OP, 1000) == OP:
                 return

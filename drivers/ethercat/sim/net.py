@@ -206,9 +206,11 @@ class Runner:
                                 except OSError as exc:
                                     if exc.errno not in (errno.ENOBUFS, errno.EAGAIN, errno.ENETDOWN):
                                         raise
-                                if ancillary and ancillary[0][1] == SO_TIMESTAMPNS:
-                                    sec, nsec = stamp(ancillary[0][2])
-                                    seg.note_reply_latency(wall_ns() - sec * 1_000_000_000 - nsec)
+                                if seg.last_logical and ancillary:
+                                    level, kind, data = ancillary[0]
+                                    if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= TIMESPEC.size:
+                                        sec, nsec = stamp(data)
+                                        seg.note_reply_latency(wall_ns() - sec * 1_000_000_000 - nsec)
                     elif fd == ctrl_fd:
                         self._accept(ep)
                     else:

@@ -32,8 +32,8 @@ NOP, APRD, APWR, APRW, FPRD, FPWR, FPRW, BRD, BWR, BRW, LRD, LWR, LRW, ARMW, FRM
 COMMANDS = ("NOP", "APRD", "APWR", "APRW", "FPRD", "FPWR", "FPRW", "BRD", "BWR", "BRW", "LRD",
             "LWR", "LRW", "ARMW", "FRMW")
 POLL_NS = 1_000_000
-#: replies later than these (µs after the frame arrived) are counted, as ``late_<N>us``
-LATE_REPLY_US = (200, 500, 1000, 10_000)
+#: process-data replies later than these (µs after the frame arrived) are counted, as ``late_<N>us``
+LATE_REPLY_US = (200, 1000, 2000, 10_000, 50_000)
 
 
 def _late_key(us: int) -> str:
@@ -80,6 +80,7 @@ class Segment:
         self.break_at: int | None = None
         self.active: list[Esc] = []
         self.last_delay_ns = 0
+        self.last_logical = False  # the last frame handled carried process data
         self._addr: dict[int, list[Esc]] = {}
         self._lmap: list[Esc] = []
         self._plans: dict[tuple[int, int, int], list[tuple]] = {}
@@ -146,6 +147,7 @@ class Segment:
         c = self.counters
         c["frames"] += 1
         self.last_delay_ns = 0
+        self.last_logical = False
         if now >= self._next_poll:
             self.poll(now)
         if len(frame) < 28 or frame[12:14] != ETHERTYPE:
@@ -194,6 +196,7 @@ class Segment:
             if not ln & 0x8000:
                 break
             pos = wpos + 2
+        self.last_logical = logical  # a process-data frame (LRD/LWR/LRW): its reply's lateness is counted
         touched = self._touched
         if touched:
             for esc in touched:
@@ -230,9 +233,10 @@ class Segment:
                 self.counters["watchdog_trips"] += 1
 
     def note_reply_latency(self, ns: int) -> None:
-        """A reply went out ``ns`` after its frame reached this host's socket (kernel stamp).
-        Hardware answers in microseconds; a late reply here is this process descheduled (a
-        stall of the machine), and a master waiting less than that counted the frame lost."""
+        """A process-data reply went out ``ns`` after its frame reached this host's socket
+        (kernel stamp). Hardware answers in microseconds; a late reply here is this process
+        descheduled (a stall of the machine), and a master waiting less than that counted the
+        frame lost. (A reply held up after it left, on its way back, is not seen here.)"""
         if ns > LATE_REPLY_US[0] * 1000:
             c = self.counters
             for us in LATE_REPLY_US:
