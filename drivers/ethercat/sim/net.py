@@ -31,9 +31,11 @@ SIOCGIFFLAGS = 0x8913
 SIOCSIFFLAGS = 0x8914
 IFF_UP = 0x1
 POLL_S = 0.005
-# a wake-up later than the poll's timeout by more than this means this process was not run
-# (a stall of the host, which stalls the master as well): that time is not held against the
-# slaves' watchdogs, as hardware slaves would not have stalled with it
+# a wake-up later than the poll's timeout by more than this, or a step of the loop taking this
+# long, means this process was not run (a stall of the host, which stalls the master as well):
+# that time is not held against the slaves' watchdogs, as hardware slaves would not have
+# stalled with it. Checked between every two steps of the loop, so that a stall anywhere in it
+# is seen before the watchdogs are.
 STALL_GRACE_NS = 50_000_000
 MAX_FRAME = 2048
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; the kernel stamps each frame's arrival
@@ -195,6 +197,8 @@ class Runner:
                                     traceback.print_exc()
                                 continue
                             mark = seg.clock()
+                            if mark - now > STALL_GRACE_NS:  # stalled while handling it
+                                seg.discount_stall(mark - now)
                             if reply is None:
                                 continue
                             if seg.last_delay_ns:
@@ -216,6 +220,8 @@ class Runner:
                     else:
                         self._serve_conn(ep, fd)
                 now = seg.clock()
+                if now - mark > STALL_GRACE_NS:  # stalled after the last frame (or serving control)
+                    seg.discount_stall(now - mark)
                 while self._delayed and self._delayed[0][0] <= now:
                     _, _, reply = heapq.heappop(self._delayed)
                     try:
