@@ -163,3 +163,33 @@ def test_a_slave_in_error_ends_the_op_wait_at_once(clock):
     with pytest.raises(BringUpError, match=r"did not reach OP: slave 0 \(AIOHAL-Drive\) in SAFEOP"):
         _bus(master).request_op(lambda: None, timeout_s=5.0, period_s=0.001, again_s=0.1)
     assert master.written == [OP] * 2 and clock.now < 0.25
+
+
+class MailboxSlave:
+    """``sdo_write`` loses its first ``lose`` frames, then aborts or stores."""
+
+    name = "AIOHAL-Drive"
+
+    def __init__(self, lose: int, abort: bool = False) -> None:
+        self.lose, self.abort, self.calls, self.od = lose, abort, 0, {}
+
+    def sdo_write(self, index: int, subindex: int, data: bytes, release_gil: bool = False) -> None:
+        self.calls += 1
+        if self.calls <= self.lose:
+            raise OSError("no frame back")  # the scripted pysoem's WkcError
+        if self.abort:
+            raise LookupError("abort 0x06040041")  # stands for pysoem.SdoError: never retried
+        self.od[index, subindex] = data
+
+
+def test_a_mapping_write_whose_frame_was_lost_is_written_again_but_an_abort_is_not(clock):
+    bus = _bus(OpMaster(1, lose=0))
+    slave = MailboxSlave(lose=2)
+    bus._sdo_write_again_if_lost(slave, 0x1601, 1, b"\x10\x00\x40\x60")
+    assert slave.calls == 3 and slave.od == {(0x1601, 1): b"\x10\x00\x40\x60"}
+    with pytest.raises(OSError):
+        bus._sdo_write_again_if_lost(MailboxSlave(lose=3), 0x1601, 1, b"\0")  # three attempts, then the loss
+    refusing = MailboxSlave(lose=0, abort=True)
+    with pytest.raises(LookupError):
+        bus._sdo_write_again_if_lost(refusing, 0x1601, 0, b"\0")
+    assert refusing.calls == 1
