@@ -150,31 +150,28 @@ class Bus:
                                   f"({type(exc).__name__}: {exc})") from exc
         return sii_layout.SiiReader(read)
 
-    def _sdo_retried(self, slave: Any, index: int, subindex: int, size: int = 0, attempts: int = 3) -> bytes:
-        """An SDO read, tried again when its mailbox frame was lost (not when the slave aborts
-        it): a lost frame is a normal event on a bus, and on a busy host. A read changes
-        nothing, so a second one is safe (a write only where it sets a value, below)."""
-        for attempt in range(attempts - 1):
-            try:
-                return slave.sdo_read(index, subindex, size, release_gil=True)
-            except self.lost_frame:
-                time.sleep(0.01 * (attempt + 1))
-                log.info("ethercat %s: SDO read 0x%04X:%02X of %s lost, trying again", self.ifname, index,
-                         subindex, slave.name)
-        return slave.sdo_read(index, subindex, size, release_gil=True)
+    def _sdo_retried(self, slave: Any, index: int, subindex: int, size: int = 0) -> bytes:
+        """An SDO read, tried again when its mailbox frame was lost: a read changes nothing."""
+        return self._again_if_lost(lambda: slave.sdo_read(index, subindex, size, release_gil=True),
+                                   f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}")
 
-    def _sdo_write_again_if_lost(self, slave: Any, index: int, subindex: int, data: bytes, attempts: int = 3) -> None:
-        """An SDO write of a value, tried again when its mailbox frame was lost (not when the
-        slave aborts it). Only for writes that set a value, where a second one changes nothing
-        if the first got through (the PDO mapping at bring-up); not for commands."""
+    def _sdo_write_again_if_lost(self, slave: Any, index: int, subindex: int, data: bytes) -> None:
+        """An SDO write of a value, tried again when its mailbox frame was lost. Only for writes
+        that set a value, where a second one changes nothing if the first got through (the PDO
+        mapping at bring-up); not for commands."""
+        self._again_if_lost(lambda: slave.sdo_write(index, subindex, data, release_gil=True),
+                            f"SDO write 0x{index:04X}:{subindex:02X} to {slave.name}")
+
+    def _again_if_lost(self, transfer: Any, what: str, attempts: int = 3) -> Any:
+        """``transfer()``, tried again when its frame was lost (not when the slave refused it):
+        a lost frame is a normal event on a bus, and on a busy host."""
         for attempt in range(attempts - 1):
             try:
-                return slave.sdo_write(index, subindex, data, release_gil=True)
+                return transfer()
             except self.lost_frame:
                 time.sleep(0.01 * (attempt + 1))
-                log.info("ethercat %s: SDO write 0x%04X:%02X to %s lost, trying again", self.ifname, index,
-                         subindex, slave.name)
-        return slave.sdo_write(index, subindex, data, release_gil=True)
+                log.info("ethercat %s: %s lost, trying again", self.ifname, what)
+        return transfer()
 
     def write_pdo_assignment(self, position: int, assign: int, pdos: list[tuple[int, list[int]]]) -> None:
         """Assign ``pdos`` (0x1C12: outputs, 0x1C13: inputs), in order, writing the mapping of
