@@ -65,15 +65,14 @@ class CommandLimiter:
         self._before = table[lk.BEFORE : lk.BEFORE + 2]  # the same, one tick earlier
         self._outside = False  # a joint's last command lies outside its range
         self.refused = 0  # ticks whose command was not finite
+        self._dispatcher = lk.limit_commands
         self._kernel = kernel_call.direct(lk.limit_commands)
         self._rebind()
 
     def _rebind(self) -> None:
         """Check the robot's arrays for the kernel, which is called directly (no numba dispatch)."""
-        from . import limit_kernel as lk
-
         args = (self.cmd.block, self.cmd.mode, self.state.position, self._table)
-        kernel_call.check(lk.limit_commands, (*args, False))
+        kernel_call.check(self._dispatcher, (*args, False))
         n = self._table.shape[1]
         if args[0].shape != (len(_ROW), n) or args[1].shape != (n,) or args[2].shape != (n,):
             raise ValueError(f"the limiter's kernel needs the robot's command block {(len(_ROW), n)}, modes and "

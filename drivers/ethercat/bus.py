@@ -239,30 +239,10 @@ class Bus:
                                f"clock?); options.slaves[{position}].sync0 = false leaves it out")
 
     def request_op(self, exchange: Any, timeout_s: float, period_s: float, again_s: float = 0.1) -> None:
-        """SAFEOP → OP, with process data cycling (``exchange()``) before and during the request.
-        The request (a broadcast) goes out again every ``again_s`` while the bus is not there,
-        since a frame lost in a stall of the machine would leave it in SAFEOP until the timeout;
-        before each repeat the states are read, and a slave in error ends the wait at once."""
-        for _ in range(3):
-            exchange()
-            time.sleep(period_s)
-        now = time.monotonic()
-        deadline, again, first = now + timeout_s, now, True
-        while time.monotonic() < deadline:
-            if time.monotonic() >= again:
-                if not first:
-                    self.master.read_state()
-                    if any(slave.state & STATE_ERROR for slave in self.slaves):
-                        raise BringUpError("slaves did not reach OP: " + self.describe_not_in(OP))
-                self.master.state = OP  # (a state check overwrites it with what it read)
-                self.master.write_state()
-                again, first = time.monotonic() + again_s, False
-            exchange()
-            if self.master.state_check(OP, 1000) == OP:
-                return
-            time.sleep(period_s)
-        self.master.read_state()
-        raise BringUpError(f"slaves did not reach OP within {timeout_s:g} s: " + self.describe_not_in(OP))
+        """SAFEOP → OP (:func:`reach_op`), or a :class:`BringUpError` naming the slaves short of it."""
+        if not reach_op(self.master, exchange, timeout_s, period_s, again_s):
+            why = "" if in_error(self.slaves) else f" within {timeout_s:g} s"
+            raise BringUpError(f"slaves did not reach OP{why}: " + self.describe_not_in(OP))
 
     def describe_not_in(self, state: int) -> str:
         """The slaves not in ``state`` with their state and AL status code (after read_state)."""
@@ -352,6 +332,11 @@ class Bus:
         self.master.close()
 
 
+def in_error(slaves: Sequence[Any]) -> bool:
+    """Whether a slave's state (as last read) has the error bit."""
+    return any(slave.state & STATE_ERROR for slave in slaves)
+
+
 def reach_safeop(master: Any, timeout_s: float, poll_us: int = 50_000) -> bool:
     """Wait until every slave is in SAFEOP without an error (``read_state`` done either way),
     asking again each slave still in PREOP without one: SOEM asks once, at the end of
@@ -368,12 +353,40 @@ def reach_safeop(master: Any, timeout_s: float, poll_us: int = 50_000) -> bool:
                 return True
         else:
             master.read_state()
-        if time.monotonic() >= deadline or any(slave.state & STATE_ERROR for slave in master.slaves):
+        if time.monotonic() >= deadline or in_error(master.slaves):
             return False
         for slave in master.slaves:
             if slave.state == PREOP:
                 slave.state = SAFEOP
                 slave.write_state()
+
+
+def reach_op(master: Any, exchange: Any, timeout_s: float, period_s: float, again_s: float = 0.1) -> bool:
+    """SAFEOP → OP, with process data cycling (``exchange()``) before and during the request
+    (``read_state`` done when it fails). The request (a broadcast) goes out again every
+    ``again_s`` while the bus is not there, since a frame lost in a stall of the machine would
+    leave it in SAFEOP until the timeout; before each repeat the states are read, and a slave
+    in error ends the wait at once."""
+    for _ in range(3):
+        exchange()
+        time.sleep(period_s)
+    now = time.monotonic()
+    deadline, again, first = now + timeout_s, now, True
+    while time.monotonic() < deadline:
+        if time.monotonic() >= again:
+            if not first:
+                master.read_state()
+                if in_error(master.slaves):
+                    return False
+            master.state = OP  # (a state check overwrites it with what it read)
+            master.write_state()
+            again, first = time.monotonic() + again_s, False
+        exchange()
+        if master.state_check(OP, 1000) == OP:
+            return True
+        time.sleep(period_s)
+    master.read_state()
+    return False
 
 
 def check_identity(position: int, device_name: str, name: str, vendor_id: int, product_code: int,

@@ -152,6 +152,12 @@ class Runner:
         stamp = TIMESPEC.unpack_from
         handle = self.segment.handle_frame
         seg = self.segment
+
+        def not_run(gap_ns: int) -> None:
+            """A step of the loop took ``gap_ns`` more than it should: past the grace, a stall."""
+            if gap_ns > STALL_GRACE_NS:
+                seg.discount_stall(gap_ns)
+
         end = None if duration_s is None else time.monotonic() + duration_s
         self.running = True
         last = seg.clock()
@@ -168,9 +174,7 @@ class Runner:
                     timeout = min(timeout, left)
                 events = ep.poll(timeout)
                 mark = seg.clock()
-                stalled = mark - last - round(timeout * 1e9)
-                if stalled > STALL_GRACE_NS:
-                    seg.discount_stall(stalled)
+                not_run(mark - last - round(timeout * 1e9))
                 for fd, _ev in events:
                     if fd == raw_fd:
                         for _ in range(256):  # drain, bounded
@@ -187,8 +191,7 @@ class Runner:
                             if addr[2] == PACKET_OUTGOING:
                                 continue
                             now = seg.clock()  # a stall since the poll (or the last frame) is not the master's
-                            if now - mark > STALL_GRACE_NS:
-                                seg.discount_stall(now - mark)
+                            not_run(now - mark)
                             try:
                                 reply = handle(bytes(view[:n]))
                             except Exception:  # a model bug must not kill the segment
@@ -197,8 +200,7 @@ class Runner:
                                     traceback.print_exc()
                                 continue
                             mark = seg.clock()
-                            if mark - now > STALL_GRACE_NS:  # stalled while handling it
-                                seg.discount_stall(mark - now)
+                            not_run(mark - now)  # stalled while handling it
                             if reply is None:
                                 continue
                             if seg.last_delay_ns:
@@ -220,8 +222,7 @@ class Runner:
                     else:
                         self._serve_conn(ep, fd)
                 now = seg.clock()
-                if now - mark > STALL_GRACE_NS:  # stalled after the last frame (or serving control)
-                    seg.discount_stall(now - mark)
+                not_run(now - mark)  # stalled after the last frame (or serving control)
                 while self._delayed and self._delayed[0][0] <= now:
                     _, _, reply = heapq.heappop(self._delayed)
                     try:
