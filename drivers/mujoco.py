@@ -5,7 +5,8 @@ driven by the motor actuator attached to it. The driver closes the joint loop it
 tick, as a drive would: ``tau = kp·(q* - q) + kd·(v* - v) + effort* + feed-forward`` plus
 gravity and Coriolis compensation (``qfrc_bias``) when asked, clipped to the actuator range.
 Position mode uses the configured gains, velocity mode only kd, effort mode none, impedance
-mode the command's own stiffness and damping.
+mode the command's own stiffness and damping. Both the joint read and this torque law are one
+compiled call each per tick (``mujoco_kernels``).
 
 Time: each tick advances the physics by exactly one tick period (in substeps of the model
 timestep). On the virtual clock this is lockstep: the simulation is the clock and runs as fast
@@ -33,9 +34,9 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
+from aiohal import kernel_call
 from aiohal.config import ConfigPath
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
-from aiohal.robot import Mode
 
 from .mujoco_model import actuator_for_joints, joint_addresses, load_model, model_names, sensor_slice
 
@@ -119,24 +120,19 @@ class MujocoDriver(Driver):
                 f"({self.model.opt.timestep * 1e3:g} ms)"
             )
         n = view.dof
-        self.kp = view.per_joint(opts.kp)
-        self.kd = view.per_joint(opts.kd)
         lo = self.model.actuator_ctrlrange[self.actuators, 0]
         hi = self.model.actuator_ctrlrange[self.actuators, 1]
         limited = self.model.actuator_ctrllimited[self.actuators].astype(bool)
-        self.tau_min = np.where(limited, lo, -np.inf)
-        self.tau_max = np.where(limited, hi, np.inf)
+        # rows as drivers/mujoco_kernels.py names them: kp, kd, lower and upper torque bound
+        self._table = np.array([view.per_joint(opts.kp), view.per_joint(opts.kd),
+                                np.where(limited, lo, -np.inf), np.where(limited, hi, np.inf)])
+        self._index = np.array([self.qpos_adr, self.dof_adr, self.actuators], dtype=np.intp)  # qpos, dof, actuator
         self.tau = np.zeros(n)
-        self._kp_eff = np.zeros(n)
-        self._kd_eff = np.zeros(n)
-        self._tmp = np.zeros(n)
-        self._modes = b""
-        self._impedance = np.zeros(n, dtype=bool)
-        self._any_impedance = False
         start = np.clip(view.per_joint(opts.initial_position), view.position_min, view.position_max)
         self.data.qpos[self.qpos_adr] = start
         mujoco.mj_forward(self.model, self.data)
         self._sensor_runs = self._gather_plan()
+        self._bind_kernels()
         self.time_mode = "lockstep" if view.clock.kind == "virtual" else "realtime"
         threaded = opts.step == "thread"
         self._executor = ThreadPoolExecutor(1, thread_name_prefix="mujoco-step") if threaded else None
@@ -145,6 +141,24 @@ class MujocoDriver(Driver):
         self.step_ns = 0
         self._estopped = False
         self._viewer = self._open_viewer() if opts.viewer else None
+
+    def _bind_kernels(self) -> None:
+        """The compiled read and torque law, called directly (numba's dispatch would cost more
+        than the work): every array they get is taken and checked here, once. MjData's arrays
+        and the robot's blocks are never reallocated while the driver is open."""
+        from . import mujoco_kernels as kernels
+
+        data, state, command = self.data, self.view.state, self.view.command
+        self._qpos, self._qvel, self._bias, self._ctrl = data.qpos, data.qvel, data.qfrc_bias, data.ctrl
+        self._state, self._ticks, self._stamps = state.block, state.updated_tick, state.stamp_ns
+        self._command, self._mode = command.block, command.mode
+        self._read_args = (self._qpos, self._qvel, self._index, self.tau, self._state, self._ticks, self._stamps)
+        kernel_call.check(kernels.read_joints, (*self._read_args, 0, 0))
+        self._torque_args = (self._command, self._mode, self._state, self._table, self._index, self._bias,
+                             self.options.gravity_compensation, self.tau, self._ctrl)
+        kernel_call.check(kernels.drive_torque, self._torque_args)
+        self._read_joints = kernel_call.direct(kernels.read_joints)
+        self._drive_torque = kernel_call.direct(kernels.drive_torque)
 
     def _gather_plan(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """How read() fills the devices: for each run of this driver's devices in adjacent rows
@@ -194,33 +208,15 @@ class MujocoDriver(Driver):
             self._pending = None
             await pending  # the step of the last tick, done in the worker thread
         data, view = self.data, self.view
-        state = view.state
-        data.qpos.take(self.qpos_adr, out=state.position)
-        data.qvel.take(self.dof_adr, out=state.velocity)
-        np.copyto(state.effort, self.tau)
-        view.mark_fresh()
+        clock = view.clock
+        self._read_joints(*self._read_args, clock.tick, clock.now_ns)
+        view.mark_fresh(stamp_rows=False)
         for values, index, ticks, stamps in self._sensor_runs:
             data.sensordata.take(index, out=values, mode="clip")  # clip: valid addresses, no buffered copy
-            ticks.fill(view.clock.tick)
-            stamps.fill(view.clock.now_ns)
-        if self._viewer is not None and view.clock.tick % 16 == 0:
+            ticks.fill(clock.tick)
+            stamps.fill(clock.now_ns)
+        if self._viewer is not None and clock.tick % 16 == 0:
             self._viewer.sync()
-
-    def _gains(self) -> None:
-        """Effective gains per joint from the command modes (recomputed when modes change)."""
-        cmd = self.view.command
-        modes = cmd.mode.tobytes()
-        if modes != self._modes:
-            self._modes = modes
-            mode = cmd.mode
-            position = (mode == Mode.POSITION)
-            self._impedance = mode == Mode.IMPEDANCE
-            self._any_impedance = bool(self._impedance.any())
-            np.multiply(self.kp, position, out=self._kp_eff)
-            np.multiply(self.kd, position | (mode == Mode.VELOCITY), out=self._kd_eff)
-        if self._any_impedance:
-            np.copyto(self._kp_eff, cmd.stiffness, where=self._impedance)
-            np.copyto(self._kd_eff, cmd.damping, where=self._impedance)
 
     async def write(self) -> None:
         if self._estopped:
@@ -228,22 +224,7 @@ class MujocoDriver(Driver):
             self.data.ctrl[self.actuators] = 0.0
             self._step_next()
             return
-        cmd, state = self.view.command, self.view.state
-        self._gains()
-        tau, tmp = self.tau, self._tmp
-        # tau = kp·(q* - q) + kd·(v* - v) + effort* + feed-forward (+ bias)
-        np.subtract(cmd.position, state.position, out=tau)
-        tau *= self._kp_eff
-        np.subtract(cmd.velocity, state.velocity, out=tmp)
-        tmp *= self._kd_eff
-        tau += tmp
-        tau += cmd.effort
-        tau += cmd.feedforward
-        if self.options.gravity_compensation:
-            tau += self.data.qfrc_bias.take(self.dof_adr, out=tmp)
-        np.minimum(tau, self.tau_max, out=tau)
-        np.maximum(tau, self.tau_min, out=tau)
-        self.data.ctrl[self.actuators] = tau
+        self._drive_torque(*self._torque_args)
         self._step_next()
 
     def _step_next(self) -> None:

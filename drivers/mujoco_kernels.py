@@ -1,0 +1,86 @@
+"""The MuJoCo driver's per-tick joint work, compiled with numba: MjData ↔ robot arrays.
+
+Why compiled: as numpy calls the driver's read was 3 gathers and 2 stamp fills, its torque
+law 12 calls (the gains chosen by mode, the PD terms, the compensation, the clamp, the
+scatter into ``ctrl``): about 6 and 15 µs per tick on WALK-MAN (33 joints) back to back, more
+after the real clock's sleep, where every call starts cold. A hand-written loop with no HAL
+needs about half as many calls (``benchmarks.overhead``). One kernel call each way does the
+same arithmetic, in the same order, so the torques are bit for bit those of the numpy
+formulation (``tests/test_mujoco_kernels.py`` compares them).
+
+Arguments are few (numba's call costs about 0.3 µs per argument even when called directly):
+the joints' MjData addresses are one int array (rows below), the per-joint gains and torque
+bounds one float table (rows below). Module globals are frozen into numba's on-disk cache,
+which only notices changes to this file: the rows are literals here, checked at import.
+"""
+
+from __future__ import annotations
+
+from numba import njit, types
+
+from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, Mode
+
+# rows of ``index`` (intp): qpos address, dof address, actuator of each joint
+QPOS, DOF, ACTUATOR = 0, 1, 2
+# rows of ``table`` (float64): position gain, velocity gain, lower and upper torque bound
+KP, KD, TAU_MIN, TAU_MAX = 0, 1, 2, 3
+# rows of the robot's state and command blocks
+S_POSITION, S_VELOCITY, S_EFFORT = 0, 1, 2
+C_POSITION, C_VELOCITY, C_EFFORT, C_STIFFNESS, C_DAMPING, C_FEEDFORWARD = 0, 1, 2, 3, 4, 5
+POSITION, VELOCITY, IMPEDANCE = 1, 2, 4
+
+if (JOINT_STATE_FIELDS[:3] != ("position", "velocity", "effort")
+        or JOINT_COMMAND_FIELDS != ("position", "velocity", "effort", "stiffness", "damping", "feedforward")
+        or (int(Mode.POSITION), int(Mode.VELOCITY), int(Mode.IMPEDANCE)) != (POSITION, VELOCITY, IMPEDANCE)):
+    raise ImportError("drivers/mujoco_kernels.py: its literal rows or modes no longer match aiohal.robot")
+
+_VECTOR = types.Array(types.float64, 1, "C")  # MjData's arrays, the driver's own torque
+_RO_VECTOR = types.Array(types.float64, 1, "C", readonly=True)
+_INDEX = types.Array(types.intp, 2, "C", readonly=True)
+_TABLE = types.Array(types.float64, 2, "C", readonly=True)
+_BLOCK = types.Array(types.float64, 2, "A")  # a driver's columns of the robot's block
+_RO_BLOCK = types.Array(types.float64, 2, "A", readonly=True)
+_MODE = types.Array(types.int8, 1, "A", readonly=True)
+_STAMPS = types.Array(types.int64, 1, "A")
+
+
+@njit(types.void(_RO_VECTOR, _RO_VECTOR, _INDEX, _RO_VECTOR, _BLOCK, _STAMPS, _STAMPS, types.int64, types.int64),
+      cache=True, nogil=True)
+def read_joints(qpos, qvel, index, tau, state, updated_tick, stamp_ns, tick, now_ns):
+    """Measured position and velocity from MjData, effort = the torque applied last tick;
+    every joint stamped with this tick."""
+    for j in range(index.shape[1]):
+        state[S_POSITION, j] = qpos[index[QPOS, j]]
+        state[S_VELOCITY, j] = qvel[index[DOF, j]]
+        state[S_EFFORT, j] = tau[j]
+        updated_tick[j] = tick
+        stamp_ns[j] = now_ns
+
+
+@njit(types.void(_RO_BLOCK, _MODE, _RO_BLOCK, _TABLE, _INDEX, _RO_VECTOR, types.boolean, _VECTOR, _VECTOR),
+      cache=True, nogil=True)
+def drive_torque(command, mode, state, table, index, bias, compensate, tau, ctrl):
+    """``tau = kp·(q* − q) + kd·(v* − v) + effort* + feed-forward (+ qfrc_bias)``, clamped to
+    the actuator's range and written to ``ctrl``. The gains by mode: position kp and kd,
+    velocity kd only, impedance the command's stiffness and damping, effort and none neither.
+    The operations are numpy's, in its order: a NaN goes through as it would there."""
+    for j in range(index.shape[1]):
+        m = mode[j]
+        if m == IMPEDANCE:
+            kp, kd = command[C_STIFFNESS, j], command[C_DAMPING, j]
+        else:
+            # a gain times 1.0 or 0.0, as numpy's gain × mode mask (so an infinite gain stays NaN)
+            kp = table[KP, j] * (1.0 if m == POSITION else 0.0)
+            kd = table[KD, j] * (1.0 if m == POSITION or m == VELOCITY else 0.0)
+        t = (command[C_POSITION, j] - state[S_POSITION, j]) * kp
+        t += (command[C_VELOCITY, j] - state[S_VELOCITY, j]) * kd
+        t += command[C_EFFORT, j]
+        t += command[C_FEEDFORWARD, j]
+        if compensate:
+            t += bias[index[DOF, j]]
+        if t > table[TAU_MAX, j]:  # numpy's minimum then maximum: NaN passes, the lower bound wins
+            t = table[TAU_MAX, j]
+        if t < table[TAU_MIN, j]:
+            t = table[TAU_MIN, j]
+        tau[j] = t
+        ctrl[index[ACTUATOR, j]] = t
