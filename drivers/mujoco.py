@@ -131,7 +131,6 @@ class MujocoDriver(Driver):
         start = np.clip(view.per_joint(opts.initial_position), view.position_min, view.position_max)
         self.data.qpos[self.qpos_adr] = start
         mujoco.mj_forward(self.model, self.data)
-        self._sensor_runs = self._gather_plan()
         self._bind_kernels()
         self.time_mode = "lockstep" if view.clock.kind == "virtual" else "realtime"
         threaded = opts.step == "thread"
@@ -157,14 +156,18 @@ class MujocoDriver(Driver):
         self._torque_args = (self._command, self._mode, self._state, self._table, self._index, self._bias,
                              self.options.gravity_compensation, self.tau, self._ctrl)
         kernel_call.check(kernels.drive_torque, self._torque_args)
+        self._sensor_runs = [(data.sensordata, *run) for run in self._gather_plan()]
+        for run in self._sensor_runs:
+            kernel_call.check(kernels.read_sensors, (*run, 0, 0))
+        self._read_sensors = kernel_call.direct(kernels.read_sensors)
         self._read_joints = kernel_call.direct(kernels.read_joints)
         self._drive_torque = kernel_call.direct(kernels.drive_torque)
 
     def _gather_plan(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """How read() fills the devices: for each run of this driver's devices in adjacent rows
-        of a group's ``values``, (those rows, the sensordata address of each of their values,
-        their ``updated_tick``, their ``stamp_ns``): one gather and two fills per run, however
-        many sensors (WALK-MAN: 2 runs instead of 11 copies and 10 stamps)."""
+        of a group's ``values``, (the sensordata address of each of their values, those rows,
+        their ``updated_tick``, their ``stamp_ns``): one compiled call per run, however many
+        sensors (WALK-MAN: 2 runs instead of 11 copies and 10 stamps)."""
         opts, view = self.options, self.view
         rows: dict[int, tuple] = {}  # id(group) -> (group, {row: addresses})
         for device, record in view.devices.items():
@@ -182,7 +185,7 @@ class MujocoDriver(Driver):
                 if run and row != run[-1] + 1:
                     a, b = run[0], run[-1] + 1
                     index = np.array([by_row[r] for r in run], dtype=np.intp)
-                    runs.append((group.values[a:b], index, group.updated_tick[a:b], group.stamp_ns[a:b]))
+                    runs.append((index, group.values[a:b], group.updated_tick[a:b], group.stamp_ns[a:b]))
                     run = []
                 if row is not None:
                     run.append(row)
@@ -207,14 +210,12 @@ class MujocoDriver(Driver):
         if pending is not None:
             self._pending = None
             await pending  # the step of the last tick, done in the worker thread
-        data, view = self.data, self.view
+        view = self.view
         clock = view.clock
         self._read_joints(*self._read_args, clock.tick, clock.now_ns)
         view.mark_fresh(stamp_rows=False)
-        for values, index, ticks, stamps in self._sensor_runs:
-            data.sensordata.take(index, out=values, mode="clip")  # clip: valid addresses, no buffered copy
-            ticks.fill(clock.tick)
-            stamps.fill(clock.now_ns)
+        for run in self._sensor_runs:
+            self._read_sensors(*run, clock.tick, clock.now_ns)
         if self._viewer is not None and clock.tick % 16 == 0:
             self._viewer.sync()
 

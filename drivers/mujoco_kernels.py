@@ -1,12 +1,14 @@
-"""The MuJoCo driver's per-tick joint work, compiled with numba: MjData ↔ robot arrays.
+"""The MuJoCo driver's per-tick work, compiled with numba: MjData ↔ robot arrays.
 
-Why compiled: as numpy calls the driver's read was 3 gathers and 2 stamp fills, its torque
-law 12 calls (the gains chosen by mode, the PD terms, the compensation, the clamp, the
-scatter into ``ctrl``): about 6 and 15 µs per tick on WALK-MAN (33 joints) back to back, more
-after the real clock's sleep, where every call starts cold. A hand-written loop with no HAL
-needs about half as many calls (``benchmarks.overhead``). One kernel call each way does the
-same arithmetic, in the same order, so the torques are bit for bit those of the numpy
-formulation (``tests/test_mujoco_kernels.py`` compares them).
+Why compiled: as numpy calls the driver's read was 3 gathers and 2 stamp fills, plus a gather
+and 2 fills per run of sensors, and its torque law 12 calls (gains by mode, PD terms,
+compensation, clamp, scatter into ``ctrl``): about 6 and 15 µs per tick on WALK-MAN (33
+joints) back to back. Called in turn with the controller and ``mj_step``, as in the tick,
+the read cost 2.4x what it cost back to back (18 against 7.5 µs): caches cold after the step,
+most likely (this VM has no performance counters to show it). Fewer, smaller calls suffer
+less. One call
+per joint read, per sensor run and for the torque does the same arithmetic in the same order,
+so the torques are bit for bit those of the numpy formulation (``tests/test_mujoco_kernels.py``).
 
 Arguments are few (numba's call costs about 0.3 µs per argument even when called directly):
 the joints' MjData addresses are one int array (rows below), the per-joint gains and torque
@@ -84,3 +86,20 @@ def drive_torque(command, mode, state, table, index, bias, compensate, tau, ctrl
             t = table[TAU_MIN, j]
         tau[j] = t
         ctrl[index[ACTUATOR, j]] = t
+
+
+_SENSOR_INDEX = types.Array(types.intp, 2, "C", readonly=True)
+_ROWS = types.Array(types.float64, 2, "C")
+_ROW_STAMPS = types.Array(types.int64, 1, "C")
+
+
+@njit(types.void(_RO_VECTOR, _SENSOR_INDEX, _ROWS, _ROW_STAMPS, _ROW_STAMPS, types.int64, types.int64),
+      cache=True, nogil=True)
+def read_sensors(sensordata, index, rows, updated_tick, stamp_ns, tick, now_ns):
+    """Adjacent rows of a device group (IMUs, force/torque sensors) from ``sensordata``:
+    ``rows[r, c] = sensordata[index[r, c]]``, each row stamped with this tick."""
+    for r in range(index.shape[0]):
+        for c in range(index.shape[1]):
+            rows[r, c] = sensordata[index[r, c]]
+        updated_tick[r] = tick
+        stamp_ns[r] = now_ns

@@ -93,3 +93,17 @@ def test_the_compiled_read_gathers_and_stamps_a_drivers_columns():
     np.testing.assert_array_equal(robot_state[:3, 1:4], [[9.0, 2.0, 5.0], [-1.0, -8.0, -3.0], tau])
     assert np.isnan(robot_state[:, [0, 4]]).all() and np.isnan(robot_state[3:]).all()
     assert ticks.tolist() == [-1, 42, 42, 42, -1] and stamps.tolist() == [0, 123_456, 123_456, 123_456, 0]
+
+
+def test_the_compiled_sensor_read_fills_and_stamps_adjacent_rows():
+    sensordata = np.arange(20.0) / 10.0
+    values = np.full((4, 3), np.nan)  # a group of 4 devices; this driver's run is rows 1..2
+    index = np.array([[5, 6, 7], [19, 0, 3]], dtype=np.intp)
+    ticks, stamps = np.full(4, -1, dtype=np.int64), np.zeros(4, dtype=np.int64)
+    args = (sensordata, index, values[1:3], ticks[1:3], stamps[1:3], 7, 99)
+    kernel_call.check(kernels.read_sensors, args)
+    kernel_call.direct(kernels.read_sensors)(*args)
+
+    np.testing.assert_array_equal(values[1:3], [[0.5, 0.6, 0.7], [1.9, 0.0, 0.3]])
+    assert np.isnan(values[[0, 3]]).all()
+    assert ticks.tolist() == [-1, 7, 7, -1] and stamps.tolist() == [0, 99, 99, 0]
