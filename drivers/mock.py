@@ -18,8 +18,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
-from aiohal.robot import Mode
 
 
 class MockFaults(Options):
@@ -79,12 +79,6 @@ class MockDriver(Driver):
         self._dt = 0.0
         self._alpha = 1.0
         self._inv_dt = 0.0
-        self._target = np.zeros(n)
-        self._tmp = np.zeros(n)
-        self._velocity_rows = np.zeros(n, dtype=bool)
-        self._effort_rows = np.zeros(n, dtype=bool)
-        self._modes = b""
-        self._plain = True
         delay = opts.feedback_delay_ticks
         self._history = np.zeros((delay + 1, 3, n))  # ring of past states, oldest next
         self._history[:, 0, :] = start
@@ -105,36 +99,30 @@ class MockDriver(Driver):
         self._imus = view.devices_of("imu")
         self._fts = view.devices_of("force_torque")
         self._hands = view.devices_of("hand")
+        self._bind_kernel()
 
-    def _step(self, dt: float) -> None:
-        """Advance the simulated joints by ``dt`` toward the current command."""
-        cmd = self.view.command
-        modes = cmd.mode.tobytes()
-        if modes != self._modes:
-            self._modes = modes
-            np.equal(cmd.mode, Mode.VELOCITY, out=self._velocity_rows)
-            np.equal(cmd.mode, Mode.EFFORT, out=self._effort_rows)
-            self._plain = not (self._velocity_rows.any() or self._effort_rows.any())
+    def _bind_kernel(self) -> None:
+        """The compiled step, called directly (numba's dispatch would cost more than the work):
+        its arrays are taken and checked here, once; the robot's blocks are never reallocated."""
+        from . import mock_kernels
+
+        state, command = self.view.state, self.view.command
+        self._step_args = (command.block, command.mode, self.sim)
+        self._stamp_args = (state.updated_tick, state.stamp_ns)
+        kernel_call.check(mock_kernels.step_joints,
+                          (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0))
+        self._step_joints = kernel_call.direct(mock_kernels.step_joints)
+
+    def _step(self, dt: float, stamp: bool) -> None:
+        """Advance the simulated joints by ``dt`` toward the current command (``stamp``: and
+        stamp the state's rows, which they are)."""
         if dt != self._dt:
             self._dt = dt
             self._inv_dt = 1.0 / dt
             self._alpha = 1.0 - math.exp(-dt / self.options.time_constant) if self._first_order else 1.0
-        position, motion = self.position, self.velocity
-        if self._plain:  # every joint in position (or impedance) mode
-            np.subtract(cmd.position, position, out=motion)
-        else:
-            target = self._target
-            np.copyto(target, cmd.position)
-            np.multiply(cmd.velocity, dt, out=self._tmp)
-            self._tmp += position
-            np.copyto(target, self._tmp, where=self._velocity_rows)
-            np.copyto(target, position, where=self._effort_rows)
-            np.subtract(target, position, out=motion)
-        if self._first_order:
-            motion *= self._alpha
-        position += motion
-        motion *= self._inv_dt  # the step becomes the velocity
-        np.add(cmd.effort, cmd.feedforward, out=self.effort)
+        clock = self.view.clock
+        self._step_joints(*self._step_args, dt, self._first_order, self._alpha, self._inv_dt, stamp,
+                          *self._stamp_args, clock.tick, clock.now_ns)
 
     async def read(self) -> None:
         view = self.view
@@ -142,13 +130,15 @@ class MockDriver(Driver):
         tick = clock.tick
         if self._faulty:
             self._inject_read_faults(tick)
+        stamped = False
         if tick > self._last_tick and not self.stopped:
-            self._step((tick - self._last_tick) * clock.period_ns * 1e-9)
+            stamped = self._direct  # the simulated joints are the state's rows
+            self._step((tick - self._last_tick) * clock.period_ns * 1e-9, stamped)
         self._last_tick = tick
         self.reads += 1
         if not self._direct and not self._publish_state(tick):
             return
-        view.mark_fresh()
+        view.mark_fresh(stamp_rows=not stamped)
         if self._hands or self._imus or self._fts:
             self._read_devices(tick, clock.now_ns)
 

@@ -7,8 +7,12 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from aiohal.robot import Mode
+from aiohal import kernel_call
+from aiohal.drivers import mock_kernels
+from aiohal.robot import JOINT_COMMAND_FIELDS, Mode
 from helpers import arm_raw, virtual_loop
 from aiohal.hal import Controller
 
@@ -167,3 +171,44 @@ def test_views_write_in_place():
         ro.state.position[0] = 1.0  # controllers read state, they do not write it
     ro.command.position[0] = 1.0
     assert robot.command.position[0] == 1.0
+
+
+def numpy_step(command, mode, sim, dt, alpha):
+    """The mock's step as it was written with numpy before the kernel (alpha None: mirror)."""
+    position, motion, effort = sim
+    velocity_rows, effort_rows = mode == Mode.VELOCITY, mode == Mode.EFFORT
+    with np.errstate(all="ignore"):
+        target = command[0].copy()
+        tmp = np.multiply(command[1], dt)
+        tmp += position
+        np.copyto(target, tmp, where=velocity_rows)
+        np.copyto(target, position, where=effort_rows)
+        np.subtract(target, position, out=motion)
+        if alpha is not None:
+            motion *= alpha
+        position += motion
+        motion *= 1.0 / dt
+        np.add(command[2], command[5], out=effort)
+
+
+FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64) | st.floats(-10.0, 10.0)
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data(), n=st.integers(1, 10), dt=st.sampled_from([0.001, 0.0005, 0.003]),
+       first_order=st.booleans())
+def test_the_compiled_step_matches_the_numpy_formulation(data, n, dt, first_order):
+    vectors = st.lists(FLOATS, min_size=n, max_size=n)
+    command = np.array([data.draw(vectors) for _ in JOINT_COMMAND_FIELDS])
+    mode = np.array(data.draw(st.lists(st.sampled_from(list(Mode)), min_size=n, max_size=n)), dtype=np.int8)
+    sim = np.array([data.draw(vectors) for _ in range(3)])
+    alpha = 1.0 - math.exp(-dt / 0.02) if first_order else 1.0
+    expected = sim.copy()
+    numpy_step(command, mode, expected, dt, alpha if first_order else None)
+
+    ticks, stamps = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+    args = (command, mode, sim, dt, first_order, alpha, 1.0 / dt, True, ticks, stamps, 5, 77)
+    kernel_call.check(mock_kernels.step_joints, args)
+    kernel_call.direct(mock_kernels.step_joints)(*args)
+    np.testing.assert_array_equal(sim, expected)
+    assert (ticks == 5).all() and (stamps == 77).all()
