@@ -32,11 +32,15 @@ each tick touches only plain numpy arrays and MuJoCo. It does:
 * Mock robots: the mock driver's simulated joints per driver slice (first-order or mirror
   step, effort echo, the hands' scalar motion) and ``hold``'s two array writes.
 
+aiohal's MuJoCo and mock drivers do the same joint arithmetic in compiled (numba) kernels,
+bit for bit (``drivers/mujoco_kernels.py``, ``drivers/mock_kernels.py``); the no-HAL loop
+writes it with numpy, as a Python user without the HAL would.
+
 It does not: await anything or run an event loop; check feedback age, command modes or
 finiteness; clamp commands to the joint limits (the circle's own clip stays, it is the
 controller's math); keep stamps, fresh ticks or per-phase timings; copy IMU/F/T sensor data or
 measured effort into device arrays; copy q* into a separate command array (the IK updates q*
-in place; every joint moves, so the circle's take/put of its rows is the identity); add the
+in place, as the circle now does too when its joints are a run of the robot's rows); add the
 zero effort and feed-forward commands into the torque. The trajectories are compared at the
 end (final measured q, and the circle's RMS tracking error): equal values show that both
 loops did the same robot work.
