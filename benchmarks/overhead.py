@@ -40,7 +40,8 @@ It does not: await anything or run an event loop; check feedback age, command mo
 finiteness; clamp commands to the joint limits (the circle's own clip stays, it is the
 controller's math); keep stamps, fresh ticks or per-phase timings; copy IMU/F/T sensor data or
 measured effort into device arrays; copy q* into a separate command array (the IK updates q*
-in place, as the circle now does too when its joints are a run of the robot's rows); add the
+in place; the circle gathers and scatters its rows only when they are not a run of the
+robot's); add the
 zero effort and feed-forward commands into the torque. The trajectories are compared at the
 end (final measured q, and the circle's RMS tracking error): equal values show that both
 loops did the same robot work.
