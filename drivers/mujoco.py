@@ -173,10 +173,13 @@ class MujocoDriver(Driver):
         for device, record in view.devices.items():
             group = record.group
             fields = SENSOR_FIELDS[view.device_kinds[device]]
-            addresses = np.empty(group.values.shape[1], dtype=np.intp)
+            addresses = np.full(group.values.shape[1], -1, dtype=np.intp)
             for field, (suffix, _dim) in fields.items():
                 sl = sensor_slice(self.model, _sensor_name(opts, device, field, suffix))
                 addresses[group.columns[field]] = np.arange(sl.start, sl.stop)
+            # the compiled read does not check its indices: every column must have a sensor value
+            if not ((addresses >= 0) & (addresses < self.model.nsensordata)).all():
+                raise RuntimeError(f"{device}: a column of its {view.device_kinds[device]} record has no sensor value")
             rows.setdefault(id(group), (group, {}))[1][record.index] = addresses
         runs = []
         for group, by_row in rows.values():

@@ -8,7 +8,8 @@ the read cost 2.4x what it cost back to back (18 against 7.5 µs): caches cold a
 most likely (this VM has no performance counters to show it). Fewer, smaller calls suffer
 less. One call
 per joint read, per sensor run and for the torque does the same arithmetic in the same order,
-so the torques are bit for bit those of the numpy formulation (``tests/test_mujoco_kernels.py``).
+so the torques are bit for bit those of the numpy formulation, but for the sign bit of a NaN
+(``tests/test_mujoco_kernels.py``).
 
 Arguments are few (numba's call costs about 0.3 µs per argument even when called directly):
 the joints' MjData addresses are one int array (rows below), the per-joint gains and torque
@@ -65,13 +66,14 @@ def drive_torque(command, mode, state, table, index, bias, compensate, tau, ctrl
     """``tau = kp·(q* − q) + kd·(v* − v) + effort* + feed-forward (+ qfrc_bias)``, clamped to
     the actuator's range and written to ``ctrl``. The gains by mode: position kp and kd,
     velocity kd only, impedance the command's stiffness and damping, effort and none neither.
-    The operations are numpy's, in its order: a NaN goes through as it would there."""
+    The operations are numpy's, in its order: the same values bit for bit, a NaN's sign bit
+    aside (LLVM may swap the operands of an addition, which numpy's NaN keeps)."""
     for j in range(index.shape[1]):
         m = mode[j]
         if m == IMPEDANCE:
             kp, kd = command[C_STIFFNESS, j], command[C_DAMPING, j]
         else:
-            # a gain times 1.0 or 0.0, as numpy's gain × mode mask (so an infinite gain stays NaN)
+            # a gain times 1.0 or 0.0, as numpy's gain × mode mask
             kp = table[KP, j] * (1.0 if m == POSITION else 0.0)
             kd = table[KD, j] * (1.0 if m == POSITION or m == VELOCITY else 0.0)
         t = (command[C_POSITION, j] - state[S_POSITION, j]) * kp
@@ -80,10 +82,9 @@ def drive_torque(command, mode, state, table, index, bias, compensate, tau, ctrl
         t += command[C_FEEDFORWARD, j]
         if compensate:
             t += bias[index[DOF, j]]
-        if t > table[TAU_MAX, j]:  # numpy's minimum then maximum: NaN passes, the lower bound wins
-            t = table[TAU_MAX, j]
-        if t < table[TAU_MIN, j]:
-            t = table[TAU_MIN, j]
+        # numpy's minimum then maximum: a NaN passes; at a tie the bound is taken (its sign of zero)
+        t = t if t < table[TAU_MAX, j] or t != t else table[TAU_MAX, j]
+        t = t if t > table[TAU_MIN, j] or t != t else table[TAU_MIN, j]
         tau[j] = t
         ctrl[index[ACTUATOR, j]] = t
 

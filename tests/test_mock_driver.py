@@ -212,3 +212,27 @@ def test_the_compiled_step_matches_the_numpy_formulation(data, n, dt, first_orde
     kernel_call.direct(mock_kernels.step_joints)(*args)
     np.testing.assert_array_equal(sim, expected)
     assert (ticks == 5).all() and (stamps == 77).all()
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("options", [{}, {"feedback_delay_ticks": 3}])
+async def test_every_read_stamps_the_joints_with_its_tick(options):
+    loop = virtual_loop(raw_with(options), controller=Fixed(position=0.5))
+    async with loop:
+        for _ in range(3):
+            await loop.run(ticks=4)
+            state, clock = loop.robot.state, loop.robot.clock
+            assert (state.updated_tick == clock.tick).all() and (state.stamp_ns == clock.now_ns).all()
+
+
+@pytest.mark.asyncio
+async def test_lost_feedback_leaves_the_stamps_of_the_last_measurement():
+    raw = raw_with({"faults": {"feedback_lost_at_tick": 5, "feedback_lost_for": 3}})
+    loop = virtual_loop(raw, controller=Fixed(position=0.5))
+    async with loop:
+        await loop.run(ticks=7)  # ticks 1..7, the feedback of 5, 6 and 7 lost
+        state = loop.robot.state
+        assert loop.robot.clock.tick == 7 and (state.updated_tick == 4).all()
+        stamp_of_4 = state.stamp_ns.copy()
+        await loop.run(ticks=2)  # tick 8 measures again
+        assert (state.updated_tick == 9).all() and (state.stamp_ns > stamp_of_4).all()
