@@ -19,6 +19,7 @@ took from this VM during the case, in % of both CPUs (from /proc/stat).
     sudo python -m benchmarks.ethercat [--seconds 10] [--soak 60] [--json PATH]
     sudo python -m benchmarks.ethercat --breakdown 7 [--seconds 5]   # where the driver's time goes
     sudo python -m benchmarks.ethercat --bare 7 [--rounds 3]          # pysoem's own floor beside it
+    sudo python -m benchmarks.ethercat --send-after-work 7 [--rounds 3]  # the send after the tick's work
 
 ``--soak`` runs 25 slaves at 1 kHz (split) for that long at the end (0 = skip).
 """
@@ -26,6 +27,7 @@ took from this VM during the case, in % of both CPUs (from /proc/stat).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -173,20 +175,15 @@ def breakdown(n_slaves: int, ticks: int) -> dict:
         return {"slaves": n_slaves, **asyncio.run(run(sim.ifname))}
 
 
-def bare_case(n_slaves: int, seconds: float) -> dict:
-    """The least any driver on pysoem does per cycle, timed like the driver's CPU figure: a
-    plain loop (SCHED_FIFO 80, sleeping to absolute 1 ms deadlines, as the aiohal loop does)
-    that receives the frame sent at the end of the previous cycle (the wait is excluded), reads
-    every slave's ``input``, writes every slave's ``output`` (bytes made once), sends. No
-    decoding, no state machine: what is left of 50 µs after this is the budget for the rest."""
-    import gc
-
+@contextlib.contextmanager
+def bare_master(n_slaves: int):
+    """A plain pysoem master in OP against the simulated segment (loop on LOOP_CPU, simulator on
+    SIM_CPU): yields (master, the slaves' input getters, (output setter, bytes) per slave)."""
     import pysoem
 
     from aiohal.drivers.ethercat.bus import OP as OP_STATE
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
 
-    cycles = round(seconds * 1000)
     with SimulatedSegment(LINES[n_slaves], watchdog_ms=100) as sim:
         os.sched_setaffinity(sim.pid, {SIM_CPU})
         os.sched_setaffinity(0, {LOOP_CPU})
@@ -213,41 +210,61 @@ def bare_case(n_slaves: int, seconds: float) -> dict:
                 time.sleep(0.001)
             else:
                 raise RuntimeError("the simulated slaves did not reach OP")
-            expected = m.expected_wkc
-            parts = np.zeros((cycles, 3), dtype=np.int64)  # inputs, outputs, send (the receive's wait left out)
-            bad = 0
-            gc.collect()
-            gc.disable()
-            saved = os.sched_getscheduler(0), os.sched_getparam(0)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80))
-            steal = StealMeter()
-            try:
-                m.send_processdata()
-                deadline = time.monotonic() + 0.001
-                for i in range(cycles):
-                    wkc = m.receive_processdata(2000)
-                    t1 = time.perf_counter_ns()
-                    bad += wkc != expected
-                    for get in getters:
-                        get()
-                    t2 = time.perf_counter_ns()
-                    for set_output, data in setters:
-                        set_output(data)
-                    t3 = time.perf_counter_ns()
-                    m.send_processdata()
-                    t4 = time.perf_counter_ns()
-                    parts[i] = (t2 - t1, t3 - t2, t4 - t3)
-                    left = deadline - time.monotonic()
-                    if left > 0:
-                        time.sleep(left)
-                    deadline += 0.001
-                m.receive_processdata(2000)
-            finally:
-                os.sched_setscheduler(0, saved[0], saved[1])
-                gc.enable()
-            steal_percent = steal.percent()
+            yield m, getters, setters
         finally:
             m.close()
+
+
+@contextlib.contextmanager
+def fifo_no_gc():
+    """SCHED_FIFO 80 and no garbage collector, for a timed bare loop; both undone after."""
+    import gc
+
+    gc.collect()
+    gc.disable()
+    saved = os.sched_getscheduler(0), os.sched_getparam(0)
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(80))
+    try:
+        yield
+    finally:
+        os.sched_setscheduler(0, saved[0], saved[1])
+        gc.enable()
+
+
+def bare_case(n_slaves: int, seconds: float) -> dict:
+    """The least any driver on pysoem does per cycle, timed like the driver's CPU figure: a
+    plain loop (SCHED_FIFO 80, sleeping to absolute 1 ms deadlines, as the aiohal loop does)
+    that receives the frame sent at the end of the previous cycle (the wait is excluded), reads
+    every slave's ``input``, writes every slave's ``output`` (bytes made once), sends. No
+    decoding, no state machine: what is left of 50 µs after this is the budget for the rest."""
+    cycles = round(seconds * 1000)
+    with bare_master(n_slaves) as (m, getters, setters):
+        expected = m.expected_wkc
+        parts = np.zeros((cycles, 3), dtype=np.int64)  # inputs, outputs, send (the receive's wait left out)
+        bad = 0
+        with fifo_no_gc():
+            steal = StealMeter()
+            m.send_processdata()
+            deadline = time.monotonic() + 0.001
+            for i in range(cycles):
+                wkc = m.receive_processdata(2000)
+                t1 = time.perf_counter_ns()
+                bad += wkc != expected
+                for get in getters:
+                    get()
+                t2 = time.perf_counter_ns()
+                for set_output, data in setters:
+                    set_output(data)
+                t3 = time.perf_counter_ns()
+                m.send_processdata()
+                t4 = time.perf_counter_ns()
+                parts[i] = (t2 - t1, t3 - t2, t4 - t3)
+                left = deadline - time.monotonic()
+                if left > 0:
+                    time.sleep(left)
+                deadline += 0.001
+            m.receive_processdata(2000)
+            steal_percent = steal.percent()
     spent = parts.sum(axis=1)
     med = np.median(parts, axis=0)
     return {"loop": "bare pysoem", "slaves": n_slaves, "cycles": cycles, "wkc_errors": int(bad),
@@ -255,6 +272,60 @@ def bare_case(n_slaves: int, seconds: float) -> dict:
             "cpu_p99_us": round(float(np.percentile(spent, 99)) / 1e3, 1),
             "inputs_p50_us": round(med[0] / 1e3, 1), "outputs_p50_us": round(med[1] / 1e3, 1),
             "send_p50_us": round(med[2] / 1e3, 1), "steal_percent": round(steal_percent, 1)}
+
+
+def send_after_work(n_slaves: int, rounds: int, block: int = 500) -> list[dict]:
+    """Why pysoem's send costs more inside the driver than in the bare loop: the bare loop with
+    work put between its receive and its send, in blocks of ``block`` cycles alternating in one
+    run: none; a pure-Python spin of 30 µs (time, no memory); numpy over 64 KB and over 512 KB
+    (memory, as a tick's work touches it). The send's own time is compared."""
+    small, small_out = np.ones(8192), np.empty(8192)
+    large, large_out = np.ones(65536), np.empty(65536)
+
+    def spin() -> None:
+        until = time.perf_counter_ns() + 30_000
+        while time.perf_counter_ns() < until:
+            pass
+
+    def touch(a: np.ndarray, out: np.ndarray) -> None:
+        np.multiply(a, 1.0001, out=out)
+        np.add(out, a, out=out)
+
+    kinds = {"none": lambda: None, "spin 30 µs": spin, "numpy over 64 KB": lambda: touch(small, small_out),
+             "numpy over 512 KB": lambda: touch(large, large_out)}
+    sends: dict[str, list[int]] = {kind: [] for kind in kinds}
+    work: dict[str, list[int]] = {kind: [] for kind in kinds}
+    with bare_master(n_slaves) as (m, getters, setters), fifo_no_gc():
+        steal = StealMeter()
+        m.send_processdata()
+        deadline = time.monotonic() + 0.001
+        for kind in list(kinds) * rounds:
+            between = kinds[kind]
+            for _ in range(block):
+                m.receive_processdata(2000)
+                for get in getters:
+                    get()
+                t0 = time.perf_counter_ns()
+                between()
+                t1 = time.perf_counter_ns()
+                for set_output, data in setters:
+                    set_output(data)
+                t2 = time.perf_counter_ns()
+                m.send_processdata()
+                t3 = time.perf_counter_ns()
+                sends[kind].append(t3 - t2)
+                work[kind].append(t1 - t0)
+                left = deadline - time.monotonic()
+                if left > 0:
+                    time.sleep(left)
+                deadline += 0.001
+        m.receive_processdata(2000)
+        steal_percent = round(steal.percent(), 1)
+    return [{"between": kind, "cycles": len(sends[kind]),
+             "work_p50_us": round(float(np.median(work[kind])) / 1e3, 1),
+             "send_p50_us": round(float(np.median(sends[kind])) / 1e3, 1),
+             "send_p90_us": round(float(np.percentile(sends[kind], 90)) / 1e3, 1),
+             "steal_percent": steal_percent} for kind in kinds]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -272,6 +343,8 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--bare", type=int, choices=sorted(LINES), default=None,
                       help="instead: a bare pysoem loop against the driver (1 kHz, split), alternately, "
                            "--rounds times each with this many slaves")
+    mode.add_argument("--send-after-work", type=int, choices=sorted(LINES), default=None,
+                      help="instead: the bare loop's send after none, spin or memory work, alternating")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--spin-guard-us", type=float, default=0.0,
                    help="[realtime] spin_guard_us of the runs (wake early and spin to the deadline)")
@@ -283,6 +356,13 @@ def main(argv: list[str] | None = None) -> int:
         result = breakdown(args.breakdown, round(args.seconds * 1000))
         print(json.dumps(result))
         write_json(args.json, {"benchmark": "ethercat_breakdown", **result})
+        return 0
+    if args.send_after_work:
+        rows = send_after_work(args.send_after_work, args.rounds)
+        print(table(rows, [("between", "between receive and send"), ("cycles", "cycles"),
+                           ("work_p50_us", "work p50 µs"), ("send_p50_us", "send p50 µs"),
+                           ("send_p90_us", "send p90 µs"), ("steal_percent", "steal %")]))
+        write_json(args.json, {"benchmark": "ethercat_send_after_work", "rows": rows})
         return 0
     if args.bare:
         pairs = []
