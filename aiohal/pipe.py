@@ -268,15 +268,21 @@ class _End:
         return msg.encode()
 
     def _recv_datagram(self) -> bytes | None:
-        """One pending datagram, or None; raises :class:`PeerGone` at EOF. One syscall, never blocks."""
+        """One pending datagram, or None; raises :class:`PeerGone` at EOF. One syscall (two
+        after a reset), never blocks."""
         try:
             data = self._sock.recv(MAX_MESSAGE + 1, _DONTWAIT)  # + 1: an oversized datagram shows as such
         except BlockingIOError:
             return None
         except OSError as exc:
-            if exc.errno in _GONE_ERRNOS:  # ECONNRESET: the peer died with our messages unread
-                raise PeerGone("the other end of the pipe is gone") from exc
-            raise
+            if exc.errno not in _GONE_ERRNOS:
+                raise
+            # ECONNRESET: the peer died with our messages unread. Linux reports it once, before
+            # the datagrams the peer had sent us: those are still read, EOF comes after them
+            try:
+                data = self._sock.recv(MAX_MESSAGE + 1, _DONTWAIT)
+            except OSError as again:
+                raise PeerGone("the other end of the pipe is gone") from again
         if not data and self._hung_up():  # EOF, not an empty datagram (which is malformed)
             raise PeerGone("the other end of the pipe closed")
         return data

@@ -348,6 +348,29 @@ def test_eof_seen_at_once_both_ways():
     nrt.close()
 
 
+def test_what_was_sent_before_a_reset_still_comes():
+    """A peer that dies with our messages unread leaves us ECONNRESET, which Linux reports
+    before the messages it had sent us: they still come, then the peer is gone."""
+    fast, nrt = pipe_pair()
+    fast.send(Grip(grasp=9.0))  # never read by the NRT side
+    nrt.send(Grip(grasp=1.0))
+    nrt.send(Grip(grasp=2.0))
+    nrt.close()
+    assert fast.receive_latest() == Grip(grasp=2.0)
+    assert not fast.peer_alive
+    assert fast.receive_latest() is None and fast.send(Grip()) is False
+    fast.close()
+
+    fast, nrt = pipe_pair()
+    nrt.send(Grip(grasp=9.0))  # never read by the fast side
+    fast.send(Grip(grasp=1.0))
+    fast.close()
+    assert nrt.receive(timeout=0) == Grip(grasp=1.0)
+    with pytest.raises(PeerGone):
+        nrt.receive(timeout=5.0)
+    nrt.close()
+
+
 def test_nrt_receive_latest_waits_then_drains(pair):
     fast, nrt = pair
     t0 = time.monotonic()
