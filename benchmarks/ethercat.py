@@ -181,7 +181,7 @@ def bare_master(n_slaves: int):
     SIM_CPU): yields (master, the slaves' input getters, (output setter, bytes) per slave)."""
     import pysoem
 
-    from aiohal.drivers.ethercat.bus import OP as OP_STATE
+    from aiohal.drivers.ethercat.bus import reach_op, reach_safeop
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
 
     with SimulatedSegment(LINES[n_slaves], watchdog_ms=100) as sim:
@@ -197,19 +197,15 @@ def bare_master(n_slaves: int):
             slaves = list(m.slaves)
             getters = [s._get_input for s in slaves if len(s.input)]
             setters = [(s._set_output, bytes(len(s.output))) for s in slaves if len(s.output)]
-            for _ in range(3):
+
+            def exchange() -> None:
                 m.send_processdata()
                 m.receive_processdata(50_000)
-            m.state = OP_STATE
-            m.write_state()
-            for _ in range(500):
-                m.send_processdata()
-                m.receive_processdata(50_000)
-                if m.state_check(OP_STATE, 1000) == OP_STATE:
-                    break
-                time.sleep(0.001)
-            else:
-                raise RuntimeError("the simulated slaves did not reach OP")
+
+            # the driver's own waits: each asks again after a frame lost in a stall of the host
+            if not (reach_safeop(m, 2.0) and reach_op(m, exchange, 2.0, 0.001)):
+                raise RuntimeError("the simulated slaves did not reach OP: "
+                                   + ", ".join(hex(s.state) for s in m.slaves))
             yield m, getters, setters
         finally:
             m.close()
