@@ -82,8 +82,10 @@ class CircleController(Controller):
         self.data = mujoco.MjData(self.model)
         names = list(params.joints or robot.joint_names)
         self.rows = robot.indices(names)  # the robot's rows the IK moves
-        if np.array_equal(self.rows, np.arange(self.rows[0], self.rows[0] + len(self.rows))):
-            self.rows = slice(int(self.rows[0]), int(self.rows[0]) + len(self.rows))  # a view, not a gather
+        # a run of rows (every joint, usually) is a slice: q*'s rows are then a view, not a gather
+        self._gather = not np.array_equal(self.rows, np.arange(self.rows[0], self.rows[0] + len(self.rows)))
+        if not self._gather:
+            self.rows = slice(int(self.rows[0]), int(self.rows[0]) + len(self.rows))
         self.qpos_adr, self.dof_adr = joint_addresses(self.model, names)
         all_qpos, _ = joint_addresses(self.model, list(robot.joint_names))
         # a fixed-base model usually stores the joints in order: write them as one slice
@@ -164,7 +166,7 @@ class CircleController(Controller):
         robot = self.robot
         self.t0 = t
         self.q_cmd = robot.state.position.copy()  # IK integrates the commanded configuration
-        self._q = self.q_cmd[self.rows] if isinstance(self.rows, slice) else np.zeros(len(self.max_step))
+        self._q = np.zeros(len(self.max_step)) if self._gather else self.q_cmd[self.rows]
         self.x_start = np.zeros(3 * len(self.site_ids))
         self._site_positions(self.q_cmd, self.x_start, jacobian=False)
         offset = np.array(self.params.offset) if self.params.offset is not None else -self.params.radius * self.u
@@ -209,14 +211,13 @@ class CircleController(Controller):
         limit = self.max_step * dt
         np.minimum(dq, limit, out=dq)
         np.maximum(dq, -limit, out=dq)
-        q = self._q  # q*'s moving rows: a view of it when they are a slice (every joint, usually)
-        gathered = not isinstance(self.rows, slice)
-        if gathered:
+        q = self._q  # q*'s moving rows (a view of q* unless they are gathered)
+        if self._gather:
             self.q_cmd.take(self.rows, out=q)
         q += dq
         np.minimum(q, self.q_max, out=q)
         np.maximum(q, self.q_min, out=q)
-        if gathered:
+        if self._gather:
             self.q_cmd[self.rows] = q
         cmd = robot.command
         np.copyto(cmd.position, self.q_cmd)

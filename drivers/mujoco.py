@@ -148,13 +148,11 @@ class MujocoDriver(Driver):
         from . import mujoco_kernels as kernels
 
         data, state, command = self.data, self.view.state, self.view.command
-        self._qpos, self._qvel, self._bias, self._ctrl = data.qpos, data.qvel, data.qfrc_bias, data.ctrl
-        self._state, self._ticks, self._stamps = state.block, state.updated_tick, state.stamp_ns
-        self._command, self._mode = command.block, command.mode
-        self._read_args = (self._qpos, self._qvel, self._index, self.tau, self._state, self._ticks, self._stamps)
+        self._read_args = (data.qpos, data.qvel, self._index, self.tau, state.block, state.updated_tick,
+                           state.stamp_ns)
         kernel_call.check(kernels.read_joints, (*self._read_args, 0, 0))
-        self._torque_args = (self._command, self._mode, self._state, self._table, self._index, self._bias,
-                             self.options.gravity_compensation, self.tau, self._ctrl)
+        self._torque_args = (command.block, command.mode, state.block, self._table, self._index, data.qfrc_bias,
+                             self.options.gravity_compensation, self.tau, data.ctrl)
         kernel_call.check(kernels.drive_torque, self._torque_args)
         self._sensor_runs = [(data.sensordata, *run) for run in self._gather_plan()]
         for run in self._sensor_runs:
