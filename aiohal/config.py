@@ -62,8 +62,9 @@ class LoopSection(Options):
     )
     gc: Literal["freeze", "default"] = Field(
         "freeze",
-        description="freeze: collect once and freeze every object alive before the first tick, so "
-        "collections during the run only scan what the run allocates; default: leave gc alone.",
+        description="freeze: collect once before the drivers open and freeze every object alive "
+        "(again, young generations only, before each run), so collections during the run only scan "
+        "what the run allocates; default: leave gc alone.",
     )
     close_timeout_ms: float = Field(
         2000.0, gt=0, description="A driver's close() that takes longer is abandoned (after its estop)."

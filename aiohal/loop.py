@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import gc
 import logging
 import threading
 import time
@@ -37,7 +36,7 @@ from .limits import CommandLimiter
 from .logutil import RateLimitedLogger
 from .multirate import TargetExtrapolator
 from .robot import Fault, Mode
-from .realtime import RealtimeState
+from .realtime import RealtimeState, freeze_heap, freeze_young, thaw_heap
 from .realtime import apply as apply_realtime
 from .realtime import restore as restore_realtime
 from .safety import FaultRecord, SafetyLevel
@@ -110,6 +109,7 @@ class ControlLoop:
         self._run_finished = asyncio.Event()
         self._missed_before = 0
         self._warn = RateLimitedLogger(log)
+        self._heap_frozen = False
 
     # ------------------------------------------------------------ lifecycle
 
@@ -154,6 +154,9 @@ class ControlLoop:
         clock.kind = self.source.kind
         clock.tick = 0
         clock.now_ns = self.source.now_ns()
+        if self.config.loop.gc == "freeze":
+            freeze_heap()  # the one full collection, before any driver has a thread to feed
+            self._heap_frozen = True
         try:
             for slot in self.slots:
                 await self._bring_up(slot, "open", slot.driver.open)
@@ -239,6 +242,9 @@ class ControlLoop:
                 slot.status = "abandoned" if isinstance(exc, TimeoutError) else slot.status
             if slot.status not in ("failed", "abandoned"):
                 slot.status = "closed"
+        if self._heap_frozen:  # every path that closes the drivers ends the loop's freeze
+            thaw_heap()
+            self._heap_frozen = False
 
     async def __aenter__(self) -> ControlLoop:
         await self.activate()
@@ -401,9 +407,8 @@ class ControlLoop:
                 self.realtime.warnings.append("virtual clock: real-time settings not applied")
             else:
                 self.realtime = apply_realtime(self.config.realtime)
-            if self.config.loop.gc == "freeze":
-                gc.collect()  # before the first tick, never during the run
-                gc.freeze()
+            if self._heap_frozen:
+                freeze_young()  # what open() and earlier runs left: young generations only
             watchdog = StallWatchdog(self, self.config.loop.stall_timeout_ms / 1e3)
             with watchdog:
                 try:
@@ -416,8 +421,6 @@ class ControlLoop:
             self.stats.end()
             self.ticker.close()
             restore_realtime(self.realtime)
-            if self.config.loop.gc == "freeze":
-                gc.unfreeze()
             if self.state == "running":
                 self.state = "active"
             self._run_finished.set()

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import gc
 import logging
 import os
+import threading
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
@@ -129,3 +131,37 @@ def restore(state: RealtimeState) -> None:
             _libc_call("prctl", PR_SET_TIMERSLACK, state._slack)
     except (OSError, AttributeError) as exc:
         log.warning("could not restore the thread's scheduling settings: %s", exc)
+
+
+_freeze_lock = threading.Lock()
+_freeze_holders = 0
+
+
+def freeze_heap() -> None:
+    """Collect everything once and freeze the survivors, so the run's collections scan only
+    what the run allocates. Call it before any driver opens: a full collection holds the GIL
+    for tens of milliseconds, which a driver's keep-alive thread must not wait out.
+
+    Counted, because the freeze is process-wide: the heap thaws when the last holder leaves.
+    """
+    global _freeze_holders
+    with _freeze_lock:
+        gc.collect()
+        gc.freeze()
+        _freeze_holders += 1
+
+
+def freeze_young() -> None:
+    """Freeze what was allocated since :func:`freeze_heap` after a young-generation
+    collection: cheap enough to run while drivers are open."""
+    gc.collect(1)
+    gc.freeze()
+
+
+def thaw_heap() -> None:
+    """Leave the freeze taken by :func:`freeze_heap`; the last holder unfreezes the heap."""
+    global _freeze_holders
+    with _freeze_lock:
+        _freeze_holders = max(0, _freeze_holders - 1)
+        if _freeze_holders == 0:
+            gc.unfreeze()

@@ -2,8 +2,9 @@
 
 A collection that runs inside a tick delays it: a full collection of a process that has
 loaded MuJoCo and pydantic scans tens of thousands of objects. ``freeze`` (the default)
-collects once and freezes the start-up heap before the first tick, so later collections scan
-only what the run itself allocated. Each run is a fresh process at 1 kHz on the real clock
+collects once and freezes the start-up heap before the drivers open (then, with the drivers
+open, only the young generations before the first tick), so later collections scan only what
+the run itself allocated. Each run is a fresh process at 1 kHz on the real clock
 with the config's [realtime] settings; gc callbacks time every collection during the run.
 
     python -m benchmarks.gc_pauses [--seconds 10] [--json PATH]
@@ -29,29 +30,42 @@ async def _run(spec: dict) -> dict:
 
     control = ControlLoop(parse_config(spec["raw"], base_dir=Path(spec["base_dir"])))
     pauses: list[tuple[int, float]] = []  # collections once ticking has begun
-    before_ms: list[float] = []  # freeze's own collection, before tick 1
-    started: list[tuple[int, bool]] = []
+    before_open_ms: list[float] = []  # freeze's full collection, in activate() before open()
+    before_tick_ms: list[float] = []  # run()'s young collection, with the drivers open
+    started: list[tuple[int, str]] = []
+    stage = "before_open"
 
     def on_gc(phase: str, info: dict) -> None:
         if phase == "start":
-            started.append((time.perf_counter_ns(), control.stats.count > 0))
+            started.append((time.perf_counter_ns(), "ticking" if control.stats.count > 0 else stage))
         elif started:
-            t0, ticking = started.pop()
+            t0, when = started.pop()
             us = (time.perf_counter_ns() - t0) / 1e3
-            if ticking:
+            if when == "ticking":
                 pauses.append((info["generation"], us))
             else:
-                before_ms.append(us / 1e3)
+                (before_open_ms if when == "before_open" else before_tick_ms).append(us / 1e3)
 
-    await control.activate()
+    control.configure()
+    driver = control.slots[0].driver
+    opened = driver.open
+
+    async def open_and_mark() -> None:
+        nonlocal stage
+        stage = "drivers_open"
+        await opened()
+
+    driver.open = open_and_mark
+    gc.callbacks.append(on_gc)
     try:
-        gc.callbacks.append(on_gc)
+        await control.activate()
         report = await control.run(ticks=spec["ticks"])
     finally:
         gc.callbacks.remove(on_gc)
         await control.deactivate()
     return {
-        "freeze_collect_ms": round(sum(before_ms), 1),
+        "freeze_collect_ms": round(sum(before_open_ms), 1),
+        "open_collect_ms": round(sum(before_tick_ms), 2),
         "collections": [sum(1 for g, _ in pauses if g == gen) for gen in range(3)],
         "pause_max_us": round(max((d for _, d in pauses), default=0.0), 1),
         "pause_total_ms": round(sum(d for _, d in pauses) / 1e3, 2),
@@ -91,6 +105,7 @@ def main() -> None:
             print(f"{name} gc={mode}: done", flush=True)
     print(table(rows, [
         ("config", "config"), ("gc", "gc"), ("freeze_collect_ms", "freeze collect ms"),
+        ("open_collect_ms", "drivers open collect ms"),
         ("collections", "collections gen0/1/2"),
         ("pause_max_us", "longest pause µs"), ("pause_total_ms", "total ms"), ("missed", "missed ticks"),
         ("rate", "rate Hz"), ("lateness_p999", "lateness p99.9 µs"), ("lateness_max", "max µs"), ("work_max", "work max µs"),

@@ -268,3 +268,113 @@ async def test_the_report_counts_how_the_real_clock_waited(idle_wait):
         assert waits["on_timer"] > 0
     else:
         assert waits["on_timer"] == 0 and waits["through_loop"] > 0
+
+
+class _Collections:
+    """Every collection from here on, in order with marks; automatic collection is off, so
+    each one seen is an explicit ``gc.collect`` somebody made."""
+
+    def __init__(self):
+        self.events: list[tuple[str, int]] = []
+
+    def __call__(self, phase, info):
+        if phase == "start":
+            self.events.append(("collect", info["generation"]))
+
+    def __enter__(self):
+        import gc
+
+        self._was_enabled = gc.isenabled()
+        gc.disable()
+        gc.callbacks.append(self)
+        return self
+
+    def __exit__(self, *exc):
+        import gc
+
+        gc.callbacks.remove(self)
+        if self._was_enabled:
+            gc.enable()
+
+    def after(self, mark):
+        return self.events[self.events.index(mark) + 1 :]
+
+
+@pytest.mark.asyncio
+async def test_the_full_collection_runs_before_any_driver_opens():
+    """A full collection holds the GIL for tens of milliseconds in a MuJoCo process: a driver's
+    keep-alive thread (EtherCAT feeds the bus until the first tick) must not wait it out. Once
+    a driver is open, the loop collects only the young generations."""
+    import gc
+
+    from aiohal import realtime
+
+    holders = realtime._freeze_holders
+    loop = virtual_loop(arm_raw(3))
+    loop.configure()
+    driver = loop.slots[0].driver
+    opened = driver.open
+
+    with _Collections() as seen:
+
+        async def open_and_mark():
+            seen.events.append(("open", 0))
+            await opened()
+
+        driver.open = open_and_mark
+        frozen_while_ticking = []
+        await loop.activate()
+        loop.add_publisher(lambda _loop: frozen_while_ticking.append(gc.get_freeze_count() > 0))
+        await loop.run(ticks=20)
+        await loop.run(ticks=20)
+        await loop.deactivate()
+
+    assert ("collect", 2) in seen.events[: seen.events.index(("open", 0))]
+    after_open = seen.after(("open", 0))
+    assert after_open, "run() no longer freezes what open() allocated"
+    assert all(gen < 2 for _, gen in after_open), seen.events
+    assert frozen_while_ticking == [True] * 40
+    assert realtime._freeze_holders == holders
+    if holders == 0:
+        assert gc.get_freeze_count() == 0
+
+
+@pytest.mark.asyncio
+async def test_the_heap_thaws_when_the_last_loop_closes():
+    """The freeze is process-wide: one loop closing must not thaw another one's run."""
+    import gc
+
+    from aiohal import realtime
+
+    holders = realtime._freeze_holders
+    first, second = virtual_loop(arm_raw(2)), virtual_loop(arm_raw(2))
+    await first.activate()
+    await second.activate()
+    await first.deactivate()
+    assert realtime._freeze_holders == holders + 1 and gc.get_freeze_count() > 0
+    await second.run(ticks=5)
+    await second.deactivate()
+    assert realtime._freeze_holders == holders
+
+
+@pytest.mark.asyncio
+async def test_a_failed_activation_thaws_the_heap():
+    from aiohal import realtime
+
+    holders = realtime._freeze_holders
+    raw = arm_raw(2)
+    raw["driver"][0]["options"] = {"faults": {"open_error": True}}
+    loop = virtual_loop(raw)
+    with pytest.raises(DriverError):
+        await loop.activate()
+    assert loop.state == "closed" and realtime._freeze_holders == holders
+
+
+@pytest.mark.asyncio
+async def test_gc_default_leaves_the_collector_alone():
+    raw = arm_raw(2)
+    raw["loop"]["gc"] = "default"
+    with _Collections() as seen:
+        async with virtual_loop(raw) as loop:
+            await loop.run(ticks=5)
+    assert seen.events == []
