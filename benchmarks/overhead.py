@@ -11,7 +11,8 @@ Both sides run in lockstep: the aiohal run on the virtual clock (``ControlLoop``
 runs it, back to back), the no-HAL loop as a plain ``for`` loop. CPU per tick = process CPU
 time (user + system, ``getrusage``) over the measured ticks / ticks, after a warm-up of
 ``--warmup`` seconds in the same process, both with the start-up heap collected and frozen
-(aiohal does this itself in ``run()``; the collection is outside the measured ticks). CPU % at
+(aiohal does this itself in ``activate()`` and ``run()``; the collection is outside the measured
+ticks). CPU % at
 1 kHz is that time over the 1 ms period: what a real-time 1 kHz run would use at that cost
 per tick (the wait itself is not included). Each side runs ``--repeat`` times in fresh
 processes, alternately; the table gives the ratio of the medians, the range of the ratios of
@@ -363,7 +364,7 @@ async def _interleaved(spec: dict) -> dict:
 
     async def hal_chunk(ticks: int) -> float:
         nonlocal missed
-        report = await control.run(ticks=ticks)  # collects and freezes the heap before its first tick
+        report = await control.run(ticks=ticks)  # freezes what is new on the heap before its first tick
         missed += report["missed_ticks"]
         stats = control.stats
         wall_s = (stats.stopped_wall_ns - stats.started_wall_ns) / 1e9
@@ -487,6 +488,9 @@ def main() -> None:
     if args.clock == "realtime" and args.interleave <= 0:
         p.error("--clock realtime needs --interleave TICKS")
     cases = _cases(args.seconds, args.warmup, "timerfd" if args.clock == "realtime" else "virtual")
+    unknown = sorted(set(args.only or ()) - set(cases))
+    if unknown:
+        p.error(f"--only: unknown case(s) {', '.join(unknown)}; the cases are {', '.join(cases)}")
     if args.interleave > 0:
         _main_interleaved(args, cases, started)
         return
