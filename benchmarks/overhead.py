@@ -49,7 +49,10 @@ loops did the same robot work.
 
 With ``--interleave TICKS`` both loops are built in one process and run alternately, TICKS
 ticks at a time (which side goes first alternates), for ``--seconds``; each round's ratio then
-compares the two sides measured milliseconds apart. On a shared VM whose speed changes by
+compares the two sides measured milliseconds apart. The table also gives the ratio in the
+quarter of rounds where the no-HAL side ran fastest and in the quarter where it ran slowest,
+to show whether the ratio moves with the host's speed (on this VM the host's speed changes
+by 2x within minutes). On a shared VM whose speed changes by
 1.5x from one minute to the next, separate runs pair a fast run with a slow one (pairs of
 0.8-2.5 for the same code); the rounds' median and quartiles do not. Each aiohal round is one
 ``run()``, whose fixed cost (about 0.4 ms: the stall watchdog's thread started and joined)
@@ -405,6 +408,21 @@ async def _interleaved(spec: dict) -> dict:
             "faults": len(report["faults"]), "missed": missed, "nohal_late": late, "nohal": finish()}
 
 
+def _quarters_by_host_speed(pairs: list[tuple[float, float]]) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(no-HAL µs, ratio) medians of the quarter of rounds where the no-HAL side ran fastest,
+    and of the quarter where it ran slowest: how the ratio moves with the host's speed.
+
+    Rounds are chosen by the no-HAL side's time alone. Where that time is low by chance, the
+    ratio of the round comes out high, so the fastest quarter's ratio errs against aiohal."""
+    by_speed = sorted(pairs, key=lambda pair: pair[1])
+    n = max(1, len(by_speed) // 4)
+
+    def medians(part: list[tuple[float, float]]) -> tuple[float, float]:
+        return statistics.median(b for _, b in part), statistics.median(h / b for h, b in part)
+
+    return medians(by_speed[:n]), medians(by_speed[-n:])
+
+
 def _at_deadlines(run_ticks, k: int, ticks: int, period_ns: int) -> int:
     """The no-HAL loop in real time: sleep to each absolute deadline, then run one tick.
     Returns how many ticks started a period or more late (it runs them all, late)."""
@@ -554,6 +572,7 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
         q25, q50, q75 = (float(np.percentile(ratios, q)) for q in (25, 50, 75))
         hal_med = statistics.median(h for h, _ in pairs)
         bare_med = statistics.median(b for _, b in pairs)
+        fast, slow = _quarters_by_host_speed(pairs)
         last = runs[-1]
         dq = float(np.max(np.abs(np.array(last["final_position"]) - np.array(last["nohal"]["final_position"]))))
         rms_hal, rms_bare = last["rms_error_m"], last["nohal"]["rms_error_m"]
@@ -561,6 +580,7 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
             "robot": name, "joints": len(last["final_position"]), "rounds": len(pairs),
             "hal_us": round(hal_med, 1), "bare_us": round(bare_med, 1), "added_us": round(hal_med - bare_med, 1),
             "ratio": round(q50, 3), "iqr": f"{q25:.2f}–{q75:.2f}",
+            "fast": f"{fast[0]:.1f} µs: {fast[1]:.2f}", "slow": f"{slow[0]:.1f} µs: {slow[1]:.2f}",
             "rms": "–" if rms_hal is None or rms_bare is None else f"{rms_hal * 1e3:.3f} / {rms_bare * 1e3:.3f}",
             "hal_cpu": round(hal_med / 10, 1), "bare_cpu": round(bare_med / 10, 1),
             "dq": f"{dq:.1e}", "faults": sum(r["faults"] for r in runs), "missed": sum(r["missed"] for r in runs),
@@ -576,7 +596,8 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
     print(table(rows, [
         ("robot", "robot"), ("joints", "joints"), ("rounds", "rounds"), ("hal_us", "aiohal CPU µs/tick"),
         ("bare_us", "no-HAL CPU µs/tick"), ("added_us", "HAL adds µs/tick"), ("ratio", "ratio aiohal/no-HAL (median of rounds)"),
-        ("iqr", "p25–p75 of rounds"), ("hal_cpu", "CPU % at 1 kHz aiohal"), ("bare_cpu", "no-HAL"),
+        ("iqr", "p25–p75 of rounds"), ("fast", "fastest quarter: no-HAL, ratio"),
+        ("slow", "slowest quarter: no-HAL, ratio"), ("hal_cpu", "CPU % at 1 kHz aiohal"), ("bare_cpu", "no-HAL"),
         ("rms", "RMS error mm aiohal / no-HAL"), ("dq", "final max |Δq| rad"), ("missed", "aiohal missed ticks"),
         ("late", "no-HAL ticks ≥ 1 period late"),
         ("faults", "faults"),
