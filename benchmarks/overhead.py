@@ -80,6 +80,8 @@ from pathlib import Path
 
 import numpy as np
 
+from aiohal.stats import PHASES
+
 from .breakdown import load_raw, loop_spec, spawn, timeout_for, worker
 from .common import ROOT, table, write_json
 from .scaling import robot_raw
@@ -116,8 +118,11 @@ def nohal_mujoco(spec: dict) -> dict:
     return {**_measure(run_ticks, spec["warmup_ticks"], spec["ticks"]), **finish()}
 
 
-def setup_nohal_mujoco(spec: dict):
-    """The no-HAL MuJoCo loop, ready: (run_ticks(k_from, k_to), finish() -> final values)."""
+def setup_nohal_mujoco(spec: dict, phase_log: list | None = None):
+    """The no-HAL MuJoCo loop, ready: (run_ticks(k_from, k_to), finish() -> final values).
+
+    With ``phase_log`` each tick appends its (read, controller, torque, step) times in ns, as
+    the HAL's loop times its phases (``--phases``)."""
     import mujoco
 
     from aiohal.config import load_config
@@ -199,15 +204,21 @@ def setup_nohal_mujoco(spec: dict):
 
     arrays = (q, qd, tau, ttmp, dq, q_cmd, x, err, task, x_d, v_d, tmp, A, w)
 
+    timed, clock = phase_log is not None, time.perf_counter_ns
+
     def run_ticks(k_from: int, k_to: int) -> None:
         q, qd, tau, ttmp, dq, q_cmd, x, err, task, x_d, v_d, tmp, A, w = arrays  # locals, as in a hand-written loop
         sum_sq, max_err, samples = acc["sum_sq"], acc["max"], acc["samples"]
         for k in range(k_from, k_to):
             t = k * period_s
             dt = period_s
+            if timed:
+                t0 = clock()
             # read
             data.qpos.take(qpos_adr, out=q)
             data.qvel.take(dof_adr, out=qd)
+            if timed:
+                t1 = clock()
             # circle: tracking error of the measured pose
             if t > ramp:
                 fk(q, x, False)
@@ -255,6 +266,8 @@ def setup_nohal_mujoco(spec: dict):
             np.maximum(q_cmd, q_min, out=q_cmd)
             dq *= 1.0 / dt  # the velocity command
             np.copyto(last_target, x_d)
+            if timed:
+                t2 = clock()
             # the drive: PD + gravity compensation, then the physics
             np.subtract(q_cmd, q, out=tau)
             tau *= kp
@@ -266,7 +279,11 @@ def setup_nohal_mujoco(spec: dict):
             np.minimum(tau, tau_max, out=tau)
             np.maximum(tau, tau_min, out=tau)
             data.ctrl[actuators] = tau
+            if timed:
+                t3 = clock()
             mujoco.mj_step(model, data, nstep=substeps)
+            if timed:
+                phase_log.append((t1 - t0, t2 - t1, t3 - t2, clock() - t3))
         acc["sum_sq"], acc["max"], acc["samples"] = sum_sq, max_err, samples
 
     def finish() -> dict:
@@ -357,8 +374,13 @@ async def _interleaved(spec: dict) -> dict:
     hal, bare = spec["hal"], spec["nohal"]
     chunk, rounds = spec["chunk"], spec["rounds"]
     realtime = spec.get("clock") == "realtime"
-    setup = setup_nohal_mujoco if bare["kind"] == "nohal_mujoco" else setup_nohal_mock
-    run_ticks, finish = setup(bare)
+    phase_log: list | None = [] if spec.get("phases") and bare["kind"] == "nohal_mujoco" else None
+    if bare["kind"] == "nohal_mujoco":
+        run_ticks, finish = setup_nohal_mujoco(bare, phase_log)
+    else:
+        run_ticks, finish = setup_nohal_mock(bare)
+    hal_phases: list[list[float]] = []  # per round: p50 µs of each HAL phase (PHASES order)
+    bare_phases: list[list[float]] = []  # per round: p50 µs of read, controller, torque, step
     control = ControlLoop(parse_config(hal["raw"], base_dir=Path(hal["base_dir"])))
     await control.activate()
     k = 1
@@ -370,6 +392,8 @@ async def _interleaved(spec: dict) -> dict:
         report = await control.run(ticks=ticks)  # freezes what is new on the heap before its first tick
         missed += report["missed_ticks"]
         stats = control.stats
+        if phase_log is not None:
+            hal_phases.append([float(v) / 1e3 for v in np.median(stats.phases[:, : stats.count], axis=1)])
         wall_s = (stats.stopped_wall_ns - stats.started_wall_ns) / 1e9
         return report["cpu_percent"] / 100.0 * wall_s / report["ticks"]
 
@@ -385,12 +409,17 @@ async def _interleaved(spec: dict) -> dict:
         cpu = _cpu_s() - cpu0
         gc.unfreeze()
         k += ticks
+        if phase_log:
+            bare_phases.append([float(v) / 1e3 for v in np.median(np.array(phase_log), axis=0)])
+            phase_log.clear()
         return cpu / ticks
 
     try:
         if hal["warmup_ticks"]:
             await hal_chunk(hal["warmup_ticks"])
             bare_chunk(bare["warmup_ticks"])
+            hal_phases.clear()
+            bare_phases.clear()
         pairs = []
         for r in range(rounds):
             if r % 2:
@@ -405,7 +434,8 @@ async def _interleaved(spec: dict) -> dict:
     finally:
         await control.deactivate()
     return {"pairs": pairs, "final_position": final, "rms_error_m": report["controller"].get("rms_error_m"),
-            "faults": len(report["faults"]), "missed": missed, "nohal_late": late, "nohal": finish()}
+            "faults": len(report["faults"]), "missed": missed, "nohal_late": late, "nohal": finish(),
+            "hal_phases_us": hal_phases, "nohal_phases_us": bare_phases}
 
 
 def _quarters_by_host_speed(pairs: list[tuple[float, float]]) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -496,6 +526,9 @@ def main() -> None:
     p.add_argument("--clock", choices=("virtual", "realtime"), default="virtual",
                    help="virtual: lockstep, back to back (default); realtime: both sides at 1 kHz on real "
                         "deadlines (needs --interleave)")
+    p.add_argument("--phases", action="store_true",
+                   help="with --interleave: time the phases of both sides' ticks (MuJoCo robots; the no-HAL "
+                        "loop then reads the clock 5 times per tick, so its CPU figures are not the headline)")
     p.add_argument("--json", default=None)
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -505,6 +538,8 @@ def main() -> None:
     started = time.monotonic()
     if args.clock == "realtime" and args.interleave <= 0:
         p.error("--clock realtime needs --interleave TICKS")
+    if args.phases and args.interleave <= 0:
+        p.error("--phases needs --interleave TICKS")
     cases = _cases(args.seconds, args.warmup, "timerfd" if args.clock == "realtime" else "virtual")
     unknown = sorted(set(args.only or ()) - set(cases))
     if unknown:
@@ -559,13 +594,29 @@ def main() -> None:
                            "elapsed_s": round(elapsed, 1), "rows": rows, "runs": raw_results})
 
 
+def _phase_row(name: str, hal: list[list[float]], bare: list[list[float]]) -> dict:
+    """Medians over the rounds of each side's per-round phase medians (µs), matched up: the
+    HAL's write holds the driver's torque law and ``mj_step``; check and limits have no
+    counterpart in the no-HAL loop."""
+    h = dict(zip(PHASES, (statistics.median(col) for col in zip(*hal))))
+    b_read, b_control, b_torque, b_step = (statistics.median(col) for col in zip(*bare))
+
+    def pair(x: float, y: float) -> str:
+        return f"{x:.1f} / {y:.1f} ({x / y:.2f})"
+
+    return {"robot": name, "rounds": len(hal), "read": pair(h["read"], b_read),
+            "control": pair(h["control"], b_control), "write": pair(h["write"], b_torque + b_step),
+            "hal_only": f"{h['check']:.1f} + {h['limits']:.1f} + {h['publish']:.1f}",
+            "sum": pair(sum(h.values()), b_read + b_control + b_torque + b_step)}
+
+
 def _main_interleaved(args, cases: dict, started: float) -> None:
-    rows, raw_results = [], {}
+    rows, raw_results, phase_rows = [], {}, []
     rounds = max(2, round(args.seconds * 1000 / args.interleave))
     for name in args.only or list(cases):
         hal_spec, nohal_spec = cases[name]
         spec = {"kind": "interleaved", "hal": hal_spec, "nohal": nohal_spec, "chunk": args.interleave, "rounds": rounds,
-                "clock": args.clock}
+                "clock": args.clock, "phases": args.phases}
         runs = [spawn(MODULE, spec, timeout_for(args.seconds * 5)) for _ in range(max(1, args.repeat))]
         pairs = [pair for r in runs for pair in r["pairs"]]
         ratios = sorted(h / b for h, b in pairs)
@@ -587,6 +638,11 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
             "late": sum(r["nohal_late"] for r in runs),
         })
         raw_results[name] = {"pairs_us": pairs}
+        hal_ph = [row for r in runs for row in r["hal_phases_us"]]
+        bare_ph = [row for r in runs for row in r["nohal_phases_us"]]
+        if hal_ph and bare_ph:
+            phase_rows.append(_phase_row(name, hal_ph, bare_ph))
+            raw_results[name].update(hal_phases_us=hal_ph, nohal_phases_us=bare_ph)
         print(f"{name}: done", flush=True)
     elapsed = time.monotonic() - started
     print()
@@ -602,9 +658,17 @@ def _main_interleaved(args, cases: dict, started: float) -> None:
         ("late", "no-HAL ticks ≥ 1 period late"),
         ("faults", "faults"),
     ]))
+    if phase_rows:
+        print("\nPhases, p50 µs per tick, aiohal / no-HAL (ratio), medians over the rounds; the no-HAL write is its "
+              "torque law plus mj_step:")
+        print(table(phase_rows, [
+            ("robot", "robot"), ("rounds", "rounds"), ("read", "read"), ("control", "controller"),
+            ("write", "write with the step"), ("hal_only", "aiohal only: check + limits + publish"),
+            ("sum", "sum of the phases"),
+        ]))
     print(f"\nelapsed {elapsed:.1f} s")
     write_json(args.json, {"seconds": args.seconds, "warmup": args.warmup, "repeat": args.repeat, "clock": args.clock,
-                           "interleave": args.interleave, "elapsed_s": round(elapsed, 1), "rows": rows, "runs": raw_results})
+                           "interleave": args.interleave, "phases": phase_rows, "elapsed_s": round(elapsed, 1), "rows": rows, "runs": raw_results})
 
 
 if __name__ == "__main__":
