@@ -193,3 +193,63 @@ def test_a_mapping_write_whose_frame_was_lost_is_written_again_but_an_abort_is_n
     with pytest.raises(LookupError):
         bus._sdo_write_again_if_lost(refusing, 0x1601, 0, b"\0")
     assert refusing.calls == 1
+
+
+class ScanMaster:
+    """A pysoem Master whose first ``zero_scans`` bus scans read slave 1's identity as zero (its
+    product code alone on the first scan), as SOEM does when an EEPROM read does not finish in time."""
+
+    def __init__(self, zero_scans: int) -> None:
+        self.zero_scans = zero_scans
+        self.scans = 0
+        self.slaves: list = []
+
+    def open(self, ifname: str) -> None:
+        pass
+
+    def config_init(self, release_gil: bool = False) -> int:
+        self.scans += 1
+        unread = self.scans <= self.zero_scans
+        self.slaves = [
+            type("Slave", (), {"name": "drive", "man": 0xAB, "id": 0x402})(),
+            type("Slave", (), {"name": "" if unread else "drive",
+                               "man": 0 if unread and self.scans > 1 else 0xAB, "id": 0 if unread else 0x402})(),
+        ]
+        return len(self.slaves)
+
+
+class ScanPysoem:
+    MailboxError = PacketError = WkcError = type("LostFrame", (Exception,), {})
+
+    def __init__(self, zero_scans: int) -> None:
+        self.master = ScanMaster(zero_scans)
+
+    def Master(self) -> ScanMaster:  # noqa: N802 (pysoem's name)
+        return self.master
+
+
+@pytest.mark.parametrize("zero_scans", [0, 1, 2])
+def test_a_zero_identity_is_read_again_by_scanning_the_bus_again(zero_scans):
+    from aiohal.drivers.ethercat.bus import check_identity
+
+    pysoem = ScanPysoem(zero_scans)
+    bus = Bus(pysoem, "lo")
+    assert bus.open() == 2
+    assert pysoem.master.scans == zero_scans + 1
+    assert [(s.man, s.id) for s in bus.slaves] == [(0xAB, 0x402)] * 2
+    check_identity(1, bus.slaves[1].name, "drive2", bus.slaves[1].man, bus.slaves[1].id, 0xAB, 0x402)
+
+
+def test_an_identity_still_zero_after_three_scans_fails_with_the_reason():
+    from aiohal.drivers.ethercat.bus import IDENTITY_READS, check_identity
+
+    pysoem = ScanPysoem(zero_scans=10)
+    bus = Bus(pysoem, "lo")
+    assert bus.open() == 2
+    assert pysoem.master.scans == IDENTITY_READS == 3
+    with pytest.raises(BringUpError) as err:
+        check_identity(1, "?", "drive2", bus.slaves[1].man, bus.slaves[1].id, 0xAB, 0x402)
+    assert "vendor id 0x00000000" in str(err.value) and "read as zero in 3 scans" in str(err.value)
+    with pytest.raises(BringUpError) as wrong:  # a wrong device says nothing of scans
+        check_identity(1, "other", "drive2", 0xAB, 0x999, 0xAB, 0x402)
+    assert "scans" not in str(wrong.value)

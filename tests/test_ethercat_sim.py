@@ -457,6 +457,33 @@ def test_eeprom_write_needs_write_enable():
     assert bus.eeprom(0x1001, 0x0050)[:2] == u16(0xBEEF)
 
 
+def test_an_armed_eeprom_read_leaves_the_eeprom_busy_for_its_time_and_is_never_done():
+    """Fault injection ``eeprom_busy``: what SOEM meets when an EEPROM read does not finish
+    within its wait (its split read then returns whatever the data register held)."""
+    from aiohal.drivers.ethercat.sim.control import apply
+
+    bus = Bus("drive,drive")
+    bus.init_all()
+    assert apply(bus.seg, {"cmd": "eeprom_busy", "slave": 1, "ms": 30}) == {"ok": True}
+
+    def status(st_):
+        return struct.unpack("<H", bus.fprd(st_, 0x0502, 2)[0])[0]
+
+    before = bus.fprd(0x1002, 0x0508, 8)[0]
+    bus.fpwr(0x1002, 0x0502, struct.pack("<HI", 0x0100, 0x08))  # the vendor id's words
+    assert status(0x1002) & 0x8000
+    assert bus.fprd(0x1002, 0x0508, 8)[0] == before  # not read
+    bus.fpwr(0x1002, 0x0502, struct.pack("<HI", 0x0100, 0x0A))  # a command while busy is not taken
+    bus.clock.advance(29)
+    assert status(0x1002) & 0x8000
+    assert bus.eeprom(0x1001, 0x08)[:4] == struct.pack("<I", VENDOR)  # the other slave is not affected
+    bus.clock.advance(1)
+    assert not status(0x1002) & 0x8000
+    assert bus.fprd(0x1002, 0x0508, 8)[0] == before
+    assert bus.eeprom(0x1002, 0x08)[:4] == struct.pack("<I", VENDOR)  # once: the next read is done
+    assert apply(bus.seg, {"cmd": "eeprom_busy", "slave": 1, "ms": 0})["ok"] is False
+
+
 # ====================================================================== AL state machine
 
 

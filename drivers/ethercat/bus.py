@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 INIT, PREOP, BOOT, SAFEOP, OP = 0x01, 0x02, 0x03, 0x04, 0x08
 STATE_ERROR, STATE_ACK = 0x10, 0x10
+IDENTITY_READS = 3  # bus scans at most, while a slave's vendor id or product code reads as zero
 _STATE_NAMES = {0: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP", OP: "OP"}
 
 
@@ -104,10 +105,19 @@ class Bus:
         except Exception as exc:  # pysoem raises ConnectionError without root or CAP_NET_RAW
             raise BringUpError(f"cannot open {self.ifname!r} for EtherCAT (root or CAP_NET_RAW needed): {exc}") from exc
         self.is_open = True
-        found = self.master.config_init(release_gil=True)
-        if found < 0:
-            raise BringUpError(f"no EtherCAT frame came back on {self.ifname!r}: nothing connected, or the link is down")
-        self.slaves = list(self.master.slaves)
+        for attempt in range(1, IDENTITY_READS + 1):
+            found = self.master.config_init(release_gil=True)
+            if found < 0:
+                raise BringUpError(f"no EtherCAT frame came back on {self.ifname!r}: nothing connected, or the link is down")
+            self.slaves = list(self.master.slaves)
+            # vendor id 0 is no vendor's, and no product is numbered 0 in practice: SOEM reads a
+            # zero when an EEPROM read does not finish in time (a stall of the host), so the bus
+            # is scanned again
+            unread = [i for i, slave in enumerate(self.slaves) if slave.man == 0 or slave.id == 0]
+            if not unread or attempt == IDENTITY_READS:
+                break
+            log.warning("ethercat %s: the identity of slave(s) %s read as zero; scanning the bus again (%d of %d)",
+                        self.ifname, ", ".join(map(str, unread)), attempt + 1, IDENTITY_READS)
         return len(self.slaves)
 
     def read_layout(self, position: int, names_overrides: dict | None = None) -> PdoLayout:
@@ -394,8 +404,10 @@ def check_identity(position: int, device_name: str, name: str, vendor_id: int, p
     """The slave at a position must be the configured device, when the config says which."""
     for what, want, got in (("vendor id", want_vendor, vendor_id), ("product code", want_product, product_code)):
         if want is not None and want != got:
+            why = (f" (read as zero in {IDENTITY_READS} scans of the bus: its EEPROM did not answer in time)"
+                   if got == 0 else "")
             raise BringUpError(f"slave {position} ({device_name}): {what} 0x{got:08X}, "
-                               f"but the config expects 0x{want:08X} for {name!r}")
+                               f"but the config expects 0x{want:08X} for {name!r}{why}")
 
 
 def expected_wkc(infos: Sequence[SlaveInfo]) -> int:

@@ -22,9 +22,12 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
                    coulomb/csp_hz/csv_tau/max_speed/position/fault)
 ``dc``             ``slave``, ``supported`` (bool): the slave's ESC has a distributed clock
                    or not (features register, DC registers); power-cycles that slave
+``eeprom_busy``    ``slave``, ``ms`` (default 50): the slave's next EEPROM read leaves its
+                   EEPROM busy that long and is never done (the master's read times out)
 ``power_cycle``    ``slave`` (default: all): back to the power-on state (registers, SII,
                    object dictionary values, device model)
-``clear``          - (drop, delay, wkc faults off; cable repaired; every slave has DC again)
+``clear``          - (drop, delay, wkc faults off; cable repaired; no EEPROM busy; every
+                   slave has DC again)
 ``reset_counters`` -
 =================  ==========================================================================
 
@@ -115,6 +118,12 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
         seg.slave(k).has_dc = supported
         seg.power_cycle(k)
         return None
+    if cmd == "eeprom_busy":
+        ms = float(c.get("ms", 50))
+        if not 0 < ms <= 10_000:
+            raise ValueError("ms must be within 0..10000")
+        seg.eeprom_busy(_int(c["slave"], "slave"), ms)
+        return None
     if cmd == "power_cycle":
         if "slave" in c:
             seg.power_cycle(_int(c["slave"], "slave"))
@@ -125,6 +134,7 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
     if cmd == "clear":
         f.clear()
         seg.break_before(None)
+        seg.eeprom_busy_off()
         for k, esc in enumerate(seg.slaves):
             if not esc.has_dc:
                 esc.has_dc = True

@@ -52,6 +52,7 @@ _VALID = {
 ESC_TYPE = 0x11  # an ET1100-like ESC (simulator's choice)
 FEATURES = 0x000C  # DC supported, 64-bit DC; bit 0 = 0: FMMUs are bit oriented
 FEATURES_DC = 0x000C
+EEPROM_BUSY = 0x8000  # bit 15 of the EEPROM control/status register (0x0502)
 DC_START, DC_END = 0x0900, 0x0A00  # the distributed clock's registers (absent without DC)
 PORT_DESCRIPTOR = 0x0F  # ports 0 and 1: MII; ports 2 and 3: not implemented
 WD_DIVIDER = 2498  # 100 us watchdog units
@@ -141,6 +142,10 @@ class Esc:
         U16.pack_into(mem, 0x0420, max(0, min(0xFFFF, round(self.watchdog_ms * 10))))
         U16.pack_into(mem, 0x0440, 1)
         U16.pack_into(mem, 0x0502, 0x0040)  # 8-byte reads supported
+        #: armed by the control command ``eeprom_busy``: the next read leaves the EEPROM busy
+        #: this long (as a slow or stalled EEPROM would), and the master's wait times out
+        self.eeprom_busy_ns = 0
+        self.eeprom_busy_until: int | None = None
         if self.has_dc:
             U16.pack_into(mem, 0x0930, 0x1000)
             mem[0x0934] = 0x04
@@ -307,8 +312,16 @@ class Esc:
 
     def _h_eeprom(self, a: int, b: int) -> None:
         mem = self.mem
+        if self.eeprom_busy_until is not None:  # busy: a command written now is not taken
+            U16.pack_into(mem, 0x0502, EEPROM_BUSY | 0x0040)
+            return
         ctl = U16.unpack_from(mem, 0x0502)[0]
         cmd = (ctl >> 8) & 0x07
+        if cmd == 1 and self.eeprom_busy_ns:
+            self.eeprom_busy_until = self.clock() + self.eeprom_busy_ns
+            self.eeprom_busy_ns = 0
+            U16.pack_into(mem, 0x0502, EEPROM_BUSY | 0x0040)
+            return
         status = 0x0040
         addr = U32.unpack_from(mem, 0x0504)[0] & 0xFFFF
         if cmd == 1:  # read 8 bytes (4 words)
@@ -330,6 +343,16 @@ class Esc:
         elif cmd != 0:
             status |= 0x2000  # invalid command
         U16.pack_into(mem, 0x0502, status)
+
+    def eeprom_release(self, now: int) -> bool:
+        """End a busy period once its time has come; True while one is armed or lasts."""
+        if self.eeprom_busy_until is None:
+            return self.eeprom_busy_ns > 0
+        if now < self.eeprom_busy_until:
+            return True
+        self.eeprom_busy_until = None
+        U16.pack_into(self.mem, 0x0502, 0x0040)  # the read was never done: the data register is unchanged
+        return False
 
     def _h_fmmu(self, a: int, b: int) -> None:
         self.on_change("fmmu")

@@ -87,6 +87,7 @@ class Segment:
         self._dirty_addr = True
         self._dirty_map = True
         self._next_poll = 0
+        self._eeprom_busy: list[Esc] = []  # slaves whose EEPROM is armed or busy (control: eeprom_busy)
         self._touched: list[Esc] = []
         self.reset_counters()
         self._apply_topology()
@@ -150,6 +151,8 @@ class Segment:
         self.last_logical = False
         if now >= self._next_poll:
             self.poll(now)
+        if self._eeprom_busy:
+            self._eeprom_busy = [esc for esc in self._eeprom_busy if esc.eeprom_release(now)]
         if len(frame) < 28 or frame[12:14] != ETHERTYPE:
             c["ignored"] += 1
             return None
@@ -457,6 +460,18 @@ class Segment:
 
     def drive_fault(self, k: int, code: int) -> None:
         self.slave(k).inject_drive_fault(code)
+
+    def eeprom_busy(self, k: int, ms: float) -> None:
+        """Slave k's next EEPROM read leaves its EEPROM busy for ``ms``."""
+        esc = self.slave(k)
+        esc.eeprom_busy_ns = int(ms * 1e6)
+        self._eeprom_busy.append(esc)
+
+    def eeprom_busy_off(self) -> None:
+        for esc in self._eeprom_busy:
+            esc.eeprom_busy_ns = 0
+            esc.eeprom_release(esc.eeprom_busy_until or 0)
+        self._eeprom_busy = []
 
     def power_cycle(self, k: int) -> None:
         esc = self.slave(k)
