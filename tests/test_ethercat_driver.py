@@ -241,23 +241,38 @@ async def test_a_lost_sensor_is_faulted_and_recovered_while_the_arm_runs(segment
 
         return asyncio.get_running_loop().run_in_executor(None, run)
 
-    at = At((800, break_imu), (800 + WATCHDOG_MS + 400, in_thread(segment.control, {"cmd": "repair"})))
+    def repair(loop):
+        def run():
+            segment.control({"cmd": "repair"})
+            seen["repaired_tick"] = loop.robot.clock.tick
+
+        return asyncio.get_running_loop().run_in_executor(None, run)
+
+    at = At((800, break_imu), (800 + WATCHDOG_MS + 400, repair))
 
     def watch(loop):
-        imu = loop.robot.device("base_imu")
+        imu, ft = loop.robot.device("base_imu"), loop.robot.device("wrist_ft")
+        tick = loop.robot.clock.tick
         if imu.fault & Fault.HARDWARE and "imu_fault" not in seen:
-            seen["imu_fault"] = (loop.robot.clock.tick, driver_of(loop).cycles)
+            seen["imu_fault"] = (tick, driver_of(loop).cycles)
+        # the run ends 200 ticks after both sensors were read again after the repair, not at a
+        # fixed tick: a stall of the host at the end can take the last ticks (seen locally)
+        repaired = seen.get("repaired_tick")
+        if repaired is not None and "read_again" not in seen and imu.fault == 0 and ft.fault == 0 \
+                and min(imu.updated_tick, ft.updated_tick) > repaired:
+            seen["read_again"] = tick
+        if tick >= seen.get("read_again", tick + 1) + 200:
+            loop.request_stop("read again")
 
     async with ControlLoop(parse_config(raw)) as loop:
         loop.add_publisher(at)
         loop.add_publisher(watch)
-        report = await loop.run(ticks=WATCHDOG_MS + 3200)
+        report = await loop.run(ticks=WATCHDOG_MS + 8000)
         await asyncio.gather(*at.tasks)
         driver = driver_of(loop)
         imu, ft = loop.robot.device("base_imu"), loop.robot.device("wrist_ft")
-        last_tick = loop.robot.clock.tick
         assert driver.drives.all_enabled()
-    assert report["safety_level"] == "run" and report["ticks"] + report["missed_ticks"] == WATCHDOG_MS + 3200
+    assert report["safety_level"] == "run" and loop.stop_reason == "read again", loop.stop_reason
     lost = [f for f in report["faults"] if "lost" in f["error"]]
     assert {("imu" in f["error"], "ft" in f["error"]) for f in lost} == {(True, False), (False, True)}
     fault_tick, fault_cycle = seen["imu_fault"]
@@ -267,10 +282,7 @@ async def test_a_lost_sensor_is_faulted_and_recovered_while_the_arm_runs(segment
     # bad cycles only until each change was diagnosed (5 in a row each), not for the whole outage
     bus = report["drivers"]["bus"]
     assert bus["wkc_errors"] - bus["frames_lost"] < 50  # (frames lost in a stall of the host aside)
-    # both read again after the repair (issued at tick 800 + WATCHDOG_MS + 400); not "at the last
-    # tick": a stall of the host at the end can lose the last frames (seen in CI)
-    assert imu.fault == 0 and ft.fault == 0
-    assert imu.updated_tick > 800 + WATCHDOG_MS + 400 and ft.updated_tick > 800 + WATCHDOG_MS + 400, last_tick
+    assert imu.fault == 0 and ft.fault == 0  # 200 ticks after both were read again: no fault came back
 
 
 @pytest.mark.asyncio
