@@ -17,7 +17,7 @@ CPU 1 (2-core machine: they would otherwise share one). "steal" is the CPU time 
 took from this VM during the case, in % of both CPUs (from /proc/stat).
 
     sudo python -m benchmarks.ethercat [--seconds 10] [--soak 60] [--json PATH]
-    sudo python -m benchmarks.ethercat --breakdown 7 [--seconds 5]   # where the driver's time goes
+    sudo python -m benchmarks.ethercat --breakdown 7 [--seconds 5] [--exchange immediate]  # where the driver's time goes
     sudo python -m benchmarks.ethercat --bare 7 [--rounds 3]          # pysoem's own floor beside it
     sudo python -m benchmarks.ethercat --send-after-work 7 [--rounds 3]  # the send after the tick's work
 
@@ -121,7 +121,7 @@ PHASES = ((f"{ETHERCAT}.bus", "Bus", "send"), (f"{ETHERCAT}.bus", "Bus", "receiv
           (f"{ETHERCAT}.devices", "DriveGroup", "write"), (f"{ETHERCAT}.driver", "EthercatDriver", "_write_outputs"))
 
 
-def breakdown(n_slaves: int, ticks: int) -> dict:
+def breakdown(n_slaves: int, ticks: int, exchange: str = "split") -> dict:
     """Where the driver's time goes, in the loop (each phase wrapped with a timer, ~0.3 µs
     added per phase), then the same decode run back to back (warm) and after a 0.9 ms sleep
     each (cold, as in the loop): on this VM a tick after sleeping runs several times slower."""
@@ -148,7 +148,7 @@ def breakdown(n_slaves: int, ticks: int) -> dict:
         setattr(cls, name, functools.wraps(fn)(timed))
 
     async def run(ifname: str) -> dict:
-        raw = tomllib.loads(config_text(n_slaves, ifname, 1000, "split"))
+        raw = tomllib.loads(config_text(n_slaves, ifname, 1000, exchange))
         async with ControlLoop(parse_config(raw)) as loop:
             await loop.run(ticks=500)
             spent.clear()
@@ -172,7 +172,7 @@ def breakdown(n_slaves: int, ticks: int) -> dict:
     os.sched_setaffinity(0, {LOOP_CPU})
     with SimulatedSegment(LINES[n_slaves], watchdog_ms=250) as sim:
         os.sched_setaffinity(sim.pid, {SIM_CPU})
-        return {"slaves": n_slaves, **asyncio.run(run(sim.ifname))}
+        return {"slaves": n_slaves, "exchange": exchange, **asyncio.run(run(sim.ifname))}
 
 
 @contextlib.contextmanager
@@ -342,6 +342,8 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--send-after-work", type=int, choices=sorted(LINES), default=None,
                       help="instead: the bare loop's send after none, spin or memory work, alternating")
     p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--exchange", choices=("split", "immediate"), default="split",
+                   help="with --breakdown: the driver's exchange (default split)")
     p.add_argument("--spin-guard-us", type=float, default=0.0,
                    help="[realtime] spin_guard_us of the runs (wake early and spin to the deadline)")
     args = p.parse_args(argv)
@@ -349,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
         print("benchmarks.ethercat needs root (veth pair, network namespace, raw socket)", file=sys.stderr)
         return 2
     if args.breakdown:
-        result = breakdown(args.breakdown, round(args.seconds * 1000))
+        result = breakdown(args.breakdown, round(args.seconds * 1000), args.exchange)
         print(json.dumps(result))
         write_json(args.json, {"benchmark": "ethercat_breakdown", **result})
         return 0
