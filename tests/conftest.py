@@ -41,3 +41,24 @@ def require_root(reason: str) -> None:
     if os.environ.get("CI") == "true":
         pytest.fail(f"needs root under CI: {reason}")
     pytest.skip(f"needs root: {reason}")
+
+
+def start_segment(line: str, **options):
+    """A started simulated EtherCAT segment (``aiohal.drivers.ethercat.sim.fixture``) for a
+    module's tests; the caller stops it. Needs root and pysoem: skipped with the reason
+    otherwise, a failure under CI=true."""
+    require_root("a veth pair and a network namespace for the simulated EtherCAT segment")
+    require_module("pysoem")
+    from aiohal.drivers.ethercat.sim.fixture import (
+        SimulatedSegment,
+        SimulatorUnavailable,
+    )
+
+    try:
+        segment = SimulatedSegment(line, **options)
+        segment.start()
+    except SimulatorUnavailable as exc:
+        if os.environ.get("CI") == "true":
+            pytest.fail(str(exc))
+        pytest.skip(str(exc))
+    return segment

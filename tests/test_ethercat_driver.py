@@ -9,7 +9,6 @@ simulator's control socket from a thread, at a given tick, so the tick never wai
 from __future__ import annotations
 
 import asyncio
-import os
 import struct
 import subprocess
 import sys
@@ -17,7 +16,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from conftest import CONFIGS, ROOT, require_module, require_root
+from conftest import CONFIGS, ROOT, require_root, start_segment
 
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError, DriverError
@@ -33,19 +32,9 @@ WATCHDOG_MS = 1000
 
 @pytest.fixture(scope="module")
 def sim():
-    require_root("a veth pair and a network namespace for the simulated EtherCAT segment")
-    require_module("pysoem")
-    from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment, SimulatorUnavailable
-
-    try:
-        # SM watchdog 1 s: a stall of this shared VM (hundreds of ms at times) stalls the
-        # simulator too, and its watchdog would trip when it resumes
-        segment = SimulatedSegment(LINE, watchdog_ms=WATCHDOG_MS)
-        segment.start()
-    except SimulatorUnavailable as exc:
-        if os.environ.get("CI") == "true":
-            pytest.fail(str(exc))
-        pytest.skip(str(exc))
+    # SM watchdog 1 s: a stall of this shared VM (hundreds of ms at times) stalls the
+    # simulator too, and its watchdog would trip when it resumes
+    segment = start_segment(LINE, watchdog_ms=WATCHDOG_MS)
     yield segment
     segment.stop()
 
