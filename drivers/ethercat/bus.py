@@ -14,11 +14,12 @@ loop included. They are used at bring-up, shutdown and after a bus error only.
 
 from __future__ import annotations
 
+import functools
 import logging
 import socket
 import struct
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -274,6 +275,13 @@ class Bus:
 
     def receive(self, timeout_us: int) -> int:
         return self.master.receive_processdata(timeout_us, release_gil=True)
+
+    def cyclic_calls(self, timeout_us: int) -> tuple[Callable[[], Any], Callable[[], int]]:
+        """``send()`` and ``receive()`` for the tick, bound to pysoem once: on a tick that starts
+        on cold caches, each Python frame between the loop and pysoem costs more than the call."""
+        send = self.master.send_overlap_processdata if self.overlap else self.master.send_processdata
+        return (functools.partial(send, release_gil=True),
+                functools.partial(self.master.receive_processdata, timeout_us, release_gil=True))
 
     # ------------------------------------------------------------ after a bus error
 

@@ -343,6 +343,9 @@ class EthercatDriver(Driver):
         self._inputs_bytes = memoryview(image.inputs).cast("B")  # bytes in with a memcpy, no numpy call
         self._out_parts = [(bus.slaves[i.position]._set_output, image.slave(i.name).output_offset,
                             image.slave(i.name).output_offset + i.output_bytes) for i in self.infos if i.output_bytes]
+        self._send_now, self._receive_now = bus.cyclic_calls(opts.receive_timeout_us)
+        self._split = opts.exchange == "split"
+        self._on_event = self._on_drive_event  # bound once, not on every read
         period_s = self.view.clock.period_ns * 1e-9
         bus.request_op(self._bringup_cycle, opts.op_timeout_s, period_s)
         log.info("ethercat %s: %d slave(s) in OP on %s, %d B out / %d B in", self.name, len(self.infos),
@@ -471,33 +474,50 @@ class EthercatDriver(Driver):
     # ------------------------------------------------------------ the tick
 
     async def read(self) -> None:
-        t0 = time.perf_counter_ns()
+        # the tick's path is spelled out here (inputs, drives, sensors): on a tick that starts
+        # on cold caches each helper's frame costs more than its lines (about 4 µs per cycle
+        # with 7 drives, measured alternately against the factored version)
+        perf = time.perf_counter_ns
+        t0 = perf()
         if self._keepalive_error is not None:
             self._raise_keepalive_error()
         with self._lock:
             if not self._activated:
                 self._activate()
-                t0 = time.perf_counter_ns()
-            bus = self.bus
+                t0 = perf()
             if not self._outstanding:
                 if not self._written:  # the loop commands nothing (emergency stop), or a keep-alive cycled
                     self._pack_outputs_holding()
-                bus.send()
+                self._send_now()
             self._written = False
-            sent = time.perf_counter_ns()
-            wkc = bus.receive(self.options.receive_timeout_us)
-            received = time.perf_counter_ns()
+            sent = perf()
+            wkc = self._receive_now()
+            received = perf()
             self._outstanding = False
             self._last_tick_ns = time.monotonic_ns()
-            self.cycles += 1
+            cycles = self.cycles = self.cycles + 1
             # immediate: the round trip; split: what was left of it after a whole tick
-            self._rtt_ns[self.cycles & (RING - 1)] = received - sent
+            self._rtt_ns[cycles & (RING - 1)] = received - sent
             if self._pending:
                 self._handle_pending()
-            if wkc == self._expected:
+            if wkc == self._expected:  # a good cycle: inputs into the image, then into the robot's records
                 if self._bad_run:
                     self._bad_run = 0
-                self._take_inputs()
+                lost = self.lost
+                if self._contiguous_inputs and not lost:
+                    self._inputs_bytes[:] = b"".join([get() for get in self._in_getters])
+                else:
+                    self._load_inputs()
+                view = self.view
+                clock = view.clock
+                tick, now_ns = clock.tick, clock.now_ns
+                drives = self.drives
+                if drives is not None:
+                    drives.decode(tick, now_ns)  # straight into the state's rows, each stamped (every joint is a drive)
+                    drives.update_machines(self._on_event)  # after the rows: a resync sees this cycle's position
+                for position, sensor in self.sensors:
+                    sensor.read(tick, now_ns, position in lost)
+                view.fresh_tick = tick  # DriverView.mark_fresh(stamp_rows=False): the decode stamped the rows
             else:
                 self.wkc_errors += 1
                 if wkc < 0:  # no frame back within receive_timeout_us (SOEM's EC_NOFRAME)
@@ -510,21 +530,7 @@ class EthercatDriver(Driver):
                 self._diagnose(wkc)
             if self.lost and time.monotonic() >= self._next_recover:
                 self._recover_lost()
-        self._read_cpu = (time.perf_counter_ns() - t0) - (received - sent)
-
-    def _take_inputs(self) -> None:
-        """A good cycle: inputs into the image, drives and sensors into the robot's records."""
-        self._load_inputs()
-        view = self.view
-        clock = view.clock
-        tick, now_ns = clock.tick, clock.now_ns
-        drives = self.drives
-        if drives is not None:
-            drives.decode(tick, now_ns)  # straight into the state's rows, each stamped (every joint is a drive)
-            drives.update_machines(self._on_drive_event)  # after the rows: a resync sees this cycle's position
-        for position, sensor in self.sensors:
-            sensor.read(tick, now_ns, position in self.lost)
-        view.mark_fresh(stamp_rows=False)
+        self._read_cpu = (perf() - t0) - (received - sent)
 
     def _activate(self) -> None:
         """The activation read (lock held): a good cycle is required, so that the loop starts
@@ -551,6 +557,7 @@ class EthercatDriver(Driver):
         return self.bus.describe_not_in(OP)
 
     def _load_inputs(self) -> None:
+        """Every slave's inputs into the image (read() does the usual case itself)."""
         if self._contiguous_inputs and not self.lost:
             self._inputs_bytes[:] = b"".join([get() for get in self._in_getters])
             return
@@ -560,19 +567,22 @@ class EthercatDriver(Driver):
                 part.load_inputs(slave.input)
 
     async def write(self) -> None:
-        t0 = time.perf_counter_ns()
+        perf = time.perf_counter_ns
+        t0 = perf()
         with self._lock:
             drives = self.drives
             if drives is not None:
                 drives.write(self.view.command)
             if self._taring:
                 self._advance_tares()
-            self._write_outputs()
+            out = self.image.outputs.tobytes()  # _write_outputs, spelled out as in read()
+            for set_output, start, end in self._out_parts:
+                set_output(out[start:end])
             self._written = True
-            if self.options.exchange == "split" and not self._outstanding:
-                self.bus.send()
+            if self._split and not self._outstanding:
+                self._send_now()
                 self._outstanding = True
-        self._cpu_ns[self.cycles & (RING - 1)] = self._read_cpu + time.perf_counter_ns() - t0
+        self._cpu_ns[self.cycles & (RING - 1)] = self._read_cpu + perf() - t0
 
     def _advance_tares(self) -> None:
         for sensor in self._taring:
