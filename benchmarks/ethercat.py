@@ -134,26 +134,20 @@ def breakdown(n_slaves: int, ticks: int, exchange: str = "split") -> dict:
     from aiohal.loop import ControlLoop
 
     spent: dict[str, int] = {}
-    for module, cls_name, name in PHASES:
-        cls = getattr(importlib.import_module(module), cls_name)
-        fn = getattr(cls, name)
-
-        def timed(*a, _fn=fn, _name=name, **k):
-            t = time.perf_counter_ns()
-            try:
-                return _fn(*a, **k)
-            finally:
-                spent[_name] = spent.get(_name, 0) + time.perf_counter_ns() - t
-        setattr(cls, name, functools.wraps(fn)(timed))
 
     def timed_call(fn, name):
-        def timed(*a):
+        @functools.wraps(fn)
+        def timed(*a, **k):
             t = time.perf_counter_ns()
             try:
-                return fn(*a)
+                return fn(*a, **k)
             finally:
                 spent[name] = spent.get(name, 0) + time.perf_counter_ns() - t
         return timed
+
+    for module, cls_name, name in PHASES:
+        cls = getattr(importlib.import_module(module), cls_name)
+        setattr(cls, name, timed_call(getattr(cls, name), name))
 
     async def run(ifname: str) -> dict:
         raw = tomllib.loads(config_text(n_slaves, ifname, 1000, exchange))

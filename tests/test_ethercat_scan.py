@@ -88,6 +88,9 @@ def test_the_report_lists_every_variable_and_says_why_a_402_device_is_no_drive()
     assert "out   12.0 0x6060:00   8 i8   Modes of operation" in text
     assert 'not usable as a drive as mapped: unknown variable "Error code"' in text
     assert "remap it with rx_pdos / tx_pdos" in text
+    packed = scanned(2, "DIO4", PdoLayout.from_entries([[(0x7000, k, 1) for k in range(1, 5)]], []), product=0x804)
+    assert packed.kind == "other"
+    assert "fewer than 8 bits of process data in a direction" in describe("ecm0", [packed])
 
 
 def test_the_config_it_prints_passes_the_drivers_check():

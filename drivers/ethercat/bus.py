@@ -141,13 +141,16 @@ class Bus:
             raise LayoutError(f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}") from exc
         except self.lost_frame as exc:
             raise LayoutError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc})") from exc
-        device_type = None
-        try:
-            device_type = struct.unpack("<I", slave.sdo_read(0x1000, 0, release_gil=True)[:4])[0]
-        except Exception:
-            pass
-        names = names_for(slave.man, slave.id, device_type=device_type, overrides=names_overrides)
+        names = names_for(slave.man, slave.id, device_type=self.device_type(position), overrides=names_overrides)
         return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
+
+    def device_type(self, position: int) -> int | None:
+        """Object 0x1000 of a slave with CoE (its profile in the low 16 bits, 402 for a drive),
+        or None when it does not answer it."""
+        try:
+            return struct.unpack("<I", self.slaves[position].sdo_read(0x1000, 0, release_gil=True)[:4])[0]
+        except Exception:  # optional to answer: the name table then falls back to CiA 402's
+            return None
 
     def sii(self, position: int) -> sii_layout.SiiReader:
         """The slave's SII EEPROM, read on demand (blocking; each read is a few frames)."""

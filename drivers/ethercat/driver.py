@@ -40,7 +40,7 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 from pydantic import Field
 
-from aiohal.busvar import LayoutError, ProcessImage, UnknownVariableError, VariableTypeError, encode_mapping
+from aiohal.busvar import LayoutError, PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError, encode_mapping
 from aiohal.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
@@ -70,6 +70,12 @@ def _has_variable(image: ProcessImage, slave: str, name: str) -> bool:
     except UnknownVariableError:
         return False
     return True
+
+
+def shares_a_byte(layout: PdoLayout) -> bool:
+    """A slave of 1-7 bits in a direction: SOEM packs it into a byte it shares with its
+    neighbours, and pysoem reads and writes whole bytes per slave, so this driver refuses it."""
+    return 0 < layout.output_bits < 8 or 0 < layout.input_bits < 8
 
 
 RX_PDOS, TX_PDOS = (0x1600, 0x17FF), (0x1A00, 0x1BFF)  # where CiA 301 puts the PDO mapping objects
@@ -316,7 +322,7 @@ class EthercatDriver(Driver):
                 bus.write_pdo_assignment(i, assign, pdos)
         layouts = [bus.read_layout(i, s.names) for i, s in enumerate(opts.slaves)]
         for i, layout in enumerate(layouts):
-            if 0 < layout.output_bits < 8 or 0 < layout.input_bits < 8:
+            if shares_a_byte(layout):
                 raise BringUpError(
                     f"slave {i} ({bus.slaves[i].name}) has {layout.output_bits} output and {layout.input_bits} input "
                     "bits: SOEM packs a slave of fewer than 8 bits into a byte it shares with its neighbours, "

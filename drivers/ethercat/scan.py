@@ -27,7 +27,6 @@ import argparse
 import json
 import logging
 import socket
-import struct
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -35,7 +34,7 @@ from typing import Any
 
 from aiohal.busvar import BusVarError, PdoLayout, ProcessImage
 
-from .bus import Bus, EthercatError, SdoAbortError, state_name
+from .bus import Bus, EthercatError, state_name
 from .devices import (
     DRIVE_INPUT_TYPES,
     DRIVE_INPUTS,
@@ -46,10 +45,10 @@ from .devices import (
     _check_group,
     _check_types,
 )
-from .driver import FT_VARIABLES, IMU_VARIABLES
+from .driver import FT_VARIABLES, IMU_VARIABLES, shares_a_byte
 from .sii import has_coe
 
-log = logging.getLogger(__name__)
+SHARES_A_BYTE = "fewer than 8 bits of process data in a direction, which the ethercat driver does not support"
 
 
 @dataclass
@@ -84,8 +83,8 @@ def suggest_kind(layout: PdoLayout) -> str:
 def why_not(layout: PdoLayout, kind: str) -> str:
     """Why the driver would refuse this mapping for ``kind`` ("" if it would take it): the
     device class's own error at bring-up, e.g. a drive whose PDOs lack "Error code"."""
-    if 0 < layout.output_bits < 8 or 0 < layout.input_bits < 8:
-        return "fewer than 8 bits of process data, which the ethercat driver does not support"
+    if shares_a_byte(layout):
+        return SHARES_A_BYTE
     image = ProcessImage([("slave", layout)])
     try:
         if kind == "cia402":
@@ -113,12 +112,7 @@ def scan(ifname: str, pysoem: Any | None = None) -> list[ScannedSlave]:
         found = []
         for position, slave in enumerate(bus.slaves):
             coe = has_coe(bus.sii(position))
-            device_type = None
-            if coe:
-                try:
-                    device_type = struct.unpack("<I", bus.sdo_read(position, 0x1000, 0, 4)[:4])[0]
-                except SdoAbortError:
-                    pass  # optional to answer: the layout says what the slave is
+            device_type = bus.device_type(position) if coe else None
             layout, error = None, ""
             try:
                 layout = bus.read_layout(position)
@@ -152,8 +146,8 @@ def describe(ifname: str, slaves: Sequence[ScannedSlave]) -> str:
         if s.kind == "other" and s.device_type is not None and s.device_type & 0xFFFF == 402:
             lines.append(f"     a CiA 402 device (0x1000), not usable as a drive as mapped: {why_not(s.layout, 'cia402')}; "
                          "remap it with rx_pdos / tx_pdos (docs/ethercat.md)")
-        elif s.kind == "other" and (0 < s.layout.output_bits < 8 or 0 < s.layout.input_bits < 8):
-            lines.append(f"     {why_not(s.layout, 'other')}")
+        elif shares_a_byte(s.layout):
+            lines.append(f"     {SHARES_A_BYTE}")
         for row in s.layout.describe().splitlines():
             lines.append("     " + row)
     return "\n".join(lines)
