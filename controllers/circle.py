@@ -99,7 +99,6 @@ class CircleController(Controller):
         m, n = 3 * sites, len(names)
         self._jac_full = np.zeros((3, self.model.nv))
         self.J = np.zeros((m, n))
-        self._JT = np.zeros((n, m))
         self._A = np.zeros((m, m))
         self._w = np.zeros(m)
         self._x = np.zeros(m)
@@ -121,116 +120,143 @@ class CircleController(Controller):
         self.V = np.tile(v, sites)
         self.omega = 2.0 * math.pi / params.period
 
-    # ------------------------------------------------------------ kinematics
-
-    def _site_positions(self, q_all: np.ndarray, out: np.ndarray, jacobian: bool) -> None:
-        """Forward kinematics at joint positions ``q_all`` (robot order) into ``out``; J if asked."""
-        model, data = self.model, self.data
-        data.qpos[self.all_qpos] = q_all
-        mujoco.mj_kinematics(model, data)
-        data.site_xpos.take(self.site_ids, axis=0, out=out.reshape(-1, 3))
-        if jacobian:
-            mujoco.mj_comPos(model, data)
-            jac, J = self._jac_full, self.J
-            for i, sid in enumerate(self.site_ids):
-                mujoco.mj_jacSite(model, data, jac, None, sid)
-                jac.take(self.dof_adr, axis=1, out=J[3 * i : 3 * i + 3])
-
-    def _target(self, t: float) -> None:
-        """Desired site positions and velocities at time t since start, into _x_d and _v_d."""
-        p = self.params
-        phase = self.omega * t
-        c, s = math.cos(phase), math.sin(phase)
-        x_d, v_d, tmp = self._x_d, self._v_d, self._tmp
-        # x = centre + r(cos·U + sin·V),  v = rω(-sin·U + cos·V)
-        np.multiply(self.U, p.radius * c, out=x_d)
-        np.multiply(self.V, p.radius * s, out=tmp)
-        x_d += tmp
-        x_d += self.center
-        np.multiply(self.U, -p.radius * self.omega * s, out=v_d)
-        np.multiply(self.V, p.radius * self.omega * c, out=tmp)
-        v_d += tmp
-        if t < p.ramp:  # blend from the start pose: x = start + b(t)·(circle - start)
-            r = t / p.ramp
-            b = r * r * r * (10.0 + r * (-15.0 + 6.0 * r))
-            db = 30.0 * r * r * (1.0 - r) * (1.0 - r) / p.ramp
-            np.subtract(x_d, self.x_start, out=tmp)
-            v_d *= b
-            v_d += db * tmp
-            tmp *= b
-            np.add(self.x_start, tmp, out=x_d)
-
     # ------------------------------------------------------------ lifecycle
 
     def start(self, t: float) -> None:
         robot = self.robot
         self.t0 = t
         self.q_cmd = robot.state.position.copy()  # IK integrates the commanded configuration
-        self._q = np.zeros(len(self.max_step)) if self._gather else self.q_cmd[self.rows]
         self.x_start = np.zeros(3 * len(self.site_ids))
-        self._site_positions(self.q_cmd, self.x_start, jacobian=False)
+        site_positions = _kinematics(self)
+        site_positions(self.q_cmd, self.x_start, False)
         offset = np.array(self.params.offset) if self.params.offset is not None else -self.params.radius * self.u
         self.center = self.x_start + np.tile(offset, len(self.site_ids))
-        self._last_target = self.x_start.copy()
-        self.sum_sq = 0.0
-        self.samples = 0
-        self.max_err = 0.0
+        self._error = [0.0, 0.0, 0]  # tracking: sum of squares, largest square, samples
         robot.command.mode[:] = Mode.POSITION
         robot.command.velocity[:] = 0.0
+        self._tick = _tick_function(self, site_positions)
 
     def update(self, t: float, dt: float) -> None:
-        robot = self.robot
-        elapsed = t - self.t0
-        err = self._err
-        # tracking: the measured pose against the target the last command was made for
-        if elapsed > self.params.ramp:
-            self._site_positions(robot.state.position, self._x, jacobian=False)
-            np.subtract(self._x, self._last_target, out=err)
-            err *= err
-            for e in err.reshape(-1, 3).sum(axis=1):
-                self.sum_sq += e
-                if e > self.max_err:
-                    self.max_err = e
-            self.samples += len(self.site_ids)
-        self._target(elapsed)
-        self._site_positions(self.q_cmd, self._x, jacobian=True)
-        # task velocity: feed-forward plus feedback on the commanded pose
-        task = self._task
-        np.subtract(self._x_d, self._x, out=task)
-        task *= self.params.gain
-        task += self._v_d
-        # dq = Jᵀ (J Jᵀ + λ² I)⁻¹ task · dt, with MuJoCo's small dense routines: no BLAS call
-        # on the tick (its first call starts a thread pool and costs milliseconds)
-        J, A, w, dq = self.J, self._A, self._w, self._dq
-        mujoco.mju_mulMatMatT(A, J, J)
-        A += self._reg
-        mujoco.mju_cholFactor(A, 0.0)
-        mujoco.mju_cholSolve(w, A, task)
-        mujoco.mju_mulMatTVec(dq, J, w)
-        dq *= dt
-        limit = self.max_step * dt
-        np.minimum(dq, limit, out=dq)
-        np.maximum(dq, -limit, out=dq)
-        q = self._q  # q*'s moving rows (a view of q* unless they are gathered)
-        if self._gather:
-            self.q_cmd.take(self.rows, out=q)
-        q += dq
-        np.minimum(q, self.q_max, out=q)
-        np.maximum(q, self.q_min, out=q)
-        if self._gather:
-            self.q_cmd[self.rows] = q
-        cmd = robot.command
-        np.copyto(cmd.position, self.q_cmd)
-        if dt > 0:
-            dq *= 1.0 / dt
-            cmd.velocity[self.rows] = dq
-        np.copyto(self._last_target, self._x_d)
+        self._tick(t, dt)
 
     def metrics(self) -> dict:
-        if not getattr(self, "samples", 0):
+        sum_sq, max_sq, samples = getattr(self, "_error", (0.0, 0.0, 0))
+        if not samples:
             return {"rms_error_m": None, "max_error_m": None, "samples": 0}
         return {
-            "rms_error_m": round(math.sqrt(self.sum_sq / self.samples), 6),
-            "max_error_m": round(math.sqrt(self.max_err), 6),
-            "samples": self.samples,
+            "rms_error_m": round(math.sqrt(sum_sq / samples), 6),
+            "max_error_m": round(math.sqrt(max_sq), 6),
+            "samples": samples,
         }
+
+
+# The tick's work is a closure over the controller's arrays, built once at start(): a tick
+# starts on caches that the step and the wait left cold, and there every attribute lookup
+# and method frame costs far more than its line (WALK-MAN, 33 joints: 10 µs of a 100 µs
+# update inside the tick, against less than 1 µs called back to back; docs/performance.md).
+
+
+def _kinematics(c: CircleController):
+    """``site_positions(q_all, out, jacobian)``: forward kinematics at joint positions
+    ``q_all`` (robot order) into ``out``, and the site Jacobians into ``c.J`` if asked."""
+    model, data = c.model, c.data
+    qpos, site_xpos = data.qpos, data.site_xpos
+    all_qpos, site_ids, dof_adr, jac, J = c.all_qpos, c.site_ids, c.dof_adr, c._jac_full, c.J
+    blocks = [(int(sid), J[3 * i : 3 * i + 3]) for i, sid in enumerate(site_ids)]
+    kinematics, com_pos, jac_site = mujoco.mj_kinematics, mujoco.mj_comPos, mujoco.mj_jacSite
+
+    def site_positions(q_all: np.ndarray, out: np.ndarray, jacobian: bool) -> None:
+        qpos[all_qpos] = q_all
+        kinematics(model, data)
+        site_xpos.take(site_ids, axis=0, out=out.reshape(-1, 3))
+        if jacobian:
+            com_pos(model, data)
+            for sid, rows in blocks:
+                jac_site(model, data, jac, None, sid)
+                jac.take(dof_adr, axis=1, out=rows)
+
+    return site_positions
+
+
+def _tick_function(c: CircleController, site_positions):
+    """``update(t, dt)`` of a started controller."""
+    p = c.params
+    radius, omega, ramp, gain = p.radius, c.omega, p.ramp, p.gain
+    t0, center, x_start, U, V, reg = c.t0, c.center, c.x_start, c.U, c.V, c._reg
+    J, A, w, dq, x, err, task, x_d, v_d, tmp = c.J, c._A, c._w, c._dq, c._x, c._err, c._task, c._x_d, c._v_d, c._tmp
+    q_min, q_max, max_step, rows, q_cmd = c.q_min, c.q_max, c.max_step, c.rows, c.q_cmd
+    gather = c._gather
+    q = np.zeros(len(max_step)) if gather else q_cmd[rows]  # q*'s moving rows: a view unless gathered
+    last_target = x_start.copy()  # the target the last command was made for
+    sites = len(c.site_ids)
+    error = c._error
+    measured = c.robot.state.position
+    command_position, command_velocity = c.robot.command.position, c.robot.command.velocity
+    subtract, multiply, add, minimum, maximum, copyto = np.subtract, np.multiply, np.add, np.minimum, np.maximum, np.copyto
+    cos, sin = math.cos, math.sin
+    mul_mat_mat_t, chol_factor, chol_solve, mul_mat_t_vec = (
+        mujoco.mju_mulMatMatT, mujoco.mju_cholFactor, mujoco.mju_cholSolve, mujoco.mju_mulMatTVec)
+
+    def update(t: float, dt: float) -> None:
+        elapsed = t - t0
+        # tracking: the measured pose against the target the last command was made for
+        if elapsed > ramp:
+            site_positions(measured, x, False)
+            subtract(x, last_target, out=err)
+            multiply(err, err, out=err)
+            sum_sq, max_sq = error[0], error[1]
+            for e in err.reshape(-1, 3).sum(axis=1):
+                sum_sq += e
+                if e > max_sq:
+                    max_sq = e
+            error[0], error[1] = sum_sq, max_sq
+            error[2] += sites
+        # target: x = centre + r(cos·U + sin·V),  v = rω(-sin·U + cos·V)
+        phase = omega * elapsed
+        c, s = cos(phase), sin(phase)
+        multiply(U, radius * c, out=x_d)
+        multiply(V, radius * s, out=tmp)
+        add(x_d, tmp, out=x_d)
+        add(x_d, center, out=x_d)
+        multiply(U, -radius * omega * s, out=v_d)
+        multiply(V, radius * omega * c, out=tmp)
+        add(v_d, tmp, out=v_d)
+        if elapsed < ramp:  # blend from the start pose: x = start + b(t)·(circle - start)
+            r = elapsed / ramp
+            b = r * r * r * (10.0 + r * (-15.0 + 6.0 * r))
+            db = 30.0 * r * r * (1.0 - r) * (1.0 - r) / ramp
+            subtract(x_d, x_start, out=tmp)
+            multiply(v_d, b, out=v_d)
+            add(v_d, db * tmp, out=v_d)
+            multiply(tmp, b, out=tmp)
+            add(x_start, tmp, out=x_d)
+        site_positions(q_cmd, x, True)
+        # task velocity: feed-forward plus feedback on the commanded pose
+        subtract(x_d, x, out=task)
+        multiply(task, gain, out=task)
+        add(task, v_d, out=task)
+        # dq = Jᵀ (J Jᵀ + λ² I)⁻¹ task · dt, with MuJoCo's small dense routines: no BLAS call
+        # on the tick (its first call starts a thread pool and costs milliseconds)
+        mul_mat_mat_t(A, J, J)
+        add(A, reg, out=A)
+        chol_factor(A, 0.0)
+        chol_solve(w, A, task)
+        mul_mat_t_vec(dq, J, w)
+        multiply(dq, dt, out=dq)
+        limit = max_step * dt
+        minimum(dq, limit, out=dq)
+        maximum(dq, -limit, out=dq)
+        if gather:
+            q_cmd.take(rows, out=q)
+        add(q, dq, out=q)
+        minimum(q, q_max, out=q)
+        maximum(q, q_min, out=q)
+        if gather:
+            q_cmd[rows] = q
+        copyto(command_position, q_cmd)
+        if dt > 0:
+            multiply(dq, 1.0 / dt, out=dq)
+            command_velocity[rows] = dq
+        copyto(last_target, x_d)
+
+    return update
