@@ -207,31 +207,33 @@ class MujocoDriver(Driver):
         self.steps += self.substeps
 
     async def read(self) -> None:
-        pending = self._pending
-        if pending is not None:
-            self._pending = None
+        # the tick's path is spelled out here and in write(): a helper frame per call costs
+        # more than its lines on the tick's cold caches (see controllers/circle.py)
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
             await pending  # the step of the last tick, done in the worker thread
         view = self.view
         clock = view.clock
-        self._read_joints(*self._read_args, clock.tick, clock.now_ns)
-        view.mark_fresh(stamp_rows=False)
+        tick, now_ns = clock.tick, clock.now_ns
+        self._read_joints(*self._read_args, tick, now_ns)
+        view.fresh_tick = tick  # the kernel stamped every row itself
+        read_sensors = self._read_sensors
         for run in self._sensor_runs:
-            self._read_sensors(*run, clock.tick, clock.now_ns)
-        if self._viewer is not None and clock.tick % 16 == 0:
+            read_sensors(*run, tick, now_ns)
+        if self._viewer is not None and tick % 16 == 0:
             self._viewer.sync()
 
     async def write(self) -> None:
         if self._estopped:
             self.tau[:] = 0.0
             self.data.ctrl[self.actuators] = 0.0
-            self._step_next()
-            return
-        self._drive_torque(*self._torque_args)
-        self._step_next()
-
-    def _step_next(self) -> None:
+        else:
+            self._drive_torque(*self._torque_args)
         if self._executor is None:
-            self._step()
+            t0 = time.monotonic_ns()
+            mujoco.mj_step(self.model, self.data, nstep=self.substeps)
+            self.step_ns += time.monotonic_ns() - t0
+            self.steps += self.substeps
         else:
             self._pending = asyncio.get_running_loop().run_in_executor(self._executor, self._step)
 
