@@ -10,7 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from aiohal.hal import Controller, Options
-from aiohal.robot import Mode
+from aiohal.robot import JOINT_COMMAND_FIELDS, Mode
+
+if JOINT_COMMAND_FIELDS[:2] != ("position", "velocity"):
+    raise ImportError("controllers/hold.py writes position and velocity as the command block's first two rows")
 
 
 class HoldParams(Options):
@@ -37,6 +40,11 @@ class HoldController(Controller):
         cmd.feedforward[:] = 0.0
         self._braking = self.t_settled > 0.0
         self._x_final = self.x0 + 0.5 * self.v0 * self.t_stop
+        # at rest, one copy per tick writes both rows (position, velocity), adjacent in the
+        # command block: a numpy call costs several µs on the real clock's cold caches, so one
+        # instead of two (docs/performance.md, "Issue 4, tenth session")
+        self._rest = np.array([self._x_final, np.zeros_like(self._x_final)])
+        self._position_velocity = cmd.block[:2]
         self._write(0.0)
 
     def _write(self, elapsed: float) -> None:
@@ -56,8 +64,7 @@ class HoldController(Controller):
             self._write(elapsed)
             self._braking = elapsed < self.t_settled
         else:
-            np.copyto(self.robot.command.position, self._x_final)
-            self.robot.command.velocity[:] = 0.0
+            np.copyto(self._position_velocity, self._rest)
 
     def metrics(self) -> dict:
         return {"braking_s": round(self.t_settled, 4)}

@@ -113,18 +113,15 @@ class MockDriver(Driver):
                           (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0))
         self._step_joints = kernel_call.direct(mock_kernels.step_joints)
 
-    def _step(self, dt: float, stamp: bool) -> None:
-        """Advance the simulated joints by ``dt`` toward the current command (``stamp``: and
-        stamp the state's rows, which they are)."""
-        if dt != self._dt:
-            self._dt = dt
-            self._inv_dt = 1.0 / dt
-            self._alpha = 1.0 - math.exp(-dt / self.options.time_constant) if self._first_order else 1.0
-        clock = self.view.clock
-        self._step_joints(*self._step_args, dt, self._first_order, self._alpha, self._inv_dt, stamp,
-                          *self._stamp_args, clock.tick, clock.now_ns)
+    def _set_dt(self, dt: float) -> None:
+        """The step's factors for a time step of ``dt`` (a new one after a missed tick)."""
+        self._dt = dt
+        self._inv_dt = 1.0 / dt
+        self._alpha = 1.0 - math.exp(-dt / self.options.time_constant) if self._first_order else 1.0
 
     async def read(self) -> None:
+        # spelled out: a helper frame per call costs more than its lines on the tick's cold
+        # caches (see controllers/circle.py)
         view = self.view
         clock = view.clock
         tick = clock.tick
@@ -132,13 +129,22 @@ class MockDriver(Driver):
             self._inject_read_faults(tick)
         stamped = False
         if tick > self._last_tick and not self.stopped:
-            stamped = self._direct  # the simulated joints are the state's rows
-            self._step((tick - self._last_tick) * clock.period_ns * 1e-9, stamped)
+            # advance the simulated joints toward the command; when they are the state's rows
+            # (no delay, no loss), the compiled step stamps them too
+            dt = (tick - self._last_tick) * clock.period_ns * 1e-9
+            if dt != self._dt:
+                self._set_dt(dt)
+            stamped = self._direct
+            self._step_joints(*self._step_args, dt, self._first_order, self._alpha, self._inv_dt, stamped,
+                              *self._stamp_args, tick, clock.now_ns)
         self._last_tick = tick
         self.reads += 1
         if not self._direct and not self._publish_state(tick):
             return
-        view.mark_fresh(stamp_rows=not stamped)
+        if stamped:
+            view.fresh_tick = tick
+        else:
+            view.mark_fresh()
         if self._hands or self._imus or self._fts:
             self._read_devices(tick, clock.now_ns)
 

@@ -96,6 +96,8 @@ async def test_switch_to_hold_neither_jumps_nor_stalls():
     assert (np.diff(around) <= 1e-9).all() and (np.diff(around) >= -0.02 - 1e-9).all()
     assert np.abs(np.diff(steps[:400])).max() <= 20.0 * 1e-3 + 1e-9  # acceleration within limit
     assert steps[-50:].max() == 0.0  # then at rest
+    assert loop.robot.command.velocity[0] == 0.0  # at rest, the velocity command too
+    assert loop.robot.command.position[0] == sent[-1]
 
 
 class Homing(Controller):
