@@ -191,7 +191,9 @@ def _tick_function(c: CircleController, site_positions):
     sites = len(c.site_ids)
     error = c._error
     measured = c.robot.state.position
-    command_position, command_velocity = c.robot.command.position, c.robot.command.velocity
+    command_position = c.robot.command.position
+    command_velocity = c.robot.command.velocity
+    velocity_rows = None if gather else command_velocity[rows]  # a view of the moving rows
     subtract, multiply, add, minimum, maximum, copyto = np.subtract, np.multiply, np.add, np.minimum, np.maximum, np.copyto
     cos, sin = math.cos, math.sin
     mul_mat_mat_t, chol_factor, chol_solve, mul_mat_t_vec = (
@@ -255,8 +257,11 @@ def _tick_function(c: CircleController, site_positions):
             q_cmd[rows] = q
         copyto(command_position, q_cmd)
         if dt > 0:
-            multiply(dq, 1.0 / dt, out=dq)
-            command_velocity[rows] = dq
+            if gather:
+                multiply(dq, 1.0 / dt, out=dq)
+                command_velocity[rows] = dq
+            else:
+                multiply(dq, 1.0 / dt, out=velocity_rows)
         copyto(last_target, x_d)
 
     return update
