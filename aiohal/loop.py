@@ -448,7 +448,7 @@ class ControlLoop:
         stop_k = None if ticks is None else ticker.k + ticks
         count = stats.count
         while not self._stop:
-            k = await ticker.next()
+            k = ticker.poll() or await ticker.next()  # lockstep: no coroutine when nothing is awaited
             if stop_k is not None and k > stop_k:
                 # a stall skipped past the run's last deadline: the deadlines after it are not
                 # the run's, so they are not counted as missed, and tick k is not run

@@ -55,6 +55,12 @@ class TickSource(abc.ABC):
     async def wait(self) -> int:
         """Wait for the next deadline; return how many deadlines passed since the last wait (>= 1)."""
 
+    def poll(self) -> int:
+        """What :meth:`wait` would return if the next deadline can be taken now without
+        waiting or yielding to the loop, else 0 (and nothing changes). Lets a lockstep tick
+        skip two coroutines; a source that always waits keeps this default."""
+        return 0
+
     def close(self) -> None:
         pass
 
@@ -366,6 +372,15 @@ class VirtualTickSource(TickSource):
         """Move virtual time forward by ``ns`` now (a driver or test consuming time)."""
         self._now += ns
 
+    def poll(self) -> int:
+        if time.monotonic_ns() - self._last_yield >= self._yield_every_ns:
+            return 0  # time to look at the event loop: wait() does that
+        n = 1 + self._stall
+        self._stall = 0
+        self._k += n
+        self._now = max(self._now, self.t0_ns + self._k * self.period_ns)
+        return n
+
     async def wait(self) -> int:
         wall = time.monotonic_ns()
         if wall - self._last_yield >= self._yield_every_ns:
@@ -421,18 +436,30 @@ class Ticker:
 
     async def next(self) -> int:
         """Wait for the next tick to run; return its index k (deadline ``t0 + k·period``)."""
+        return self.poll() or self._take(await self.source.wait())
+
+    def poll(self) -> int:
+        """The next tick's index if it can run now without waiting (a virtual clock between its
+        looks at the event loop, or a tick caught up late), else 0: ``ticker.poll() or await
+        ticker.next()`` takes the same ticks as ``await ticker.next()``, with no coroutine when
+        nothing has to be waited for."""
         if self._pending:
             self._pending -= 1
             self.k += 1
+            self.deadline_ns = self.t0_ns + self.k * self.period_ns
+            return self.k
+        n = self.source.poll()
+        return self._take(n) if n else 0
+
+    def _take(self, n: int) -> int:
+        """Account for ``n`` deadlines passed (n - 1 of them missed) under the overrun policy."""
+        if n > 1:
+            self.missed += n - 1
+        if self.catch_up:
+            self._pending = n - 1
+            self.k += 1
         else:
-            n = await self.source.wait()
-            if n > 1:
-                self.missed += n - 1
-            if self.catch_up:
-                self._pending = n - 1
-                self.k += 1
-            else:
-                self.k += n
+            self.k += n
         self.deadline_ns = self.t0_ns + self.k * self.period_ns
         return self.k
 

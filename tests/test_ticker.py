@@ -459,3 +459,49 @@ async def test_the_virtual_clock_without_idle_wait_yields_on_every_check():
         await ticker.next()
     ticker.close()
     assert source.yields == 30
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("policy", ["skip", "catch_up"])
+async def test_ticks_taken_by_poll_are_those_a_wait_would_take(policy):
+    """The loop ticks with ``ticker.poll() or await ticker.next()``. A virtual clock that looks
+    at the event loop on every tick lets poll take none of its ticks (but those a catch-up runs
+    late); one that never looks lets poll take all but the first. Both give the same indices,
+    deadlines, virtual times and missed counts, stalls included."""
+    runs = {}
+    for yield_every_ms in (0.0, 1e6):
+        source = VirtualTickSource(yield_every_ms=yield_every_ms)
+        ticker = Ticker(source, PERIOD, policy)
+        ticker.start()
+        seen, taken_by_poll = [], 0
+        for i in range(40):
+            if i in (5, 17):
+                source.stall(3)
+            k = ticker.poll()
+            taken_by_poll += bool(k)
+            k = k or await ticker.next()
+            seen.append((k, ticker.deadline_ns, source.now_ns(), ticker.missed))
+        runs[yield_every_ms] = seen, taken_by_poll
+    (waited, none_polled), (polled, all_polled) = runs[0.0], runs[1e6]
+    # the ticks a catch-up runs late are taken at once, on either clock
+    assert none_polled == (6 if policy == "catch_up" else 0)
+    assert all_polled == 39  # the first tick is the source's first look at the loop
+    assert polled == waited
+    assert waited[-1][3] == 6  # two stalls of 3 periods
+
+
+@pytest.mark.asyncio
+async def test_poll_leaves_a_look_at_the_loop_and_a_real_wait_to_next():
+    source = VirtualTickSource(yield_every_ms=0)  # a look at the loop is due on every tick
+    ticker = Ticker(source, PERIOD)
+    ticker.start()
+    assert ticker.poll() == 0 and ticker.k == 0 and source.now_ns() == ticker.t0_ns
+    assert await ticker.next() == 1
+    if timerfd_available():
+        timer = Ticker(TimerfdTickSource(), PERIOD)
+        timer.start()
+        try:
+            assert timer.poll() == 0 and timer.k == 0  # a deadline is waited for, never polled
+            assert await timer.next() == 1
+        finally:
+            timer.close()
