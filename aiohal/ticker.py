@@ -1,6 +1,6 @@
 """Wake the control loop at absolute deadlines ``t0 + k·period`` (integer ns), never drifting.
 
-Three wake sources share one small interface (``start``, ``wait``, ``now_ns``, ``close``):
+Three wake sources share one small interface (``start``, ``wait``, ``poll``, ``now_ns``, ``close``):
 
 * :class:`TimerfdTickSource` – Linux default: a periodic absolute timerfd on CLOCK_MONOTONIC
   registered with the running loop (``add_reader``); the kernel keeps the phase and counts
