@@ -375,11 +375,7 @@ class VirtualTickSource(TickSource):
     def poll(self) -> int:
         if time.monotonic_ns() - self._last_yield >= self._yield_every_ns:
             return 0  # time to look at the event loop: wait() does that
-        n = 1 + self._stall
-        self._stall = 0
-        self._k += n
-        self._now = max(self._now, self.t0_ns + self._k * self.period_ns)
-        return n
+        return self._advance()
 
     async def wait(self) -> int:
         wall = time.monotonic_ns()
@@ -388,6 +384,10 @@ class VirtualTickSource(TickSource):
             if self._idle is None or self._idle.loop_has_work():
                 self.yields += 1
                 await asyncio.sleep(0)
+        return self._advance()
+
+    def _advance(self) -> int:
+        """Take the next deadline (and those a stall skipped): virtual time moves to it."""
         n = 1 + self._stall
         self._stall = 0
         self._k += n

@@ -152,8 +152,7 @@ class CircleController(Controller):
 
 # The tick's work is a closure over the controller's arrays, built once at start(): every
 # attribute lookup and method frame costs more than its line, and more still on the caches
-# the step and the wait left cold (WALK-MAN, 33 joints: update as methods 48 µs, as a closure
-# 43, called back to back; 100 and 90 inside the tick; docs/performance.md).
+# the step and the wait left cold (docs/performance.md, "Issue 4, tenth session").
 
 
 def _kinematics(c: CircleController):

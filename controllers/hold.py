@@ -39,11 +39,11 @@ class HoldController(Controller):
         cmd.effort[:] = 0.0
         cmd.feedforward[:] = 0.0
         self._braking = self.t_settled > 0.0
-        self._x_final = self.x0 + 0.5 * self.v0 * self.t_stop
+        x_final = self.x0 + 0.5 * self.v0 * self.t_stop
         # at rest, one copy per tick writes both rows (position, velocity), adjacent in the
-        # command block: a numpy call costs several µs on the real clock's cold caches, so one
-        # instead of two (docs/performance.md, "Issue 4, tenth session")
-        self._rest = np.array([self._x_final, np.zeros_like(self._x_final)])
+        # command block: one numpy call instead of two, each dear on the real clock's cold
+        # caches (docs/performance.md, "Issue 4, tenth session")
+        self._rest = np.array([x_final, np.zeros_like(x_final)])
         self._position_velocity = cmd.block[:2]
         self._write(0.0)
 

@@ -207,8 +207,8 @@ class MujocoDriver(Driver):
         self.steps += self.substeps
 
     async def read(self) -> None:
-        # the tick's path is spelled out here and in write(): a helper frame per call costs
-        # more than its lines on the tick's cold caches (see controllers/circle.py)
+        # spelled out, with write(): a helper frame per call costs more than its lines on the
+        # tick's cold caches (see controllers/circle.py)
         if self._pending is not None:
             pending, self._pending = self._pending, None
             await pending  # the step of the last tick, done in the worker thread
@@ -230,10 +230,7 @@ class MujocoDriver(Driver):
         else:
             self._drive_torque(*self._torque_args)
         if self._executor is None:
-            t0 = time.monotonic_ns()
-            mujoco.mj_step(self.model, self.data, nstep=self.substeps)
-            self.step_ns += time.monotonic_ns() - t0
-            self.steps += self.substeps
+            self._step()
         else:
             self._pending = asyncio.get_running_loop().run_in_executor(self._executor, self._step)
 
