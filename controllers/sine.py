@@ -14,6 +14,7 @@ import math
 import numpy as np
 from pydantic import Field
 
+from aiohal import kernel_call
 from aiohal.hal import Controller, JointValues, Options, unknown_joint_issues
 from aiohal.robot import Mode
 
@@ -64,68 +65,44 @@ class SineController(Controller):
 
     def configure(self, robot, params) -> None:
         super().configure(robot, params)
-        n = robot.dof
+        from . import sine_kernels  # noqa: F401  compiled or loaded from numba's cache now, before drivers open
         self.amplitude = robot.per_joint(params.amplitude, 0.0)
         self.omega = 2.0 * math.pi * robot.per_joint(params.frequency, 0.5)
         self.phase = robot.per_joint(params.phase, 0.0)
         self.sin_phase = np.sin(self.phase)
-        self.amp_omega = self.amplitude * self.omega
-        self._sin = np.empty(n)
-        self._cos = np.empty(n)
-        self._a = np.empty(n)
-        self._aw = np.empty(n)
-        self._err = np.empty(n)
 
     def start(self, t: float) -> None:
+        robot = self.robot
         self.t0 = t
-        self.q0 = self.robot.state.position.copy()
-        self.robot.command.mode[:] = Mode.POSITION
-        self.sum_sq = 0.0
-        self.max_err = 0.0
-        self.samples = 0
+        self.q0 = robot.state.position.copy()
+        robot.command.mode[:] = Mode.POSITION
+        self._error = np.zeros(3)  # sum of squares, largest magnitude, samples
+        self._tick = _tick_function(self)
 
     def update(self, t: float, dt: float) -> None:
-        robot = self.robot
-        cmd = robot.command
-        err = self._err
-        # tracking: what was commanded last tick against what is measured now
-        np.subtract(robot.state.position, cmd.position, out=err)
-        self.sum_sq += float(np.dot(err, err))
-        e = max(float(err.max()), -float(err.min()))
-        if e > self.max_err:
-            self.max_err = e
-        self.samples += robot.dof
-
-        elapsed = t - self.t0
-        sin, cos = self._sin, self._cos
-        np.multiply(self.omega, elapsed, out=sin)
-        sin += self.phase
-        np.cos(sin, out=cos)
-        np.sin(sin, out=sin)
-        sin -= self.sin_phase  # sin(ωt+φ) - sin φ: zero at start
-        ramp_t = self.params.ramp
-        if elapsed >= ramp_t:
-            # q = q0 + A·(sin(ωt+φ) - sin φ),  v = A·ω·cos(ωt+φ)
-            np.multiply(sin, self.amplitude, out=cmd.position)
-            cmd.position += self.q0
-            np.multiply(cos, self.amp_omega, out=cmd.velocity)
-            return
-        # ramp in: amplitude scaled by r(t), a minimum-jerk 0 -> 1 over ramp_t
-        x = elapsed / ramp_t
-        r = x * x * x * (10.0 + x * (-15.0 + 6.0 * x))
-        dr = 30.0 * x * x * (1.0 - x) * (1.0 - x) / ramp_t
-        np.multiply(self.amplitude, r, out=self._a)
-        np.multiply(self.amp_omega, r, out=self._aw)
-        np.multiply(cos, self._aw, out=cmd.velocity)
-        np.multiply(sin, self.amplitude, out=sin)
-        np.multiply(sin, dr, out=cos)
-        cmd.velocity += cos
-        np.multiply(sin, r, out=cmd.position)
-        cmd.position += self.q0
+        self._tick(t, dt)
 
     def metrics(self) -> dict:
-        rms = math.sqrt(self.sum_sq / self.samples) if getattr(self, "samples", 0) else float("nan")
-        return {
-            "tracking_rms": round(rms, 6),
-            "tracking_max": round(self.max_err, 6) if self.samples else float("nan"),
-        }
+        sum_sq, largest, samples = getattr(self, "_error", (0.0, 0.0, 0.0))
+        if not samples:
+            return {"tracking_rms": float("nan"), "tracking_max": float("nan")}
+        return {"tracking_rms": round(math.sqrt(sum_sq / samples), 6), "tracking_max": round(float(largest), 6)}
+
+
+def _tick_function(c: SineController):
+    """``update(t, dt)`` of a started controller: one call of the compiled tick, with the
+    arrays bound once here (the robot's blocks are never reallocated) and checked, because the
+    direct call checks nothing itself (``aiohal.kernel_call``)."""
+    from . import sine_kernels
+
+    robot = c.robot
+    arrays = (robot.state.position, robot.command.block, c.q0, c.amplitude, c.omega, c.phase, c.sin_phase)
+    t0, ramp, error = c.t0, c.params.ramp, c._error
+    kernel_call.check(sine_kernels.sine_tick, (*arrays, 0.0, ramp, error))
+    kernel = kernel_call.direct(sine_kernels.sine_tick)
+    measured, command, q0, amplitude, omega, phase, sin_phase = arrays
+
+    def update(t: float, dt: float) -> None:
+        kernel(measured, command, q0, amplitude, omega, phase, sin_phase, t - t0, ramp, error)
+
+    return update
