@@ -432,6 +432,22 @@ class DriverView:
     def devices_of(self, kind: str) -> list[DeviceRecord]:
         return [rec for name, rec in self.devices.items() if self.device_kinds[name] == kind]
 
+    def device_runs(self) -> list[tuple[DeviceGroup, slice]]:
+        """This driver's devices as runs of adjacent rows of their groups, ``(group, rows)``:
+        a driver fills or stamps a run with one call instead of one per device."""
+        by_group: dict[int, tuple[DeviceGroup, list[int]]] = {}
+        for record in self.devices.values():
+            by_group.setdefault(id(record.group), (record.group, []))[1].append(record.index)
+        runs = []
+        for group, indices in by_group.values():
+            indices.sort()
+            start = indices[0]
+            for previous, row in zip(indices, [*indices[1:], None]):
+                if row != previous + 1:  # the run ends at ``previous`` (None: the last row)
+                    runs.append((group, slice(start, previous + 1)))
+                    start = row
+        return runs
+
     def mark_fresh(self, stamp_rows: bool = True) -> None:
         """Stamp all joints of this driver with the current tick (call after a successful read).
 

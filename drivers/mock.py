@@ -96,9 +96,6 @@ class MockDriver(Driver):
         for ft in view.devices_of("force_torque"):
             ft.force[:] = opts.force
             ft.torque[:] = opts.torque
-        self._imus = view.devices_of("imu")
-        self._fts = view.devices_of("force_torque")
-        self._hands = view.devices_of("hand")
         self._bind_kernel()
 
     def _bind_kernel(self) -> None:
@@ -112,6 +109,15 @@ class MockDriver(Driver):
         kernel_call.check(mock_kernels.step_joints,
                           (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0))
         self._step_joints = kernel_call.direct(mock_kernels.step_joints)
+        # the devices, a run of adjacent rows at a time: the stamps of each run, and the hands'
+        # rows (grasp, speed, force, position, effort) for the compiled hand step
+        runs = self.view.device_runs()
+        self._device_stamps = [(group.updated_tick[rows], group.stamp_ns[rows]) for group, rows in runs]
+        self._hand_runs = [tuple(getattr(group, field)[rows] for field in ("grasp", "speed", "force", "position", "effort"))
+                           for group, rows in runs if group.kind == "hand"]
+        for hands in self._hand_runs:
+            kernel_call.check(mock_kernels.step_hands, (*hands, 1.0, 1e-3))
+        self._step_hands = kernel_call.direct(mock_kernels.step_hands)
 
     def _set_dt(self, dt: float) -> None:
         """The step's factors for a time step of ``dt`` (a new one after a missed tick)."""
@@ -145,7 +151,7 @@ class MockDriver(Driver):
             view.fresh_tick = tick
         else:
             view.mark_fresh()
-        if self._hands or self._imus or self._fts:
+        if self._device_stamps:
             self._read_devices(tick, clock.now_ns)
 
     def _inject_read_faults(self, tick: int) -> None:
@@ -179,17 +185,15 @@ class MockDriver(Driver):
         return True
 
     def _read_devices(self, tick: int, now: int) -> None:
-        for imu in self._imus:
-            imu.mark_fresh(tick, now)
-        for ft in self._fts:
-            ft.mark_fresh(tick, now)
-        period_s = self.view.clock.period_ns * 1e-9
-        for hand in self._hands:
-            step = self.options.hand_speed * float(hand.speed) * period_s
-            position = float(hand.position)
-            hand.position[...] = min(max(float(hand.grasp), position - step), position + step)
-            hand.effort[...] = float(hand.force) if position > 0.0 else 0.0
-            hand.mark_fresh(tick, now)
+        """IMUs and F/T sensors keep the values set at open (gravity, the configured wrench);
+        the hands move toward their grasp; every device is stamped with this read."""
+        if self._hand_runs:
+            hand_speed, period_s = self.options.hand_speed, self.view.clock.period_ns * 1e-9
+            for grasp, speed, force, position, effort in self._hand_runs:
+                self._step_hands(grasp, speed, force, position, effort, hand_speed, period_s)
+        for ticks, stamps in self._device_stamps:
+            ticks.fill(tick)
+            stamps.fill(now)
 
     async def write(self) -> None:
         if self._faulty:

@@ -58,3 +58,23 @@ def step_joints(command, mode, sim, dt, first_order, alpha, inv_dt, stamp, updat
         if stamp:
             updated_tick[j] = tick
             stamp_ns[j] = now_ns
+
+
+_HAND = types.Array(types.float64, 1, "A")
+_RO_HAND = types.Array(types.float64, 1, "A", readonly=True)
+
+
+@njit(types.void(_RO_HAND, _RO_HAND, _RO_HAND, _HAND, _HAND, types.float64, types.float64), cache=True, nogil=True)
+def step_hands(grasp, speed, force, position, effort, hand_speed, period_s):
+    """Move each simulated hand toward its ``grasp`` by at most ``hand_speed × speed`` per
+    second over one period; it pushes with its ``force`` while not fully open (the position
+    before the step decides, as the numpy version did)."""
+    for i in range(position.shape[0]):
+        step = hand_speed * speed[i] * period_s
+        before = position[i]
+        # min(max(grasp, before - step), before + step), with Python's min/max on NaN
+        low = before - step
+        target = low if low > grasp[i] else grasp[i]
+        high = before + step
+        position[i] = high if high < target else target
+        effort[i] = force[i] if before > 0.0 else 0.0

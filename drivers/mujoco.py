@@ -167,7 +167,7 @@ class MujocoDriver(Driver):
         their ``updated_tick``, their ``stamp_ns``): one compiled call per run, however many
         sensors (WALK-MAN: 2 runs instead of 11 copies and 10 stamps)."""
         opts, view = self.options, self.view
-        rows: dict[int, tuple] = {}  # id(group) -> (group, {row: addresses})
+        addresses_of: dict[tuple[int, int], np.ndarray] = {}  # (id(group), row) -> addresses
         for device, record in view.devices.items():
             group = record.group
             fields = SENSOR_FIELDS[view.device_kinds[device]]
@@ -178,18 +178,11 @@ class MujocoDriver(Driver):
             # the compiled read does not check its indices: every column must have a sensor value
             if not ((addresses >= 0) & (addresses < self.model.nsensordata)).all():
                 raise RuntimeError(f"{device}: a column of its {view.device_kinds[device]} record has no sensor value")
-            rows.setdefault(id(group), (group, {}))[1][record.index] = addresses
+            addresses_of[id(group), record.index] = addresses
         runs = []
-        for group, by_row in rows.values():
-            run: list[int] = []
-            for row in [*sorted(by_row), None]:  # None ends the last run
-                if run and row != run[-1] + 1:
-                    a, b = run[0], run[-1] + 1
-                    index = np.array([by_row[r] for r in run], dtype=np.intp)
-                    runs.append((index, group.values[a:b], group.updated_tick[a:b], group.stamp_ns[a:b]))
-                    run = []
-                if row is not None:
-                    run.append(row)
+        for group, rows in view.device_runs():
+            index = np.array([addresses_of[id(group), row] for row in range(rows.start, rows.stop)], dtype=np.intp)
+            runs.append((index, group.values[rows], group.updated_tick[rows], group.stamp_ns[rows]))
         return runs
 
     def _open_viewer(self):

@@ -138,6 +138,31 @@ async def test_devices_read_gravity_wrench_and_hand_motion():
 
 
 @pytest.mark.asyncio
+async def test_each_driver_steps_and_stamps_only_its_own_devices_in_runs_of_rows():
+    raw = arm_raw(4)
+    raw["devices"] = {name: {"type": "hand", "joint": joint} for name, joint in
+                      (("h0", "j0"), ("h1", "j2"), ("h2", "j1"))}  # group rows: h0, h1, h2
+    raw["devices"]["ft"] = {"type": "force_torque"}
+    raw["driver"] = [
+        {"type": "mock", "name": "a", "joints": ["j0", "j1"], "devices": ["h2", "ft", "h0"], "options": {"hand_speed": 2.0}},
+        {"type": "mock", "name": "b", "joints": ["j2", "j3"], "devices": ["h1"], "options": {"hand_speed": 2.0}},
+    ]
+    loop = virtual_loop(raw)
+    async with loop:
+        robot = loop.robot
+        a_view = loop.slots[0].driver.view
+        runs = [(group.kind, rows) for group, rows in a_view.device_runs()]
+        # rows 0 and 2 of the hand group are a's, row 1 is b's: two runs, never one across it
+        assert sorted(runs, key=str) == sorted([("hand", slice(0, 1)), ("hand", slice(2, 3)),
+                                                ("force_torque", slice(0, 1))], key=str)
+        robot.hand.grasp[:] = 1.0
+        await loop.run(ticks=100)  # 0.1 s at 2 /s: each hand stepped once per tick, so 0.2
+        np.testing.assert_allclose(robot.hand.position, [0.2, 0.2, 0.2], atol=1e-9)
+        assert (robot.hand.updated_tick == robot.clock.tick).all()
+        assert robot.force_torque.updated_tick[0] == robot.clock.tick
+
+
+@pytest.mark.asyncio
 async def test_estop_freezes_the_simulated_joints():
     loop = virtual_loop(raw_with({}), controller=Fixed(mode=Mode.VELOCITY, velocity=1.0))
     async with loop:
@@ -214,6 +239,26 @@ def test_the_compiled_step_matches_the_numpy_formulation(data, n, dt, first_orde
     np.testing.assert_array_equal(np.isnan(sim), nan)
     np.testing.assert_array_equal(sim[~nan].view(np.uint64), expected[~nan].view(np.uint64))
     assert (ticks == 5).all() and (stamps == 77).all()
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data(), n=st.integers(1, 4), hand_speed=st.floats(0.0, 5.0))
+def test_the_compiled_hand_step_matches_the_python_formulation(data, n, hand_speed):
+    rows = [np.array(data.draw(st.lists(FLOATS, min_size=n, max_size=n))) for _ in range(5)]
+    grasp, speed, force, position, effort = rows
+    expected_position, expected_effort = position.copy(), effort.copy()
+    for i in range(n):  # the mock's hand step as it was written per hand, with Python's min/max
+        step = hand_speed * float(speed[i]) * 1e-3
+        before = float(position[i])
+        expected_position[i] = min(max(float(grasp[i]), before - step), before + step)
+        expected_effort[i] = float(force[i]) if before > 0.0 else 0.0
+    args = (*rows, hand_speed, 1e-3)
+    kernel_call.check(mock_kernels.step_hands, args)
+    kernel_call.direct(mock_kernels.step_hands)(*args)
+    for got, expected in ((position, expected_position), (effort, expected_effort)):
+        nan = np.isnan(expected)
+        np.testing.assert_array_equal(np.isnan(got), nan)
+        np.testing.assert_array_equal(got[~nan].view(np.uint64), expected[~nan].view(np.uint64))
 
 
 @pytest.mark.asyncio
