@@ -341,7 +341,9 @@ class VirtualTickSource(TickSource):
         self._k = 0
         self._stall = 0
         self._yield_every_ns = int(yield_every_ms * 1e6)
-        self._last_yield = 0
+        # one interval before the monotonic clock's origin: the first wait looks at the loop
+        # however long the machine has been up (0 would count as recent on a fresh boot)
+        self._last_yield = -self._yield_every_ns
         self._idle: IdleWait | None = None
         self.yields = 0  # waits that went round the event loop
 
