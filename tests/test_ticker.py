@@ -8,14 +8,20 @@ import socket
 import sys
 import time
 
+import math
+
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from aiohal.ticker import (
+    KERNEL_TICK_GRID_NS,
     SleepTickSource,
     Ticker,
     TimerfdTickSource,
     VirtualTickSource,
     make_source,
+    off_the_kernel_tick,
     timerfd_available,
 )
 
@@ -63,6 +69,54 @@ async def test_catch_up_policy_runs_missed_ticks_late():
     assert ticker.missed == 2
     # ticks 2 and 3 ran late (their deadlines passed), 4 ran at its deadline, 5 one period on
     assert source.now_ns() == ticker.t0_ns + 5 * PERIOD
+
+
+def _from_whole_ms(t_ns: int) -> int:
+    """How far ``t_ns`` lies from the nearest whole millisecond, ns."""
+    r = t_ns % KERNEL_TICK_GRID_NS
+    return min(r, KERNEL_TICK_GRID_NS - r)
+
+
+@given(t=st.integers(0, 2**62), period=st.integers(10_000, 100_000_000), k=st.integers(0, 10_000))
+def test_deadlines_off_the_kernel_tick_keep_half_the_shared_step_from_whole_milliseconds(t, period, k):
+    step = math.gcd(period, KERNEL_TICK_GRID_NS)
+    t0 = off_the_kernel_tick(t, period)
+    assert t <= t0 < t + step  # never before the asked start, never a whole step after it
+    assert _from_whole_ms(t0 + k * period) >= step // 2  # every deadline, as far as the period allows
+
+
+def test_the_kernel_tick_phase_of_common_rates():
+    def phases(period, count):  # µs past a whole ms of the first deadlines
+        t0 = off_the_kernel_tick(123_456_789, period)
+        return sorted({(t0 + k * period) % KERNEL_TICK_GRID_NS // 1000 for k in range(count)})
+
+    assert phases(1_000_000, 10) == [500]  # 1 kHz
+    assert phases(500_000, 10) == [250, 750]  # 2 kHz
+    assert phases(200_000, 10) == [100, 300, 500, 700, 900]  # 5 kHz
+    assert phases(4_000_000, 10) == [500]  # 250 Hz
+    assert off_the_kernel_tick(123_456_789, 999_999) == 123_456_789  # sweeps every phase: left as it is
+
+
+@pytest.mark.asyncio
+async def test_real_clock_deadlines_sit_between_kernel_ticks_and_virtual_ones_where_asked():
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    for source in (TimerfdTickSource(), SleepTickSource()):
+        ticker = Ticker(source, PERIOD)
+        before = time.monotonic_ns()
+        ticker.start(lead_ns=PERIOD)
+        try:
+            assert ticker.t0_ns % KERNEL_TICK_GRID_NS == 500_000
+            first = ticker.t0_ns + PERIOD
+            assert before + 2 * PERIOD <= first < time.monotonic_ns() + 3 * PERIOD
+            k = await ticker.next()
+            assert _from_whole_ms(ticker.deadline_ns) == 500_000 and ticker.deadline_ns == ticker.t0_ns + k * PERIOD
+        finally:
+            ticker.close()
+    virtual = VirtualTickSource(start_ns=123_456)
+    ticker = Ticker(virtual, PERIOD)
+    ticker.start(lead_ns=PERIOD)
+    assert ticker.t0_ns == 123_456 + PERIOD  # virtual time has no kernel tick: lockstep runs unchanged
 
 
 def test_unknown_policy_and_source_are_refused():
