@@ -5,7 +5,7 @@ joints, and 21–56 µs after a 0.9 ms sleep, which is how the real clock runs i
 starts with the caches and branch predictors cold after the wait (the guest's idle CPU exits
 to the host). One call of a kernel that loops over the joints costs 1.5–3.3 µs back to back
 and 6–18 µs after a sleep on the same machine (``python -m benchmarks.isolated``, both sides
-alternately; docs/performance.md). It is imported only when a limiter is
+alternately; docs/performance-log.md). It is imported only when a limiter is
 built, so ``import aiohal`` and the processes of NRT drivers do not load numba.
 
 Everything the kernel needs besides the command is one float64 table (rows below): numba's

@@ -435,7 +435,7 @@ class ControlLoop:
         mask = stats.mask
         # the tick stores its figures through memoryviews of the stats arrays: an item store
         # there is a smaller code path than numpy's, which counts on the tick's cold caches
-        # (docs/performance.md, "Issue 4, eleventh session")
+        # (docs/performance-log.md, "Issue 4, eleventh session")
         lat_buf, work_buf = memoryview(stats.lateness), memoryview(stats.work)
         ph_read, ph_check, ph_control, ph_limits, ph_write, ph_publish = (memoryview(row) for row in stats.phases)
         first_lateness = stats.first_lateness

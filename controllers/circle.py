@@ -152,7 +152,7 @@ class CircleController(Controller):
 
 # The tick's work is a closure over the controller's arrays, built once at start(): every
 # attribute lookup and method frame costs more than its line, and more still on the caches
-# the step and the wait left cold (docs/performance.md, "Issue 4, tenth session").
+# the step and the wait left cold (docs/performance-log.md, "Issue 4, tenth session").
 
 
 def _kinematics(c: CircleController):

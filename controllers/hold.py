@@ -42,7 +42,7 @@ class HoldController(Controller):
         x_final = self.x0 + 0.5 * self.v0 * self.t_stop
         # at rest, one copy per tick writes both rows (position, velocity), adjacent in the
         # command block, as a byte copy between memoryviews: on the real clock's cold caches
-        # np.copyto costs about twice as much (docs/performance.md, "Issue 4, eleventh session").
+        # np.copyto costs about twice as much (docs/performance-log.md, "Issue 4, eleventh session").
         # The robot allocates its command block C-contiguous; cast() refuses any other layout.
         self._rest = memoryview(np.array([x_final, np.zeros_like(x_final)])).cast("B")
         self._position_velocity = memoryview(cmd.block[:2]).cast("B")
