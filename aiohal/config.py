@@ -57,6 +57,12 @@ class LoopSection(Options):
     overrun: Literal["skip", "catch_up"] = Field(
         "skip", description="After a stall: skip the missed ticks (keep phase) or run them late."
     )
+    phase_us: float | None = Field(
+        None, ge=0, lt=1000,
+        description="On a real clock, start the deadlines this many µs past a whole millisecond of "
+        "CLOCK_MONOTONIC (e.g. to set apart two loops that share a CPU); default: between the "
+        "kernel's own ticks (500 µs at 1 kHz).",
+    )
     max_feedback_age: int = Field(
         50, ge=1, description="Ticks after which a joint's feedback is stale and the robot holds."
     )

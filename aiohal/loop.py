@@ -82,7 +82,9 @@ class ControlLoop:
         guard_ns = int(config.realtime.spin_guard_us * 1e3)
         self.source = tick_source or make_source(config.loop.clock, guard_ns, config.loop.idle_wait)
         self.realtime: RealtimeState | None = None
-        self.ticker = Ticker(self.source, self.period_ns, config.loop.overrun)
+        phase = config.loop.phase_us
+        self.ticker = Ticker(self.source, self.period_ns, config.loop.overrun,
+                             None if phase is None else round(phase * 1e3))
         self.stats = TickStats(config.loop.stats_window)
         self.limiter = CommandLimiter(self.robot, self.period_s)
         every = config.controller.every

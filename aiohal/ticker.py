@@ -440,11 +440,16 @@ def make_source(kind: str, guard_ns: int = 0, idle_wait: bool = True) -> TickSou
 class Ticker:
     """Tick indices and deadlines from a source, under an overrun policy."""
 
-    def __init__(self, source: TickSource, period_ns: int, overrun: str = "skip") -> None:
+    def __init__(self, source: TickSource, period_ns: int, overrun: str = "skip", phase_ns: int | None = None) -> None:
+        """``phase_ns``: on the kernel's clock, start the deadlines that far past a whole
+        millisecond (None: :func:`off_the_kernel_tick`)."""
         if overrun not in ("skip", "catch_up"):
             raise ValueError(f"unknown overrun policy {overrun!r}")
+        if phase_ns is not None and not 0 <= phase_ns < KERNEL_TICK_GRID_NS:
+            raise ValueError(f"phase {phase_ns} ns is not within one millisecond")
         self.source = source
         self.period_ns = period_ns
+        self.phase_ns = phase_ns
         self.catch_up = overrun == "catch_up"
         self.k = 0
         self.t0_ns = 0
@@ -454,15 +459,18 @@ class Ticker:
 
     def start(self, lead_ns: int | None = None) -> None:
         """Arm the source; the next tick (k + 1) is due one period (plus ``lead_ns``) from now,
-        on the kernel's clock up to 1 ms later, between the kernel's ticks
-        (:func:`off_the_kernel_tick`).
+        on the kernel's clock up to 1 ms later: between the kernel's ticks
+        (:func:`off_the_kernel_tick`), or at the phase given.
 
         Tick indices keep counting across restarts, so drivers see a monotonic tick.
         """
         now = self.source.now_ns()
         self.t0_ns = now + (lead_ns or 0) - self.k * self.period_ns
         if self.source.on_kernel_clock:
-            self.t0_ns = off_the_kernel_tick(self.t0_ns, self.period_ns)
+            if self.phase_ns is None:
+                self.t0_ns = off_the_kernel_tick(self.t0_ns, self.period_ns)
+            else:
+                self.t0_ns += (self.phase_ns - self.t0_ns) % KERNEL_TICK_GRID_NS
         self.deadline_ns = self.t0_ns + self.k * self.period_ns
         self._pending = 0
         self.source.start(self.t0_ns, self.period_ns, self.k)

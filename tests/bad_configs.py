@@ -104,6 +104,11 @@ CASES: list[BadConfig] = [
         ("loop.overrun: input should be 'skip' or 'catch_up' (got 'drop')",),
     ),
     BadConfig(
+        "phase-a-whole-millisecond",
+        _replace('clock = "virtual"', 'clock = "virtual"\nphase_us = 1000'),
+        ("loop.phase_us: input should be less than 1000 (got 1000)",),
+    ),
+    BadConfig(
         "joint-min-not-below-max",
         _replace("[joints.j1]\nposition = [-2.0, 2.0]", "[joints.j1]\nposition = [1.5, 1.5]"),
         ("joints.j1.position: must be [min, max] with min < max (got [1.5, 1.5])",),

@@ -270,6 +270,28 @@ async def test_the_report_counts_how_the_real_clock_waited(idle_wait):
         assert waits["on_timer"] == 0 and waits["through_loop"] > 0
 
 
+@pytest.mark.asyncio
+async def test_the_deadlines_sit_where_the_config_puts_them():
+    """``[loop] phase_us`` places a real clock's deadlines; without it they sit between the
+    kernel's ticks (500 µs past a whole millisecond at 1 kHz)."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("timerfd is Linux only")
+    from aiohal.config import parse_config
+    from aiohal.loop import ControlLoop
+
+    for phase_us, expected_ns in ((None, 500_000), (250.0, 250_000), (0.0, 0)):
+        raw = arm_raw(2)
+        raw["loop"]["clock"] = "timerfd"
+        if phase_us is not None:
+            raw["loop"]["phase_us"] = phase_us
+        async with ControlLoop(parse_config(raw)) as loop:
+            report = await loop.run(ticks=5)
+            ticker = loop.ticker
+        assert report["ticks"] + report["missed_ticks"] == 5
+        assert ticker.t0_ns % 1_000_000 == expected_ns
+        assert ticker.deadline_ns % 1_000_000 == expected_ns and ticker.deadline_ns == ticker.t0_ns + ticker.k * 1_000_000
+
+
 class _Collections:
     """Every collection from here on, in order with marks; automatic collection is off, so
     each one seen is an explicit ``gc.collect`` somebody made."""

@@ -118,6 +118,27 @@ async def test_real_clock_deadlines_sit_between_kernel_ticks_and_virtual_ones_wh
     assert ticker.t0_ns == 123_456 + PERIOD  # virtual time has no kernel tick: lockstep runs unchanged
 
 
+@pytest.mark.asyncio
+async def test_a_phase_given_places_the_deadlines_and_one_outside_a_millisecond_is_refused():
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    for period, phase in ((PERIOD, 250_000), (PERIOD, 0), (500_000, 100_000)):
+        ticker = Ticker(TimerfdTickSource(), period, phase_ns=phase)
+        ticker.start(lead_ns=period)
+        try:
+            assert ticker.t0_ns % KERNEL_TICK_GRID_NS == phase
+            k = await ticker.next()
+            assert ticker.deadline_ns % period == phase % period and ticker.deadline_ns == ticker.t0_ns + k * period
+        finally:
+            ticker.close()
+    virtual = Ticker(VirtualTickSource(start_ns=7), PERIOD, phase_ns=250_000)
+    virtual.start(lead_ns=PERIOD)
+    assert virtual.t0_ns == 7 + PERIOD  # virtual time has no kernel tick to keep away from
+    for bad in (-1, KERNEL_TICK_GRID_NS):
+        with pytest.raises(ValueError, match="within one millisecond"):
+            Ticker(VirtualTickSource(), PERIOD, phase_ns=bad)
+
+
 def test_unknown_policy_and_source_are_refused():
     with pytest.raises(ValueError):
         Ticker(VirtualTickSource(), PERIOD, "whenever")
