@@ -5,9 +5,12 @@ highest tick rate the mock 33-joint humanoid sustains.
    ``hold``, every joint with position, velocity, acceleration and effort limits (the config
    is built in-process like ``tests/helpers.arm_raw``). Work per tick p50/p99 (the report's
    ``work_us``) on the virtual clock (pure work, back to back) and on the real clock at 1 kHz
-   (timerfd) for ``--rt-seconds``; the ratio work(1000 joints)/work(7 joints). Virtual runs are
-   repeated ``--repeat`` times (fresh processes) and the medians shown: on a shared VM one run's
-   p50 can be 1.5× another's.
+   (timerfd) for ``--rt-seconds``. Virtual runs are repeated ``--repeat`` times (fresh
+   processes) and the medians shown: on a shared VM one run's p50 can be 1.5× another's. The
+   ratio work(1000 joints)/work(7 joints) is measured side by side: every joint count's loop
+   in one process, run in turn ``--chunk`` ticks at a time for ``--rounds`` rounds (the order
+   alternating), so each round's ratio compares ticks measured milliseconds apart and a change
+   of the host's speed between runs does not enter it; the median over the rounds is shown.
 2. Drivers: 1, 2, 4, 8 mock drivers sharing 32 joints (32, 16, 8, 4 joints each), same setup.
 3. Highest rate: ``configs/mock_humanoid.toml`` (33 joints, 4 mock drivers, devices) with
    ``hold``, on the timerfd clock at 1, 2, 4, 5, 8, 10, 16, 20 kHz for ``--sweep-seconds``
@@ -24,16 +27,20 @@ stops it for 50 ms of every second, which the figures of those rates include; ea
 bounded by its deadline count, and the stall watchdog ends a run after 500 ms without a tick.
 
     python -m benchmarks.scaling [--seconds 5] [--rt-seconds 3] [--sweep-seconds 3]
-        [--repeat 3] [--rates 1000 2000 ...] [--no-bare] [--priority 80] [--loop asyncio|uvloop] [--json PATH]
+        [--repeat 3] [--rounds 40] [--chunk 500] [--rates 1000 2000 ...] [--no-bare] [--priority 80]
+        [--loop asyncio|uvloop] [--json PATH]
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import statistics
 import time
 
-from .breakdown import HUMANOID, bare_spec, load_raw, loop_spec, r1, spawn, timeout_for, worker_main
+import numpy as np
+
+from .breakdown import HUMANOID, bare_spec, load_raw, loop_spec, r1, spawn, timeout_for, worker, worker_main
 from .common import ROOT, table, write_json
 
 JOINTS = (7, 33, 100, 300, 1000)
@@ -82,6 +89,47 @@ def _pair(raw: dict, args: argparse.Namespace) -> tuple[dict, dict]:
     return {"report": _median_report(virtual)}, real
 
 
+async def _side_by_side(spec: dict) -> dict:
+    """Work p50 per round of every joint count's loop, all in this process on the virtual
+    clock, run in turn ``chunk`` ticks at a time (the order alternating each round)."""
+    from aiohal.config import parse_config
+    from aiohal.loop import ControlLoop
+    from aiohal.ticker import VirtualTickSource
+
+    loops = {n: ControlLoop(parse_config(robot_raw(n)), tick_source=VirtualTickSource()) for n in spec["joints"]}
+    work = {n: [] for n in loops}
+    try:
+        for control in loops.values():
+            await control.activate()
+            await control.run(ticks=spec["warmup_ticks"])
+        order = list(loops)
+        for r in range(spec["rounds"]):
+            for n in order if r % 2 == 0 else order[::-1]:
+                report = await loops[n].run(ticks=spec["chunk"])  # its statistics are this run's ticks
+                work[n].append(report["work_us"]["p50"])
+    finally:
+        for control in loops.values():
+            await control.deactivate()
+    return {"work_p50_rounds": {str(n): w for n, w in work.items()}}
+
+
+def scaling_worker(spec: dict) -> dict:
+    if spec["kind"] == "side_by_side":
+        return asyncio.run(_side_by_side(spec))
+    return worker(spec)
+
+
+def side_by_side_ratio(args: argparse.Namespace) -> dict:
+    """work(1000)/work(7) per round of a side-by-side run: median and quartiles over the rounds."""
+    spec = {"kind": "side_by_side", "joints": list(JOINTS), "rounds": max(2, args.rounds), "chunk": args.chunk,
+            "warmup_ticks": round(args.warmup * 1000)}
+    rounds = spawn(MODULE, spec, timeout_for(len(JOINTS) * args.rounds * args.chunk / 1000))["work_p50_rounds"]
+    ratios = np.array(rounds[str(JOINTS[-1])]) / np.array(rounds[str(JOINTS[0])])
+    q25, q50, q75 = (round(float(np.percentile(ratios, q)), 2) for q in (25, 50, 75))
+    return {"ratio": q50, "p25": q25, "p75": q75, "rounds": len(ratios), "chunk": args.chunk,
+            "work_p50": {n: round(statistics.median(w), 2) for n, w in rounds.items()}}
+
+
 def _check(result: dict, what: str) -> None:
     faults = result["report"]["faults"]
     if faults:
@@ -95,6 +143,8 @@ def main() -> None:
     p.add_argument("--sweep-seconds", type=float, default=3.0, help="seconds per rate of the sweep (default 3)")
     p.add_argument("--warmup", type=float, default=0.5, help="warm-up seconds before each measured run")
     p.add_argument("--repeat", type=int, default=3, help="virtual-clock runs per config; medians are shown (default 3)")
+    p.add_argument("--rounds", type=int, default=40, help="rounds of the side-by-side ratio (default 40)")
+    p.add_argument("--chunk", type=int, default=500, help="ticks per loop per round of the side-by-side ratio (default 500)")
     p.add_argument("--rates", type=float, nargs="*", default=list(RATES))
     p.add_argument("--no-bare", action="store_true", help="skip the bare timerfd loop beside each rate")
     p.add_argument("--priority", type=int, default=80, help="SCHED_FIFO priority of real-time runs (0: normal)")
@@ -103,7 +153,7 @@ def main() -> None:
     p.add_argument("--worker", action="store_true", help="(internal) run one measurement: JSON spec on stdin")
     args = p.parse_args()
     if args.worker:
-        worker_main()
+        worker_main(scaling_worker)
         return
     started = time.monotonic()
 
@@ -124,6 +174,7 @@ def main() -> None:
             "r_lat_p99": r["lateness_us"]["p99"], "r_missed": r["missed_ticks"], "r_rate": r["rate_hz_achieved"],
         })
         print(f"{n} joints: done", flush=True)
+    side = side_by_side_ratio(args)
 
     # 2. drivers
     driver_rows = []
@@ -185,11 +236,12 @@ def main() -> None:
         ("r_p50", "1 kHz work p50"), ("r_p99", "p99"), ("r_lat_p99", "lateness p99"), ("r_missed", "missed"),
     ]))
     by_n = {row["joints"]: row for row in joint_rows}
-    ratio_v = ratio_r = None
-    if 1000 in by_n and 7 in by_n:
-        ratio_v = round(by_n[1000]["v_p50"] / by_n[7]["v_p50"], 2)
-        ratio_r = round(by_n[1000]["r_p50"] / by_n[7]["r_p50"], 2)
-        print(f"\nwork(1000 joints) / work(7 joints), p50: virtual {ratio_v}, 1 kHz {ratio_r}")
+    ratio_v = round(by_n[1000]["v_p50"] / by_n[7]["v_p50"], 2)
+    ratio_r = round(by_n[1000]["r_p50"] / by_n[7]["r_p50"], 2)
+    print(f"\nwork(1000 joints) / work(7 joints), p50: side by side in one process {side['ratio']} "
+          f"(p25–p75 {side['p25']}–{side['p75']} over {side['rounds']} rounds of {side['chunk']} ticks; work p50 "
+          + ", ".join(f"{n} joints {w} µs" for n, w in side["work_p50"].items())
+          + f"); from the separate runs above: virtual {ratio_v}, 1 kHz {ratio_r}")
 
     print()
     print(f"Work per tick against drivers (32 joints, hold), µs; virtual: median of {args.repeat} runs:")
@@ -220,7 +272,8 @@ def main() -> None:
     write_json(args.json, {
         "seconds": args.seconds, "rt_seconds": args.rt_seconds, "sweep_seconds": args.sweep_seconds,
         "warmup": args.warmup, "repeat": args.repeat, "priority": args.priority, "loop": args.loop, "elapsed_s": round(elapsed, 1),
-        "joints": joint_rows, "work_ratio_1000_over_7": {"virtual": ratio_v, "realtime": ratio_r},
+        "joints": joint_rows,
+        "work_ratio_1000_over_7": {"side_by_side": side, "virtual": ratio_v, "realtime": ratio_r},
         "drivers": driver_rows, "virtual_us_per_extra_driver": slope,
         "rates": rate_rows, "highest_sustained_hz": best,
     })
