@@ -41,6 +41,11 @@ TFD_TIMER_ABSTIME = 1
 KERNEL_TICK_GRID_NS = 1_000_000
 
 
+def at_phase(t_ns: int, phase_ns: int, step_ns: int = KERNEL_TICK_GRID_NS) -> int:
+    """The first time at or after ``t_ns`` that lies ``phase_ns`` past a multiple of ``step_ns``."""
+    return t_ns + (phase_ns - t_ns) % step_ns
+
+
 def off_the_kernel_tick(t_ns: int, period_ns: int) -> int:
     """The first time at or after ``t_ns`` from which deadlines every ``period_ns`` stay as
     far from whole milliseconds as the period allows: at least half of gcd(period, 1 ms) away
@@ -55,7 +60,7 @@ def off_the_kernel_tick(t_ns: int, period_ns: int) -> int:
     (no spin) showed no difference beyond the noise.
     """
     step = math.gcd(period_ns, KERNEL_TICK_GRID_NS)
-    return t_ns + (step // 2 - t_ns) % step
+    return at_phase(t_ns, step // 2, step)
 
 
 class TickSource(abc.ABC):
@@ -470,7 +475,7 @@ class Ticker:
             if self.phase_ns is None:
                 self.t0_ns = off_the_kernel_tick(self.t0_ns, self.period_ns)
             else:
-                self.t0_ns += (self.phase_ns - self.t0_ns) % KERNEL_TICK_GRID_NS
+                self.t0_ns = at_phase(self.t0_ns, self.phase_ns)
         self.deadline_ns = self.t0_ns + self.k * self.period_ns
         self._pending = 0
         self.source.start(self.t0_ns, self.period_ns, self.k)

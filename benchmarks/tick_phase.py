@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from aiohal.ticker import KERNEL_TICK_GRID_NS, TimerfdTickSource, off_the_kernel_tick
+from aiohal.ticker import KERNEL_TICK_GRID_NS, TimerfdTickSource, at_phase, off_the_kernel_tick
 
 from .common import StealMeter, table, write_json
 
@@ -53,7 +53,7 @@ def first_deadline(case: str | int, period_ns: int) -> int:
         return t
     if case == AIOHAL:
         return off_the_kernel_tick(t, period_ns)
-    return t + (int(case) * 1000 - t) % KERNEL_TICK_GRID_NS  # that many µs past a whole ms
+    return at_phase(t, int(case) * 1000)  # that many µs past a whole ms
 
 
 async def one_round(t0: int, period_ns: int, guard_ns: int, ticks: int) -> tuple[np.ndarray, int]:
