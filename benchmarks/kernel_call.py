@@ -32,8 +32,8 @@ def _limiter_case(joints: int):
 
 
 def _decode_case(drives: int):
-    from aiohal.busvar import PdoLayout, ProcessImage, encode_mapping
-    from aiohal.cia402 import DriveUnits
+    from aiohal.fieldbus.busvar import PdoLayout, ProcessImage, encode_mapping
+    from aiohal.fieldbus.cia402 import DriveUnits
     from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec
     from aiohal.drivers.ethercat import kernels
     from aiohal.robot import JointState

@@ -126,7 +126,7 @@ def setup_nohal_mujoco(spec: dict, phase_log: list | None = None):
     import mujoco
 
     from aiohal.config import load_config
-    from aiohal.drivers.mujoco_model import actuator_for_joints, joint_addresses, load_model
+    from aiohal.mjcf import actuator_for_joints, joint_addresses, load_model
 
     config = load_config(spec["config"])
     (dc,) = config.drivers

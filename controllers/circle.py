@@ -29,7 +29,7 @@ from aiohal.config import ConfigPath
 from aiohal.hal import Controller, Options
 from aiohal.robot import Mode
 
-from aiohal.drivers.mujoco_model import joint_addresses, load_model, model_names
+from aiohal.mjcf import joint_addresses, load_model, model_names
 
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 

@@ -38,7 +38,7 @@ from aiohal import kernel_call
 from aiohal.config import ConfigPath
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
 
-from .mujoco_model import actuator_for_joints, joint_addresses, load_model, model_names, sensor_slice
+from aiohal.mjcf import actuator_for_joints, joint_addresses, load_model, model_names, sensor_slice
 
 log = logging.getLogger(__name__)
 

@@ -10,13 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from aiohal.busvar import (
-    AIOHAL_VENDOR_ID,
+from aiohal.fieldbus.busvar import (
     CIA402_NAMES,
-    PRODUCT_DIO,
-    PRODUCT_DRIVE,
-    PRODUCT_FT,
-    PRODUCT_IMU,
     BitsVar,
     BitVar,
     BusVarError,
@@ -35,6 +30,7 @@ from aiohal.busvar import (
     parse_address,
     parse_names,
 )
+from aiohal.drivers.ethercat.names import AIOHAL_VENDOR_ID, KNOWN_DEVICES, PRODUCT_DIO, PRODUCT_DRIVE, PRODUCT_FT, PRODUCT_IMU
 from aiohal.errors import AiohalError
 
 # What the simulated devices report over CoE (docs/ethercat.md): 0x1C12/0x1C13 and the mappings.
@@ -48,22 +44,22 @@ FT_TX = [encode_mapping(0x6000, s, 32) for s in range(1, 7)] + [0x60100010]
 
 def drive_layout(**kw) -> PdoLayout:
     return PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: DRIVE_RX, 0x1A00: DRIVE_TX},
-                              names_for(AIOHAL_VENDOR_ID, PRODUCT_DRIVE, **kw))
+                              names_for(AIOHAL_VENDOR_ID, PRODUCT_DRIVE, known=KNOWN_DEVICES, **kw))
 
 
 def imu_layout() -> PdoLayout:
-    return PdoLayout.from_coe([], [0x1A00], {0x1A00: IMU_TX}, names_for(AIOHAL_VENDOR_ID, PRODUCT_IMU))
+    return PdoLayout.from_coe([], [0x1A00], {0x1A00: IMU_TX}, names_for(AIOHAL_VENDOR_ID, PRODUCT_IMU, known=KNOWN_DEVICES))
 
 
 def ft_layout() -> PdoLayout:
-    return PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: FT_RX, 0x1A00: FT_TX}, names_for(AIOHAL_VENDOR_ID, PRODUCT_FT))
+    return PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: FT_RX, 0x1A00: FT_TX}, names_for(AIOHAL_VENDOR_ID, PRODUCT_FT, known=KNOWN_DEVICES))
 
 
 def dio_layout() -> PdoLayout:
     """From the SII categories: no mailbox; the SII names are generic, the name table wins."""
     return PdoLayout.from_sii({0x1600: [(0x7000, s, 1, "Output") for s in range(1, 9)]},
                               {0x1A00: [(0x6000, s, 1, "Input") for s in range(1, 9)]},
-                              names_for(AIOHAL_VENDOR_ID, PRODUCT_DIO))
+                              names_for(AIOHAL_VENDOR_ID, PRODUCT_DIO, known=KNOWN_DEVICES))
 
 
 def robot_image() -> ProcessImage:
@@ -121,7 +117,7 @@ def test_sensor_layouts_are_what_the_document_says():
 
 
 def test_sii_and_coe_give_the_same_layout():
-    names = names_for(AIOHAL_VENDOR_ID, PRODUCT_DRIVE)
+    names = names_for(AIOHAL_VENDOR_ID, PRODUCT_DRIVE, known=KNOWN_DEVICES)
     sii = PdoLayout.from_sii({0x1600: [decode_mapping(v) for v in DRIVE_RX]},
                              {0x1A00: [(*decode_mapping(v), "ignored") for v in DRIVE_TX]}, names)
     assert sii == drive_layout()
@@ -154,7 +150,7 @@ def test_unknown_objects_are_named_by_address_or_sii_name():
 
 
 def test_name_overrides_from_config():
-    names = names_for(AIOHAL_VENDOR_ID, PRODUCT_DRIVE, overrides={
+    names = names_for(AIOHAL_VENDOR_ID, PRODUCT_DRIVE, known=KNOWN_DEVICES, overrides={
         "0x6041:00": "Status", "0x2001": ["Motor temperature", "INT16"], (0x607A, 0): "Setpoint"})
     layout = PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: DRIVE_RX, 0x1A00: DRIVE_TX + [0x20010010]}, names)
     assert layout.inputs[0].name == "Status" and layout.inputs[0].type == "u16"  # type kept from the table
@@ -166,7 +162,7 @@ def test_name_overrides_from_config():
 
 
 def test_name_table_choice_by_device():
-    assert names_for(AIOHAL_VENDOR_ID, PRODUCT_IMU)[(0x6000, 1)] == ("Orientation.1", "f32")
+    assert names_for(AIOHAL_VENDOR_ID, PRODUCT_IMU, known=KNOWN_DEVICES)[(0x6000, 1)] == ("Orientation.1", "f32")
     assert names_for(0x1234, 0x5678) == CIA402_NAMES  # unknown device: the standard drive objects
     assert names_for(0x1234, 0x5678, device_type=0x00020192) == CIA402_NAMES  # profile 402
     assert names_for(0x1234, 0x5678, device_type=0x00000191) == {}  # profile 401: not a drive

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal import cia402
-from aiohal.cia402 import (
+from aiohal.fieldbus import cia402
+from aiohal.fieldbus.cia402 import (
     DISABLE_VOLTAGE,
     ENABLE_OPERATION,
     FAULT_RESET,

@@ -13,7 +13,7 @@ from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec, ImuDevice  # 
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal.busvar import (
+from aiohal.fieldbus.busvar import (
     PdoLayout,
     ProcessImage,
     ReadOnlyVariableError,
@@ -21,7 +21,7 @@ from aiohal.busvar import (
     VariableTypeError,
     encode_mapping,
 )
-from aiohal.cia402 import CSP, CST, CSV, DriveUnits
+from aiohal.fieldbus.cia402 import CSP, CST, CSV, DriveUnits
 from aiohal.robot import Fault, ImuGroup, JointCommand, JointState, Mode
 
 RX = [(0x6040, 16), (0x607A, 32), (0x60FF, 32), (0x6071, 16), (0x6060, 8)]
@@ -81,7 +81,7 @@ def test_a_drive_mapping_without_a_needed_variable_is_named_at_link_time():
 
 def test_a_drive_variable_of_the_wrong_type_is_refused():
     names = {(0x6064, 0): ("Position actual value", "u32")}
-    from aiohal.busvar import CIA402_NAMES
+    from aiohal.fieldbus.busvar import CIA402_NAMES
     image = ProcessImage([("d0", layout(names={**CIA402_NAMES, **names}))])
     with pytest.raises(VariableTypeError, match="maps it as i32"):
         DriveGroup(image, [DriveSpec("d0", "j0", 0, DriveUnits())], stuck_after=10)
@@ -170,11 +170,12 @@ def test_bind_state_writes_the_drivers_rows_of_the_robots_state_and_refuses_too_
 
 
 def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
-    from aiohal.busvar import AIOHAL_VENDOR_ID, PRODUCT_IMU, names_for
+    from aiohal.drivers.ethercat.names import AIOHAL_VENDOR_ID, KNOWN_DEVICES, PRODUCT_IMU
+    from aiohal.fieldbus.busvar import names_for
     tx = [(0x6000, s, 32) for s in range(1, 5)] + [(0x6010, s, 32) for s in range(1, 4)] + \
          [(0x6020, s, 32) for s in range(1, 4)] + [(0x6030, 0, 16)]
     imu_layout = PdoLayout.from_coe([], [0x1A00], {0x1A00: [encode_mapping(*e) for e in tx]},
-                                    names_for(AIOHAL_VENDOR_ID, PRODUCT_IMU))
+                                    names_for(AIOHAL_VENDOR_ID, PRODUCT_IMU, known=KNOWN_DEVICES))
     image = ProcessImage([("imu", imu_layout)])
     group = ImuGroup(["base"])
     device = ImuDevice(image, "imu", group["base"], {"quaternion": "Orientation", "angular_velocity": "Angular velocity",
@@ -195,13 +196,14 @@ def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
 
 
 def test_force_torque_tare_holds_the_control_bit_for_a_few_cycles_then_clears_it():
-    from aiohal.busvar import AIOHAL_VENDOR_ID, PRODUCT_FT, VariableTypeError, names_for
+    from aiohal.drivers.ethercat.names import AIOHAL_VENDOR_ID, KNOWN_DEVICES, PRODUCT_FT
+    from aiohal.fieldbus.busvar import VariableTypeError, names_for
     from aiohal.drivers.ethercat.devices import ForceTorqueDevice
     from aiohal.robot import ForceTorqueGroup
     tx = [(0x6000, s, 32) for s in range(1, 7)] + [(0x6010, 0, 16)]
     ft_layout = PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: [encode_mapping(0x7000, 0, 16)],
                                                          0x1A00: [encode_mapping(*e) for e in tx]},
-                                   names_for(AIOHAL_VENDOR_ID, PRODUCT_FT))
+                                   names_for(AIOHAL_VENDOR_ID, PRODUCT_FT, known=KNOWN_DEVICES))
     image = ProcessImage([("ft", ft_layout)])
     group = ForceTorqueGroup(["wrist"])
     variables = {"wrench": "Wrench", "status": "Status"}

@@ -504,7 +504,7 @@ def test_config_errors_name_the_key(tmp_path):
 
 @pytest.mark.asyncio
 async def test_an_emergency_stop_quick_stops_every_drive_in_split_mode(segment):
-    from aiohal.cia402 import State
+    from aiohal.fieldbus.cia402 import State
 
     at = At((1500, lambda loop: loop.estop()))  # mid-motion: the sine is moving every joint
 

@@ -15,7 +15,8 @@ import tomllib
 import pytest
 from conftest import ROOT, require_module, start_segment
 
-from aiohal.busvar import CIA402_NAMES, FT_NAMES, IMU_NAMES, PdoLayout
+from aiohal.drivers.ethercat.names import FT_NAMES, IMU_NAMES
+from aiohal.fieldbus.busvar import CIA402_NAMES, PdoLayout
 from aiohal.config import parse_config
 
 require_module("pysoem")

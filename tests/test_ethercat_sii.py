@@ -7,7 +7,8 @@ import struct
 
 import pytest
 
-from aiohal.busvar import DIO_NAMES, LayoutError, PdoLayout
+from aiohal.drivers.ethercat.names import DIO_NAMES
+from aiohal.fieldbus.busvar import LayoutError, PdoLayout
 from aiohal.drivers.ethercat import sii
 from aiohal.drivers.ethercat.sim.devices import DigitalIO
 from aiohal.drivers.ethercat.sim.drive import Drive

@@ -1375,7 +1375,7 @@ def test_replay_soem_bring_up_sequence_to_op():
 
 
 def test_slave_spec_parsing():
-    from aiohal.drivers.ethercat.sim.devices import parse_spec
+    from aiohal.drivers.ethercat.sim.spec import parse_spec
 
     devs = parse_spec("drive*3, imu,ft,dio,dio4")
     assert [d.kind for d in devs] == ["drive"] * 3 + ["imu", "ft", "dio", "dio"]

@@ -280,7 +280,7 @@ async def test_every_device_field_reads_its_own_sensor_when_another_driver_owns_
     device of another driver between two of its own splits its run, and each field still
     reads the sensor it is named after (or mapped to in ``sensors``)."""
     from aiohal.drivers.mujoco import SENSOR_FIELDS
-    from aiohal.drivers.mujoco_model import sensor_slice
+    from aiohal.mjcf import sensor_slice
 
     raw = tomllib.loads((CONFIGS / "walkman_sim.toml").read_text())
     raw["controller"] = {"type": "hold"}

@@ -24,10 +24,11 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from aiohal.busvar import LayoutError, PdoLayout, names_for
+from aiohal.fieldbus.busvar import LayoutError, PdoLayout, names_for
 from aiohal.errors import AiohalError
 
 from . import sii as sii_layout
+from .names import KNOWN_DEVICES
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +132,7 @@ class Bus:
         if not sii_layout.has_coe(sii):
             rx, tx = sii_layout.read_pdos(sii)
             # device type 0: no object 0x1000 to say CiA 402, so no drive names are assumed
-            names = names_for(slave.man, slave.id, device_type=0, overrides=names_overrides)
+            names = names_for(slave.man, slave.id, device_type=0, overrides=names_overrides, known=KNOWN_DEVICES)
             return PdoLayout.from_sii(rx, tx, names)
         try:
             rx_assign = self._assignment(slave, 0x1C12)
@@ -141,7 +142,8 @@ class Bus:
             raise LayoutError(f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}") from exc
         except self.lost_frame as exc:
             raise LayoutError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc})") from exc
-        names = names_for(slave.man, slave.id, device_type=self.device_type(position), overrides=names_overrides)
+        names = names_for(slave.man, slave.id, device_type=self.device_type(position), overrides=names_overrides,
+                          known=KNOWN_DEVICES)
         return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
 
     def device_type(self, position: int) -> int | None:

@@ -3,7 +3,7 @@
 Each class links the variables it needs by name at bring-up (errors name the slave and the
 variable, types are checked) and then moves values between the process image and the
 robot's records once per cycle: the drives through compiled kernels (:mod:`.kernels`), the
-sensors, one or two per bus, with one ``struct`` call each (:class:`~aiohal.busvar.RecordCodec`).
+sensors, one or two per bus, with one ``struct`` call each (:class:`~aiohal.fieldbus.busvar.RecordCodec`).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from aiohal import kernel_call
-from aiohal.busvar import ProcessImage, VariableTypeError
-from aiohal.cia402 import Cia402Drive, DriveEvent, DriveUnits, Target
+from aiohal.fieldbus.busvar import ProcessImage, VariableTypeError
+from aiohal.fieldbus.cia402 import Cia402Drive, DriveEvent, DriveUnits, Target
 from aiohal.robot import (
     JOINT_COMMAND_FIELDS,
     DeviceRecord,

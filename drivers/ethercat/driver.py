@@ -40,8 +40,8 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 from pydantic import Field
 
-from aiohal.busvar import LayoutError, PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError, encode_mapping
-from aiohal.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
+from aiohal.fieldbus.busvar import LayoutError, PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError, encode_mapping
+from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault

@@ -25,9 +25,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, types
 
-from aiohal.cia402 import CSP as _CSP
-from aiohal.cia402 import CST as _CST
-from aiohal.cia402 import CSV as _CSV
+from aiohal.fieldbus.cia402 import CSP as _CSP
+from aiohal.fieldbus.cia402 import CST as _CST
+from aiohal.fieldbus.cia402 import CSV as _CSV
 from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, Mode
 
 # layout columns: 5 input offsets, 5 output offsets, the joint's row
@@ -48,7 +48,7 @@ if (JOINT_STATE_FIELDS[:4] != ("position", "velocity", "effort", "motor_position
         or (CSP, CSV, CST) != (int(_CSP), int(_CSV), int(_CST))
         or [int(m) for m in (Mode.NONE, Mode.POSITION, Mode.VELOCITY, Mode.EFFORT, Mode.IMPEDANCE)] != [0, 1, 2, 3, 4]
         or len(Mode) != len(MODE_OF_OPERATION)):
-    raise ImportError("drivers/ethercat/kernels.py: its literal rows or modes no longer match aiohal.robot / aiohal.cia402")
+    raise ImportError("drivers/ethercat/kernels.py: its literal rows or modes no longer match aiohal.robot / aiohal.fieldbus.cia402")
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -32,7 +32,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from aiohal.busvar import BusVarError, PdoLayout, ProcessImage
+from aiohal.fieldbus.busvar import BusVarError, PdoLayout, ProcessImage
 
 from .bus import Bus, EthercatError, state_name
 from .devices import (

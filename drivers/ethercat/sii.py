@@ -24,7 +24,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable
 
-from aiohal.busvar import LayoutError, RawEntry
+from aiohal.fieldbus.busvar import LayoutError, RawEntry
 
 MAILBOX_PROTOCOLS_WORD = 0x1C
 MBX_COE = 0x0004

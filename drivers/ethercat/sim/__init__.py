@@ -18,9 +18,10 @@ See docs/ethercat.md, section "The simulated segment".
 """
 
 from .control import apply as apply_control
-from .devices import DigitalIO, ForceTorque, Imu, parse_spec
+from .devices import DigitalIO, ForceTorque, Imu
 from .drive import Drive
 from .esc import Esc
 from .segment import Segment
+from .spec import parse_spec
 
 __all__ = ["DigitalIO", "Drive", "Esc", "ForceTorque", "Imu", "Segment", "apply_control", "parse_spec"]

@@ -20,7 +20,8 @@ import struct
 import time
 from collections.abc import Callable
 
-from .devices import Device, parse_spec
+from .devices import Device
+from .spec import parse_spec
 from .esc import MASK64, OP, SAFEOP, Esc
 
 ETHERTYPE = b"\x88\xa4"

@@ -1,6 +1,6 @@
 """The CiA 402 drive state machine seen from the master: statusword in, controlword out.
 
-Pure logic without I/O, shared by the EtherCAT and (later) CANopen drivers. The drive runs the
+Pure logic without I/O, shared by the EtherCAT and CANopen drivers. The drive runs the
 real state machine (CiA 402 / IEC 61800-7-201); the master only observes it through the
 statusword and asks for transitions through the controlword. :class:`Cia402Drive` does that
 for one drive, once per bus cycle: it walks the transitions one step at a time toward the

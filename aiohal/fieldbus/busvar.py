@@ -4,8 +4,8 @@ A :class:`PdoLayout` says where each mapped object sits in one slave's output im
 master → slave) and input image (TxPDO, slave → master). It is built at bring-up from what the
 slave reports: the CoE PDO assignment (0x1C12/0x1C13) and mapping objects (0x16xx/0x1Axx),
 or the SII TXPDO/RXPDO categories of a slave without a mailbox. Names come from a name table
-keyed by (index, subindex): one for the standard CiA 402 objects, one per simulated device of
-docs/ethercat.md, overridable per device from the configuration.
+keyed by (index, subindex): one for the standard CiA 402 objects here, one per device a bus driver
+knows by identity (kept by that driver), overridable per device from the configuration.
 
 A :class:`ProcessImage` holds one contiguous ``uint8`` buffer for the outputs of every slave and
 one for the inputs; each slave has a slice of each. The driver copies a slave's slice to and
@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike
 
-from .errors import AiohalError
+from ..errors import AiohalError
 
 # ---------------------------------------------------------------- errors
 
@@ -127,7 +127,7 @@ def _infer_type(bits: int) -> str:
     return {1: "bool", 8: "u8", 16: "u16", 32: "u32", 64: "u64"}.get(bits, "bits")
 
 
-def _object(index: int, name: str, type_: str, subindices: int) -> dict[tuple[int, int], tuple[str, str]]:
+def object_entries(index: int, name: str, type_: str, subindices: int) -> dict[tuple[int, int], tuple[str, str]]:
     """Name table rows of an object with subindices 1..n: ``"<name>.<n>"``."""
     return {(index, sub): (f"{name}.{sub}", type_) for sub in range(1, subindices + 1)}
 
@@ -161,41 +161,10 @@ CIA402_NAMES: dict[tuple[int, int], tuple[str, str]] = {
     (0x60BA, 0): ("Touch probe 1 positive value", "i32"),
     (0x60F4, 0): ("Following error actual value", "i32"),
     (0x60FD, 0): ("Digital inputs", "u32"),
-    **_object(0x60FE, "Digital outputs", "u32", 2),  # 1 physical outputs, 2 bit mask
+    **object_entries(0x60FE, "Digital outputs", "u32", 2),  # 1 physical outputs, 2 bit mask
     (0x60FF, 0): ("Target velocity", "i32"),
 }
 """The standard CiA 402 objects a drive commonly maps (axis 1)."""
-
-# The simulated devices of docs/ethercat.md.
-AIOHAL_VENDOR_ID = 0x000A1A1A
-PRODUCT_DRIVE = 0x00000402
-PRODUCT_IMU = 0x00001300
-PRODUCT_FT = 0x00001600
-PRODUCT_DIO = 0x00000808
-
-IMU_NAMES: dict[tuple[int, int], tuple[str, str]] = {
-    **_object(0x6000, "Orientation", "f32", 4),  # quaternion w, x, y, z
-    **_object(0x6010, "Angular velocity", "f32", 3),  # rad/s
-    **_object(0x6020, "Linear acceleration", "f32", 3),  # m/s²
-    (0x6030, 0): ("Status", "u16"),  # bit 0 valid
-}
-FT_NAMES: dict[tuple[int, int], tuple[str, str]] = {
-    (0x7000, 0): ("Control", "u16"),  # bit 0 tare
-    **_object(0x6000, "Wrench", "f32", 6),  # Fx, Fy, Fz (N), Tx, Ty, Tz (N·m)
-    (0x6010, 0): ("Status", "u16"),  # bit 0 valid, bit 1 overload
-}
-DIO_NAMES: dict[tuple[int, int], tuple[str, str]] = {
-    **_object(0x7000, "Output", "bool", 8),
-    **_object(0x6000, "Input", "bool", 8),
-}
-DEVICE_NAMES: dict[tuple[int, int], NameTable] = {
-    (AIOHAL_VENDOR_ID, PRODUCT_DRIVE): CIA402_NAMES,
-    (AIOHAL_VENDOR_ID, PRODUCT_IMU): IMU_NAMES,
-    (AIOHAL_VENDOR_ID, PRODUCT_FT): FT_NAMES,
-    (AIOHAL_VENDOR_ID, PRODUCT_DIO): DIO_NAMES,
-}
-"""Name tables by (vendor ID, product code)."""
-
 
 def parse_names(overrides: Mapping[Any, Any]) -> dict[tuple[int, int], tuple[str, str]]:
     """A name table from the configuration's form: ``{"0x2000:01": "Motor temperature"}`` or
@@ -218,10 +187,12 @@ def parse_names(overrides: Mapping[Any, Any]) -> dict[tuple[int, int], tuple[str
 
 
 def names_for(vendor_id: int | None = None, product_code: int | None = None, *, device_type: int | None = None,
-              overrides: Mapping[Any, Any] | None = None) -> dict[tuple[int, int], tuple[str, str]]:
-    """The name table of a device: its own if known, else the CiA 402 objects (when the device
-    type 0x1000 is unknown or says profile 402), then the configuration's overrides on top."""
-    table = DEVICE_NAMES.get((vendor_id, product_code))  # type: ignore[arg-type]
+              overrides: Mapping[Any, Any] | None = None,
+              known: Mapping[tuple[int, int], NameTable] | None = None) -> dict[tuple[int, int], tuple[str, str]]:
+    """The name table of a device: its own from ``known`` (tables by vendor ID and product code,
+    which each bus driver keeps for the devices it knows), else the CiA 402 objects (when the
+    device type 0x1000 is unknown or says profile 402), then the configuration's overrides on top."""
+    table = (known or {}).get((vendor_id, product_code))  # type: ignore[arg-type]
     if table is None:
         table = CIA402_NAMES if device_type is None or device_type & 0xFFFF == 402 else {}
     merged = dict(table)

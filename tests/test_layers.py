@@ -1,0 +1,98 @@
+"""The layers the design names hold: the tick core imports no driver, no fieldbus code and no
+hardware or simulation library; controllers import no driver; no module imports itself back."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCES = {"aiohal": ROOT / "aiohal", "aiohal.drivers": ROOT / "drivers", "aiohal.controllers": ROOT / "controllers"}
+CORE_ONLY = ("aiohal.fieldbus", "aiohal.mjcf", "aiohal.drivers", "aiohal.controllers", "mujoco", "pysoem", "can",
+             "canopen")
+
+
+def module_files() -> dict[str, Path]:
+    """Every installed module name of the repo's packages, with its file."""
+    out: dict[str, Path] = {}
+    for package, folder in SOURCES.items():
+        for path in folder.rglob("*.py"):
+            parts = list(path.relative_to(folder).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts.pop()
+            name = ".".join([package, *parts])
+            if name.startswith("aiohal.drivers") or name.startswith("aiohal.controllers") or package == "aiohal":
+                out.setdefault(name, path)
+    return out
+
+
+def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
+    """The repo modules a module imports, at the top or inside a function (a lazy import is
+    still a dependency)."""
+    tree = ast.parse(path.read_text())
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            targets = [f"{base}.{alias.name}" for alias in node.names] + [base]
+        else:
+            continue
+        for target in targets:
+            while target and target not in known:
+                target = target.rpartition(".")[0]
+            if target and target != name:
+                found.add(target)
+    return found
+
+
+def test_core_imports_no_driver_fieldbus_or_hardware_library():
+    core = [m for m in module_files() if m.startswith("aiohal") and not m.startswith(CORE_ONLY[:4]) and m != "aiohal.__main__"]
+    code = (f"import sys, importlib\nfor m in {core!r}: importlib.import_module(m)\n"
+            f"print(sorted(m for m in sys.modules if m.startswith({CORE_ONLY!r})))")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
+
+
+def test_controllers_import_no_driver():
+    files = module_files()
+    known = set(files)
+    for name, path in files.items():
+        if name.startswith("aiohal.controllers"):
+            drivers = {m for m in imports_of(name, path, known) if m.startswith("aiohal.drivers")}
+            assert not drivers, f"{name} imports {sorted(drivers)}"
+
+
+def test_no_import_cycles():
+    files = module_files()
+    known = set(files)
+    graph = {name: imports_of(name, path, known) for name, path in files.items()}
+    # a package's __init__ importing its own submodules is not a cycle of the design
+    for name in graph:
+        graph[name] = {m for m in graph[name] if not name.startswith(m + ".")}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                cycle = stack[stack.index(nxt):] + [nxt]
+                raise AssertionError("import cycle: " + " -> ".join(cycle))
+            if nxt not in state:
+                visit(nxt)
+        stack.pop()
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node)
