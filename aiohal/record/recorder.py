@@ -18,6 +18,7 @@ import asyncio
 import collections
 import json
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -110,7 +111,7 @@ class Recorder:
     #: ticks encoded at once by the writer
     BATCH = 64
     #: messages added between two looks at the clock
-    STRIDE = 16
+    STRIDE = 4
     #: the writer's sleep when it has caught up (a couple of ticks accumulate meanwhile)
     IDLE_S = 0.002
 
@@ -130,8 +131,7 @@ class Recorder:
                                [stats.lateness, stats.work, *stats.phases], stats.mask)
         from .. import kernel_call
 
-        kernel_call.check(R.record_tick, (self.ring.meta, self.ring.data, self.ring.sources, self.ring.stats,
-                                          0, 0, 0, 0, 0, 0))
+        kernel_call.check(R.record_tick, (self.ring.data, self.ring.sources, self.ring.state, 0, 0, 0, 0))
         self._kernel = kernel_call.direct(R.record_tick)
         self._file = None
         self._writer = None
@@ -293,18 +293,12 @@ class Recorder:
 
     def publisher(self) -> Callable[[Any], None]:
         """The tick's part: one kernel call into the next free slot, or a drop counted."""
-        ring, kernel, stats, control = self.ring, self._kernel, self.control.stats, self.control
+        kernel, stats, control = self._kernel, self.control.stats, self.control
         clock = control.robot.clock
-        meta, data, sources, table, mask, smask = ring.meta, ring.data, ring.sources, ring.stats, ring.mask, stats.mask
+        data, sources, state = self.ring.data, self.ring.sources, self.ring.state
 
         def record_tick(_control: Any) -> None:
-            head = ring.head
-            if head - ring.tail > mask:
-                ring.dropped += 1
-                return
-            kernel(meta, data, sources, table, head & mask, stats.count, smask, clock.tick, clock.now_ns,
-                   control.level)
-            ring.head = head + 1
+            kernel(data, sources, state, stats.count, clock.tick, clock.now_ns, control.level)
 
         return record_tick
 
@@ -358,6 +352,14 @@ class Recorder:
     # ------------------------------------------------------------ the writer thread
 
     def _write_loop(self) -> None:
+        priority = self.control.config.realtime.priority
+        if priority is not None:
+            # just below the tick: a writer preempted by another process while it holds the GIL
+            # would keep the tick waiting for as long as it is off the CPU
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, priority - 1)))
+            except OSError as exc:
+                log.warning("recorder thread: SCHED_FIFO %d not set: %s", max(1, priority - 1), exc)
         work = self._work()
         try:
             while True:
@@ -374,7 +376,7 @@ class Recorder:
         except Exception as exc:  # a full disk, a closed server: the run goes on, the recording stops
             self.error = f"{type(exc).__name__}: {exc}"
             log.error("recording stopped: %s", self.error)
-            self.ring.tail = -(1 << 60)  # the publisher now drops every tick (and counts it)
+            self.ring.state[R.MASK] = -1  # the tick now drops every copy (and counts it)
 
     def _window(self, stopping: bool) -> int:
         """Sleep until the tick's idle time; return when the slice must end (monotonic ns).
@@ -386,7 +388,7 @@ class Recorder:
         now = time.monotonic_ns()
         if stopping or control.state != "running" or control.source.kind == "virtual":
             return now + 200_000
-        margin = max(100_000, period // 8)
+        margin = max(200_000, period // 5)
         start = min(self._busy_ns, period - 2 * margin)
         phase = (now - control.ticker.t0_ns) % period
         if not start <= phase < period - margin:
@@ -414,7 +416,8 @@ class Recorder:
                 continue
             a = ring.tail & ring.mask
             n = min(head - ring.tail, self.BATCH, ring.slots - a)
-            meta, data = ring.meta[a: a + n], ring.data[a: a + n]
+            data = ring.data[a: a + n]
+            meta = ring.meta(data)
             ticks = meta[:, R.TICK]
             recent = meta[:, R.TIMING] + meta[:, R.TIMING + 1]
             valid = meta[:, R.TIMING_VALID] != 0
@@ -480,11 +483,11 @@ class Recorder:
         """The run's last tick: its timing was stored after its publisher ran."""
         ring, stats = self.ring, self.control.stats
         count = stats.count
-        if count == 0 or ring.stats[R.LAST_COUNT] != count - 1:
+        if count == 0 or ring.state[R.LAST_COUNT] != count - 1:
             return
         j = (count - 1) & stats.mask
         ch = next(c for c in self.channels if c.timing)
-        values = {"tick": np.array([ring.stats[R.LAST_TICK]]), "lateness_ns": stats.lateness[j: j + 1],
+        values = {"tick": np.array([ring.state[R.LAST_TICK]]), "lateness_ns": stats.lateness[j: j + 1],
                   "work_ns": stats.work[j: j + 1]}
         for i, p in enumerate(PHASES):
             values[f"{p}_ns"] = stats.phases[i, j: j + 1]
@@ -492,7 +495,7 @@ class Recorder:
         if int(values["tick"][0]) % every:
             return
         msg = ch.layout.encode(values, 1).tobytes()
-        t = int(ring.stats[R.LAST_NOW]) + self._offset_ns
+        t = int(ring.state[R.LAST_NOW]) + self._offset_ns
         if self._writer is not None:
             self._writer.add_message(ch.channel_id, t, msg, t, int(values["tick"][0]) & 0xFFFFFFFF)
         self.messages += 1

@@ -19,14 +19,15 @@ import numpy as np
 from numba import carray, njit, types
 from numba.extending import intrinsic
 
-# meta columns of a slot (int64)
+# meta columns at the start of a slot's row (int64)
 TICK, NOW, LEVEL, COUNT, TIMING_VALID, PREV_TICK, PREV_NOW = range(7)
 TIMING = 7  # lateness, work, then the 6 phases of the previous tick, in stats.PHASES order
 META = TIMING + 8
-# the kernel's state, after the statistics' addresses in its ``stats`` table
+META_BYTES = META * 8
+# the shared state table (int64): the statistics' addresses, then the kernel's and the ring's counters
 STATS_ROWS = 8  # addresses of lateness, work and the 6 phase rows
-LAST_TICK, LAST_NOW, LAST_COUNT = STATS_ROWS, STATS_ROWS + 1, STATS_ROWS + 2
-STATS_TABLE = STATS_ROWS + 3
+LAST_TICK, LAST_NOW, LAST_COUNT, HEAD, TAIL, DROPPED, MASK, STATS_MASK = range(STATS_ROWS, STATS_ROWS + 8)
+STATE = STATS_ROWS + 8
 
 
 @intrinsic
@@ -40,36 +41,43 @@ def _pointer(typingctx, address):
     return signature, codegen
 
 
-@njit(types.void(types.int64[:, ::1], types.uint8[:, ::1], types.int64[:, ::1], types.int64[::1],
-                 types.int64, types.int64, types.int64, types.int64, types.int64, types.int64),
-      cache=True, nogil=True)
-def record_tick(meta, data, sources, stats, slot, count, stats_mask, tick, now_ns, level):  # pragma: no cover
-    """Copy one tick into ``slot``: ``sources`` rows are (address, bytes) of the arrays to copy,
-    ``stats`` the addresses of the loop's timing rows and the kernel's own state. The previous
-    tick's timing is complete now (the loop stores it after the publishers), so it is copied
-    with that tick's number when the previous tick was recorded too."""
-    m = meta[slot]
+# not nogil: releasing the GIL for the call would let the writer thread take it mid-tick
+@njit(types.void(types.uint8[:, ::1], types.int64[:, ::1], types.int64[::1], types.int64, types.int64,
+                 types.int64, types.int64), cache=True)
+def record_tick(data, sources, state, count, tick, now_ns, level):  # pragma: no cover
+    """Copy one tick into the next free slot, or count a drop when the ring is full.
+
+    ``sources`` rows are (address, bytes) of the arrays to copy; ``state`` the addresses of the
+    loop's timing rows, then this kernel's and the ring's counters. The previous tick's timing
+    is complete now (the loop stores it after the publishers), so it is copied with that
+    tick's number when the previous tick was recorded too."""
+    head = state[HEAD]
+    if head - state[TAIL] > state[MASK]:
+        state[DROPPED] += 1
+        return
+    row = data[head & state[MASK]]
+    m = row[:META_BYTES].view(np.int64)
     m[TICK] = tick
     m[NOW] = now_ns
     m[LEVEL] = level
     m[COUNT] = count
-    valid = count > 0 and stats[LAST_COUNT] == count - 1
+    valid = count > 0 and state[LAST_COUNT] == count - 1
     m[TIMING_VALID] = valid
-    m[PREV_TICK] = stats[LAST_TICK]
-    m[PREV_NOW] = stats[LAST_NOW]
+    m[PREV_TICK] = state[LAST_TICK]
+    m[PREV_NOW] = state[LAST_NOW]
     if valid:
-        j = (count - 1) & stats_mask
-        for row in range(STATS_ROWS):
-            m[TIMING + row] = carray(_pointer(stats[row] + 8 * j), 8).view(np.int64)[0]
-    stats[LAST_TICK] = tick
-    stats[LAST_NOW] = now_ns
-    stats[LAST_COUNT] = count
-    row = data[slot]
-    offset = 0
+        j = (count - 1) & state[STATS_MASK]
+        for r in range(STATS_ROWS):
+            m[TIMING + r] = carray(_pointer(state[r] + 8 * j), 8).view(np.int64)[0]
+    state[LAST_TICK] = tick
+    state[LAST_NOW] = now_ns
+    state[LAST_COUNT] = count
+    offset = META_BYTES
     for i in range(sources.shape[0]):
         size = sources[i, 1]
         row[offset: offset + size] = carray(_pointer(sources[i, 0]), size)
         offset += size
+    state[HEAD] = head + 1
 
 
 class TickRing:
@@ -88,20 +96,34 @@ class TickRing:
         self.slots = 1 << max(6, (slots - 1).bit_length())
         self.mask = self.slots - 1
         sizes = [a.nbytes for a in arrays]
-        starts = np.cumsum([0, *sizes])
+        starts = np.cumsum([META_BYTES, *sizes])
         self.columns = [slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
         # np.full touches every page now, not on the tick's first write to it
-        self.meta = np.full((self.slots, META), 0, dtype=np.int64)
-        self.data = np.full((self.slots, max(1, int(starts[-1]))), 0, dtype=np.uint8)
+        self.data = np.full((self.slots, int(starts[-1])), 0, dtype=np.uint8)
         self.sources = np.array([[a.ctypes.data, a.nbytes] for a in arrays], dtype=np.int64).reshape(-1, 2)
         self._stats_rows = list(stats_rows)
-        self.stats = np.zeros(STATS_TABLE, dtype=np.int64)
-        self.stats[:STATS_ROWS] = [r.ctypes.data for r in stats_rows]
-        self.stats[LAST_COUNT] = -2
-        self.stats_mask = stats_mask
-        self.head = 0  # slots written (the tick advances it)
-        self.tail = 0  # slots consumed (the writer advances it)
-        self.dropped = 0  # ticks not recorded because the ring was full
+        self.state = np.zeros(STATE, dtype=np.int64)
+        self.state[:STATS_ROWS] = [r.ctypes.data for r in stats_rows]
+        self.state[LAST_COUNT] = -2
+        self.state[MASK] = self.mask
+        self.state[STATS_MASK] = stats_mask
+
+    # the counters live in ``state``, where the kernel reads and writes them
+    head = property(lambda self: int(self.state[HEAD]), doc="slots written (the tick advances it)")
+    dropped = property(lambda self: int(self.state[DROPPED]), doc="ticks not recorded: the ring was full")
+
+    @property
+    def tail(self) -> int:
+        """Slots consumed (the writer advances it)."""
+        return int(self.state[TAIL])
+
+    @tail.setter
+    def tail(self, value: int) -> None:
+        self.state[TAIL] = value
+
+    def meta(self, data: np.ndarray) -> np.ndarray:
+        """The meta columns of rows ``data``, ``(n, META)`` int64."""
+        return np.ascontiguousarray(data[:, :META_BYTES]).view(np.int64)
 
     def field(self, data: np.ndarray, index: int) -> np.ndarray:
         """Array ``index`` in rows ``data`` (a slice of :attr:`data`), shaped ``(n, *array.shape)``."""
@@ -109,12 +131,3 @@ class TickRing:
         cols = data[:, self.columns[index]]
         return np.ascontiguousarray(cols).view(a.dtype).reshape(len(data), *a.shape)
 
-    def pending(self) -> list[slice]:
-        """The written, unconsumed slots ``[tail, head)`` as at most two slices of the ring."""
-        tail, head = self.tail, self.head
-        if head == tail:
-            return []
-        a, b = tail & self.mask, head & self.mask
-        if a < b:
-            return [slice(a, b)]
-        return [slice(a, self.slots), slice(0, b)] if b else [slice(a, self.slots)]
