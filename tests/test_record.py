@@ -249,3 +249,15 @@ def test_importing_the_loop_does_not_import_mcap():
     code = "import sys, aiohal.loop, aiohal.cli; print(sorted(m for m in sys.modules if m.split('.')[0] in ('mcap', 'matplotlib', 'rich', 'foxglove')))"
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.stdout.strip() == "[]", proc.stderr
+
+
+def test_plot_writes_its_pngs(tmp_path):
+    pytest.importorskip("matplotlib")
+    run_recorded(tmp_path, 300, RecordSection())
+    proc = subprocess.run([sys.executable, "-m", "aiohal", "plot", str(tmp_path / "run.mcap"), "-o",
+                           str(tmp_path / "fig"), "--joints", "l_*"], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    for name in ("joints.png", "timing.png", "safety.png"):
+        data = (tmp_path / "fig" / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
