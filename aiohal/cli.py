@@ -18,13 +18,13 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from . import __version__, plugins
+from . import __version__, plugins, run_outputs
 from .config import Config, describe_validation_error, json_schema, load_config
 from .errors import AiohalError, ConfigError, ConfigIssue
 
 log = logging.getLogger("aiohal.cli")
 
-SUBCOMMANDS = ("run", "check", "schema", "plugins")
+SUBCOMMANDS = ("run", "check", "schema", "plugins", "replay", "plot")
 
 
 def configure_logging(fmt: str = "auto", level: int = logging.INFO) -> None:
@@ -84,7 +84,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="precision mode: wake US early and spin to each deadline (overrides realtime.spin_guard_us)")
     p.add_argument("--log-format", choices=("auto", "console", "json"), default="auto")
     p.add_argument("--report-json", type=Path, default=None, metavar="PATH", help="write the run report as JSON")
-    p.add_argument("--quiet", action="store_true", help="do not print the report")
+    p.add_argument("--quiet", action="store_true", help="do not print the report (nor the live status)")
+    run_outputs.add_arguments(p)
     p.add_argument("--version", action="version", version=f"aiohal {__version__}")
     return p
 
@@ -158,6 +159,8 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
         control.estop()
         print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
         return 1
+    outputs = run_outputs.RunOutputs(control, config, args)
+    outputs.start()
     log.info("running%s; Ctrl-C or SIGTERM stops safely",
              f" for {args.duration:g} s" if args.duration is not None else "")
     try:
@@ -174,6 +177,7 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
     report = control.report()
+    report.update(outputs.close())
     if not args.quiet:
         print(format_report(report), flush=True)
     if args.report_json is not None:
@@ -187,6 +191,7 @@ def cmd_run(argv: Sequence[str]) -> int:
     try:
         config = _apply_overrides(load_config(args.config), args)
         factory = _loop_factory(args.loop)
+        run_outputs.check(config, args)
     except ConfigError as exc:
         _print_config_error(exc)
         return 2
@@ -236,12 +241,25 @@ def cmd_plugins(argv: Sequence[str]) -> int:
     return 0
 
 
+def cmd_replay(argv: Sequence[str]) -> int:
+    from .record.reader import replay_main
+
+    return replay_main(list(argv))
+
+
+def cmd_plot(argv: Sequence[str]) -> int:
+    from .plot import main as plot_main
+
+    return plot_main(list(argv))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = argv[0] if argv and argv[0] in SUBCOMMANDS else "run"
     if argv and argv[0] in SUBCOMMANDS:
         argv = argv[1:]
-    handler = {"run": cmd_run, "check": cmd_check, "schema": cmd_schema, "plugins": cmd_plugins}[command]
+    handler = {"run": cmd_run, "check": cmd_check, "schema": cmd_schema, "plugins": cmd_plugins,
+               "replay": cmd_replay, "plot": cmd_plot}[command]
     try:
         return handler(argv)
     except KeyboardInterrupt:

@@ -22,6 +22,7 @@ from . import plugins
 from .errors import ConfigError, ConfigIssue, MissingDependencyError, PluginError
 from .hal import Options
 from .realtime import RealtimeSection
+from .record.options import RecordSection
 from .robot import JointSpec, Robot
 
 
@@ -144,6 +145,7 @@ SECTIONS: dict[str, Any] = {
     "devices": dict[str, DeviceSection],
     "driver": list[DriverSection],
     "controller": ControllerSection,
+    "record": RecordSection,
 }
 REQUIRED_SECTIONS = ("joints", "driver")
 
@@ -183,6 +185,7 @@ class Config:
     controller: ControllerConfig
     path: Path | None = None
     base_dir: Path = field(default_factory=Path.cwd)
+    record: RecordSection = field(default_factory=RecordSection)
 
     @property
     def period_ns(self) -> int:
@@ -343,6 +346,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
                 f"{realtime.spin_guard_us:g} µs is more than half the period ({period_us / 2:g} µs): "
                 "the loop would spin most of the time",
             ))
+    record = _validate(RecordSection, raw.get("record", {}), "record", issues, context)
     defaults = _validate(_JointDefaults, raw.get("joint_defaults", {}), "joint_defaults", issues, context)
     default_values = defaults.model_dump(exclude_none=True) if defaults else {}
 
@@ -476,6 +480,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         controller=controller,
         path=path,
         base_dir=base_dir,
+        record=record,
     )
 
 

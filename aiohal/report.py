@@ -56,6 +56,10 @@ def format_report(report: dict[str, Any]) -> str:
     ctrl = report["controller"]
     extra = ", ".join(f"{k} {_fmt(v)}" for k, v in ctrl.items() if k != "type")
     lines.append(f"  controller   {ctrl['type']}" + (f": {extra}" if extra else ""))
+    rec = report.get("record")
+    if rec:
+        lines.append(f"  record       {rec['path'] or 'live only'}: {rec['ticks']} ticks, {rec['dropped_ticks']} dropped, "
+                     f"{rec['messages']} messages" + (f", ERROR {rec['error']}" if rec.get("error") else ""))
     for fault in report["faults"]:
         lines.append(f"  FAULT        {fault['source']} in {fault['phase']} at tick {fault['tick']}: {fault['error']}")
     return "\n".join(lines)

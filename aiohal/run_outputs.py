@@ -1,0 +1,97 @@
+"""What a run from the command line keeps and shows besides its report: the recording
+(``--record``, ``[record]``), the live Foxglove server (``--foxglove``) and the terminal status.
+
+The CLI calls :func:`add_arguments`, :func:`check` before anything starts, and
+:class:`RunOutputs` around the run; the work is in :mod:`aiohal.record` and :mod:`aiohal.status`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+from .errors import AiohalError, MissingDependencyError
+
+log = logging.getLogger(__name__)
+
+FOXGLOVE_PORT = 8765
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--record", type=Path, default=None, metavar="PATH",
+                        help="record every tick to this MCAP file (overrides [record] path)")
+    parser.add_argument("--foxglove", type=int, nargs="?", const=FOXGLOVE_PORT, default=None, metavar="PORT",
+                        help=f"serve the run live to Foxglove on localhost:PORT (default {FOXGLOVE_PORT})")
+
+
+def record_path(config: Any, args: argparse.Namespace) -> Path | None:
+    return args.record if args.record is not None else config.record.path
+
+
+def check(config: Any, args: argparse.Namespace) -> None:
+    """Refuse what cannot work before anything starts (the CLI exits 2)."""
+    path = record_path(config, args)
+    if path is not None:
+        if not path.parent.is_dir():
+            raise AiohalError(f"--record {path}: the folder {path.parent} does not exist")
+        if path.is_dir():
+            raise AiohalError(f"--record {path}: is a folder")
+    if (path is not None or args.foxglove is not None) and importlib.util.find_spec("mcap") is None:
+        raise MissingDependencyError("recording needs mcap: pip install 'aiohal[record]'")
+    if args.foxglove is not None:
+        if not 0 <= args.foxglove <= 65535:
+            raise AiohalError(f"--foxglove {args.foxglove}: a port is 0..65535")
+        if importlib.util.find_spec("foxglove") is None:
+            raise MissingDependencyError("--foxglove needs foxglove-sdk: pip install 'aiohal[foxglove]'")
+
+
+class RunOutputs:
+    """Started once the robot is active, closed after it is deactivated."""
+
+    def __init__(self, control: Any, config: Any, args: argparse.Namespace) -> None:
+        self.control = control
+        self.path = record_path(config, args)
+        self.options = config.record
+        self.port = args.foxglove
+        self.show_status = not args.quiet and sys.stdout.isatty()
+        self.recorder: Any = None
+        self.live: Any = None
+        self.status: Any = None
+
+    def start(self) -> None:
+        if self.port is not None:
+            from .record.live import LiveServer
+
+            self.live = LiveServer(self.port)
+            log.info("live view: Foxglove on ws://%s:%d", self.live.host, self.live.port)
+        if self.path is not None or self.live is not None:
+            from .record.recorder import Recorder
+
+            self.recorder = Recorder(self.control, self.path, self.options, live=self.live)
+            self.recorder.attach()
+            if self.path is not None:
+                log.info("recording to %s", self.path)
+        if self.show_status:
+            from .status import StatusPanel
+
+            self.status = StatusPanel(self.control)
+            self.status.start()
+
+    def stop_status(self) -> None:
+        if self.status is not None:
+            self.status.stop()
+            self.status = None
+
+    def close(self) -> dict[str, Any]:
+        """Everything stopped and written; the recording's figures for the report."""
+        self.stop_status()
+        out: dict[str, Any] = {}
+        if self.recorder is not None:
+            out["record"] = self.recorder.close()
+        if self.live is not None:
+            self.live.close()
+        return out
