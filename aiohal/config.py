@@ -19,10 +19,12 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
 
 from . import plugins
-from .errors import ConfigError, ConfigIssue, MissingDependencyError, PluginError
+from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
 from .hal import Options
+from .bridge import BridgeSection
 from .realtime import RealtimeSection
 from .robot import JointSpec, Robot
+from .shm import ClientSection, segment_name
 
 
 def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
@@ -144,6 +146,8 @@ SECTIONS: dict[str, Any] = {
     "devices": dict[str, DeviceSection],
     "driver": list[DriverSection],
     "controller": ControllerSection,
+    "client": ClientSection,
+    "bridge": BridgeSection,
 }
 REQUIRED_SECTIONS = ("joints", "driver")
 
@@ -183,6 +187,8 @@ class Config:
     controller: ControllerConfig
     path: Path | None = None
     base_dir: Path = field(default_factory=Path.cwd)
+    client: ClientSection = field(default_factory=ClientSection)
+    bridge: BridgeSection = field(default_factory=BridgeSection)
 
     @property
     def period_ns(self) -> int:
@@ -463,6 +469,17 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
                     issues.append(ConfigIssue(f"controller.{rel}" if rel else "controller", msg))
                 controller = ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
 
+    client = _validate(ClientSection, raw.get("client", {}), "client", issues, context)
+    bridge = _validate(BridgeSection, raw.get("bridge", {}), "bridge", issues, context)
+    if client is not None and client.shm and robot is not None:
+        try:
+            segment_name(robot.name)
+        except AiohalError as exc:
+            issues.append(ConfigIssue("robot.name", str(exc)))
+    if controller is not None and client is not None and controller.type == "stream" and not client.shm:
+        issues.append(ConfigIssue("controller.type", "the stream controller reads setpoints from shared memory: "
+                                  "set [client] shm = true"))
+
     if issues:
         raise ConfigError(issues, str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
@@ -476,6 +493,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         controller=controller,
         path=path,
         base_dir=base_dir,
+        client=client,
+        bridge=bridge,
     )
 
 
