@@ -253,6 +253,8 @@ class RobotClient:
                 self._check_alive()
                 raise ShmError(f"robot {self.robot!r} did not act on the request within {wait_s:g} s")
             time.sleep(self.period_ns / 4e9)
+        # the tick acted after it published: the next tick's snapshot shows the new level
+        self.wait_tick(int(self._seg.seqlock[shm.S_TICK]), max(0.0, deadline - time.monotonic()) + 0.1)
 
     # ------------------------------------------------------------ plumbing
 

@@ -208,7 +208,9 @@ def _remove_stale(name: str, robot: str) -> None:
         pid = int(words[H_PID]) if words is not None and words[H_MAGIC] == MAGIC else 0
         status = int(words[H_STATUS]) if words is not None else STATUS_CLOSED
         del words
-        if pid != os.getpid() and pid_alive(pid) and status != STATUS_CLOSED:
+        if pid_alive(pid) and status != STATUS_CLOSED:
+            if pid != os.getpid():
+                _untrack(old)
             raise SegmentBusy(f"robot {robot!r} is already served by process {pid} (shared memory /{name})")
         log.warning("replacing shared memory /%s left by process %d, which is gone", name, pid)
         old.unlink()
@@ -242,13 +244,17 @@ def attach_segment(robot: str) -> Segment:
         raise
     del words
     if pid != os.getpid():
-        # Python < 3.13 registers an attached segment with this process's resource tracker,
-        # which would unlink it when this process ends: the robot's, not ours to remove
-        try:
-            resource_tracker.unregister(shm._name, "shared_memory")  # noqa: SLF001
-        except Exception:
-            pass
+        _untrack(shm)
     return Segment(shm, layout, owner=False)
+
+
+def _untrack(shm: shared_memory.SharedMemory) -> None:
+    """Python < 3.13 registers a segment it attaches to with this process's resource tracker,
+    which would unlink it when this process ends: the robot's, not ours to remove."""
+    try:
+        resource_tracker.unregister(shm._name, "shared_memory")  # noqa: SLF001
+    except Exception:
+        pass
 
 
 # ---------------------------------------------------------------- the loop's side
@@ -322,7 +328,8 @@ class ShmDoor:
         return publish
 
     def _act(self, req: memoryview, seen: list[int]) -> None:
-        """A client asked for a safety change (rare: off the per-tick path)."""
+        """A client asked for a safety change (rare: off the per-tick path). The snapshot of
+        the next tick shows its effect; a client waits for that tick (see the client)."""
         control = self.control
         if req[R_ESTOP] != seen[1]:
             seen[1] = req[R_ESTOP]
