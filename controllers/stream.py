@@ -197,6 +197,14 @@ class StreamController(Controller):
         # drop every view of the segment so that the door can unmap it
         self._head = self._cons = self._words = self._pos = self._vel = self._seg = None
 
+    def latencies_ns(self, since: int = 0) -> np.ndarray:
+        """Client write to the tick that took it, of the points applied since the ``since``-th
+        (the last 65536 at most); stamps are CLOCK_MONOTONIC, so on a real clock only."""
+        end = getattr(self, "applied", 0)
+        start = max(since, end - LATENCY_WINDOW)
+        idx = np.arange(start, end) & (LATENCY_WINDOW - 1)
+        return self._latency[idx] if end else np.zeros(0, dtype=np.int64)
+
     def metrics(self) -> dict:
         out = {"points_applied": getattr(self, "applied", 0), "points_refused": getattr(self, "refused", 0),
                "underruns": getattr(self, "underruns", 0)}
