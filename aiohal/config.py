@@ -471,6 +471,11 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
 
     client = _validate(ClientSection, raw.get("client", {}), "client", issues, context)
     bridge = _validate(BridgeSection, raw.get("bridge", {}), "bridge", issues, context)
+    zenoh = bridge.zenoh if bridge is not None else None
+    if zenoh is not None and zenoh.accept_setpoints and (client is None or not client.shm or
+                                                         (controller is not None and controller.type != "stream")):
+        issues.append(ConfigIssue("bridge.zenoh.accept_setpoints", "setpoints go through the shared-memory ring "
+                                  "to the stream controller: set [client] shm = true and [controller] type = \"stream\""))
     if client is not None and client.shm and robot is not None:
         try:
             segment_name(robot.name)
