@@ -21,6 +21,7 @@ import time
 import uuid
 
 from .common import ROOT, StealMeter, table, write_json
+from .shm_client import config_raw
 
 
 def free_port() -> int:
@@ -34,15 +35,9 @@ async def run_case(bridge: bool, seconds: float) -> dict:
     from aiohal.loop import ControlLoop
 
     name = f"zbench_{uuid.uuid4().hex[:6]}"
-    raw = {
-        "robot": {"name": name},
-        "loop": {"rate_hz": 1000},
-        "realtime": {"priority": 80, "lock_memory": True},
-        "joint_defaults": {"acceleration": 10.0, "velocity": 2.0},
-        "joints": {f"a{i}": {"position": [-2.9, 2.9]} for i in range(7)},
-        "driver": [{"type": "mock", "name": "arm", "joints": ["*"], "options": {"dynamics": "first_order"}}],
-        "controller": {"type": "hold"},
-    }
+    raw = config_raw(name)  # the same 7-joint mock arm, under hold, without the shared-memory door
+    raw["controller"] = {"type": "hold"}
+    del raw["client"]
     monitor = None
     if bridge:
         port = free_port()
