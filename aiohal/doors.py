@@ -13,6 +13,7 @@ log = logging.getLogger(__name__)
 class Doors:
     def __init__(self, control: Any) -> None:
         config = control.config
+        self._control = control
         self.shm = None
         self.zenoh = None
         if config.client.shm:
@@ -29,7 +30,12 @@ class Doors:
 
     def activate(self) -> None:
         if self.zenoh is not None:
-            self.zenoh.start()
+            try:
+                self.zenoh.start()
+            except Exception as exc:  # the network door failing must not keep the robot from its safe loop
+                self._control.record_fault("bridge:zenoh", "open", exc)
+                self.zenoh.close()
+                self.zenoh = None
         if self.shm is not None:
             self.shm.activate()
 

@@ -219,3 +219,23 @@ async def test_bridge_in_process_publishes_at_its_rate_and_stops_cleanly():
         finally:
             watcher.close()
     assert loop.doors.zenoh is None and loop.faults == []
+
+
+@pytest.mark.asyncio
+async def test_a_bridge_that_cannot_open_is_a_fault_not_a_dead_robot():
+    (port,) = free_ports(1)
+    blocker = socket.socket()
+    blocker.bind(("127.0.0.1", port))
+    blocker.listen()
+    try:
+        raw = arm_raw(3)
+        raw["bridge"] = {"zenoh": {"listen": [ep(port)], "multicast_scouting": False}}
+        from helpers import virtual_loop
+
+        loop = virtual_loop(raw)
+        async with loop:
+            await loop.run(ticks=10)
+            assert loop.doors.zenoh is None
+        assert [f.source for f in loop.faults] == ["bridge:zenoh"]
+    finally:
+        blocker.close()
