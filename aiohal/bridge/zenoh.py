@@ -111,7 +111,7 @@ class ZenohBridge:
         ticks = [memoryview(self._ticks[i]) for i in range(self.section.queue)]
         queue, every, clock, faults = self.section.queue, self.every, robot.clock, control.faults
         events = self._events
-        countdown = [1]
+        due = [0]
         last = [int(control.level), len(faults)]
 
         def publish(_loop: Any) -> None:
@@ -119,17 +119,18 @@ class ZenohBridge:
             if level != last[0] or len(faults) != last[1]:
                 events.append((int(level), len(faults), clock.tick))  # rare: allocation allowed
                 last[0], last[1] = int(level), len(faults)
-            c = countdown[0] - 1
-            if c:
-                countdown[0] = c
+            k = clock.tick
+            if k < due[0]:
                 return
-            countdown[0] = every
+            # on the first tick at or after each multiple of ``every``: a skipped tick does not
+            # shift the rate
+            due[0] = (k // every + 1) * every
             i = self._head % queue
             s, cmd = rows[i]
             s[:] = state_rows
             cmd[:] = command_position
             t = ticks[i]
-            t[0] = clock.tick
+            t[0] = k
             t[1] = clock.now_ns
             t[2] = level
             self._head += 1
