@@ -19,11 +19,13 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
 
 from . import plugins
-from .errors import ConfigError, ConfigIssue, MissingDependencyError, PluginError
+from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
 from .hal import Options
+from .bridge import BridgeSection
 from .realtime import RealtimeSection
 from .record.options import RecordSection
 from .robot import JointSpec, Robot
+from .shm import ClientSection, segment_name
 
 
 def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
@@ -146,6 +148,8 @@ SECTIONS: dict[str, Any] = {
     "driver": list[DriverSection],
     "controller": ControllerSection,
     "record": RecordSection,
+    "client": ClientSection,
+    "bridge": BridgeSection,
 }
 REQUIRED_SECTIONS = ("joints", "driver")
 
@@ -186,6 +190,8 @@ class Config:
     path: Path | None = None
     base_dir: Path = field(default_factory=Path.cwd)
     record: RecordSection = field(default_factory=RecordSection)
+    client: ClientSection = field(default_factory=ClientSection)
+    bridge: BridgeSection = field(default_factory=BridgeSection)
 
     @property
     def period_ns(self) -> int:
@@ -467,6 +473,22 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
                     issues.append(ConfigIssue(f"controller.{rel}" if rel else "controller", msg))
                 controller = ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
 
+    client = _validate(ClientSection, raw.get("client", {}), "client", issues, context)
+    bridge = _validate(BridgeSection, raw.get("bridge", {}), "bridge", issues, context)
+    zenoh = bridge.zenoh if bridge is not None else None
+    if zenoh is not None and zenoh.accept_setpoints and (client is None or not client.shm or
+                                                         (controller is not None and controller.type != "stream")):
+        issues.append(ConfigIssue("bridge.zenoh.accept_setpoints", "setpoints go through the shared-memory ring "
+                                  "to the stream controller: set [client] shm = true and [controller] type = \"stream\""))
+    if client is not None and client.shm and robot is not None:
+        try:
+            segment_name(robot.name)
+        except AiohalError as exc:
+            issues.append(ConfigIssue("robot.name", str(exc)))
+    if controller is not None and client is not None and controller.type == "stream" and not client.shm:
+        issues.append(ConfigIssue("controller.type", "the stream controller reads setpoints from shared memory: "
+                                  "set [client] shm = true"))
+
     if issues:
         raise ConfigError(issues, str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
@@ -481,6 +503,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         path=path,
         base_dir=base_dir,
         record=record,
+        client=client,
+        bridge=bridge,
     )
 
 

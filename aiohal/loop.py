@@ -30,6 +30,7 @@ import numpy as np
 
 from . import plugins
 from .config import Config
+from .doors import Doors
 from .errors import ControllerError, DriverError, LifecycleError
 from .hal import Controller, Driver
 from .limits import CommandLimiter
@@ -112,6 +113,7 @@ class ControlLoop:
         self._missed_before = 0
         self._warn = RateLimitedLogger(log)
         self._heap_frozen = False
+        self.doors: Doors | None = None
 
     # ------------------------------------------------------------ lifecycle
 
@@ -144,6 +146,7 @@ class ControlLoop:
             self.controller.configure(view, params)
         except Exception as exc:
             raise ControllerError(self.controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
+        self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.doors)
         self.state = "configured"
 
     async def activate(self) -> None:
@@ -197,6 +200,7 @@ class ControlLoop:
             self.controller.start(0.0)
         except Exception as exc:
             self._controller_failed("start", exc)
+        self.doors.activate()
 
     async def _bring_up(self, slot: DriverSlot, phase: str, step: Callable) -> None:
         try:
@@ -247,6 +251,8 @@ class ControlLoop:
         if self._heap_frozen:  # every path that closes the drivers ends the loop's freeze
             thaw_heap()
             self._heap_frozen = False
+        if self.doors is not None:  # and closes the doors to other processes
+            self.doors.close()
 
     async def __aenter__(self) -> ControlLoop:
         await self.activate()

@@ -33,6 +33,7 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "sine": ("aiohal.controllers.sine:SineController", None),
         "circle": ("aiohal.controllers.circle:CircleController", "sim"),
         "sequence": ("aiohal.controllers.sequence:SequenceController", None),
+        "stream": ("aiohal.controllers.stream:StreamController", None),
     },
 }
 

@@ -184,7 +184,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "unknown-controller-type",
         GOOD + '\n[controller]\ntype = "sin"\n',
-        ('controller.type: unknown controller "sin" (available: circle, hold, homing, sequence, sine)',),
+        ('controller.type: unknown controller "sin" (available: circle, hold, homing, sequence, sine, stream)',),
     ),
     BadConfig(
         "driver-unknown-device",
@@ -226,7 +226,7 @@ MANY = BadConfig(
         "driver[0].options.foo: unknown key",
         "joints.j1: no driver owns this joint",
         "joints.j2: no driver owns this joint",
-        'controller.type: unknown controller "nope" (available: circle, hold, homing, sequence, sine)',
+        'controller.type: unknown controller "nope" (available: circle, hold, homing, sequence, sine, stream)',
     ),
 )
 

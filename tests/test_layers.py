@@ -11,7 +11,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = {"aiohal": ROOT / "aiohal", "aiohal.drivers": ROOT / "drivers", "aiohal.controllers": ROOT / "controllers"}
 CORE_ONLY = ("aiohal.fieldbus", "aiohal.mjcf", "aiohal.drivers", "aiohal.controllers", "mujoco", "pysoem", "can",
-             "canopen")
+             "canopen", "zenoh")
 
 
 def module_files() -> dict[str, Path]:

@@ -1,0 +1,386 @@
+"""The robot's shared-memory door: a segment another process on the machine attaches to.
+
+One ``multiprocessing.shared_memory`` segment per robot, named ``aiohal.<robot>``, holds:
+
+- the latest state (joint state and command, faults, modes, IMU and force/torque values, the
+  tick, its time and the safety level) under a **seqlock**: the tick makes the sequence odd,
+  copies, makes it even; a reader copies between two reads of the sequence and retries when
+  they differ or are odd. The tick never waits for a reader and makes no syscall for one (the
+  pages are touched once when the segment is made);
+- a **setpoint ring**: single producer (the client that holds the command lock), single
+  consumer (the ``stream`` controller in the tick). Each side owns its index, on its own cache
+  line; the producer fills a slot, then moves ``head``; the consumer reads, then moves
+  ``tail``. Neither takes a lock;
+- **safety requests** (hold, estop, rearm): counters a client increments; the tick compares
+  them with the last values it acted on (one read of each per tick).
+
+The ordering the seqlock and the ring rely on (stores seen in program order by another core)
+is the x86-64 memory model's; docs/client.md gives the byte layout and this caveat.
+:class:`ShmDoor` is the loop's side, :mod:`aiohal.client` the other process's.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+from multiprocessing import resource_tracker, shared_memory
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from .errors import AiohalError
+from .hal import Options
+from .robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
+
+log = logging.getLogger(__name__)
+
+MAGIC = 0x314C4148_4F494100  # b"\x00AIOHAL1" read as a little-endian int64
+VERSION = 1
+LINE = 64  # bytes: each side's counters on a cache line of their own
+
+# header line 0: identity and shape (written once, before STATUS becomes ACTIVE)
+H_MAGIC, H_VERSION, H_PID, H_STATUS, H_DOF, H_PERIOD_NS, H_CAPACITY, H_META_LEN = range(8)
+H_N_IMU, H_N_FT, H_CAN_REARM, H_SIZE = 8, 9, 10, 11
+HEADER_WORDS = 16  # two lines
+STATUS_STARTING, STATUS_ACTIVE, STATUS_CLOSED = 0, 1, 2
+# the seqlock line: SEQ, then the scalars it guards
+S_SEQ, S_TICK, S_NOW_NS, S_LEVEL = range(4)
+# the request line: counters clients increment, and the counts the loop has acted on
+R_HOLD, R_ESTOP, R_REARM, R_HOLD_DONE, R_ESTOP_DONE, R_REARM_DONE = range(6)
+# the ring's two lines: the producer's and the consumer's
+P_HEAD = 0
+C_TAIL, C_APPLIED, C_REFUSED, C_STREAMING = range(4)
+# one ring slot: four int64 then position[n] and velocity[n]
+SLOT_T_NS, SLOT_SENT_NS, SLOT_FLAGS = 0, 1, 2
+SLOT_WORDS_HEAD = 4
+FLAG_VELOCITY = 1  # the point carries velocities (cubic Hermite between two such points)
+
+_NAME_OK = re.compile(r"^[A-Za-z0-9_.-]{1,200}$")
+
+
+class ClientSection(Options):
+    """``[client]``: the shared-memory door for processes on this machine (docs/client.md)."""
+
+    shm: bool = Field(False, description="Publish state and take setpoints through shared memory "
+                      "(segment aiohal.<robot>); needed by the stream controller.")
+    capacity: int = Field(1024, ge=2, le=1 << 20, description="Setpoints the ring holds.")
+
+
+class ShmError(AiohalError, RuntimeError):
+    """Base of the shared-memory door's errors."""
+
+
+class RobotNotRunning(ShmError):
+    """No live loop serves this robot's segment."""
+
+
+class SegmentBusy(ShmError):
+    """Another live process already serves a robot of this name."""
+
+
+def segment_name(robot: str) -> str:
+    if not _NAME_OK.match(robot):
+        raise ShmError(f"robot name {robot!r} cannot name a shared-memory segment "
+                       "(letters, digits, '_', '.', '-' only)")
+    return f"aiohal.{robot}"
+
+
+def _round(n: int) -> int:
+    return (n + LINE - 1) // LINE * LINE
+
+
+def pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, someone else's
+        return True
+    return True
+
+
+class Layout:
+    """Byte offsets of every part of a segment, from its shape (both sides compute the same)."""
+
+    def __init__(self, dof: int, n_imu: int, n_ft: int, capacity: int, meta_len: int) -> None:
+        self.dof, self.n_imu, self.n_ft, self.capacity, self.meta_len = dof, n_imu, n_ft, capacity, meta_len
+        n_state, n_cmd = len(JOINT_STATE_FIELDS), len(JOINT_COMMAND_FIELDS)
+        at = 0
+        self.header = at; at += HEADER_WORDS * 8
+        self.seqlock = at; at += LINE
+        self.requests = at; at += LINE
+        self.producer = at; at += LINE
+        self.consumer = at; at += LINE
+        self.meta = at; at += _round(meta_len)
+        # the state payload the seqlock guards: each array on a line of its own
+        self.state = at; at += _round(n_state * dof * 8)
+        self.command = at; at += _round(n_cmd * dof * 8)
+        self.fault = at; at += _round(dof * 4)
+        self.mode = at; at += _round(dof)
+        self.imu = at; at += _round(n_imu * 10 * 8)
+        self.ft = at; at += _round(n_ft * 6 * 8)
+        self.slot_words = SLOT_WORDS_HEAD + 2 * dof
+        self.slot_size = _round(self.slot_words * 8)
+        self.ring = at; at += capacity * self.slot_size
+        self.size = at
+
+
+class Segment:
+    """A mapped segment with numpy views of its parts (either side)."""
+
+    def __init__(self, shm: shared_memory.SharedMemory, layout: Layout, owner: bool) -> None:
+        self.shm, self.layout, self.owner = shm, layout, owner
+        buf, L = shm.buf, layout
+        n = L.dof
+
+        def words(offset: int, count: int) -> np.ndarray:
+            return np.frombuffer(buf, np.int64, count, offset)
+
+        self.header = words(L.header, HEADER_WORDS)
+        self.seqlock = words(L.seqlock, 8)
+        self.requests = words(L.requests, 8)
+        self.producer = words(L.producer, 8)
+        self.consumer = words(L.consumer, 8)
+        self.state = np.frombuffer(buf, np.float64, len(JOINT_STATE_FIELDS) * n, L.state).reshape(-1, n)
+        self.command = np.frombuffer(buf, np.float64, len(JOINT_COMMAND_FIELDS) * n, L.command).reshape(-1, n)
+        self.fault = np.frombuffer(buf, np.uint32, n, L.fault)
+        self.mode = np.frombuffer(buf, np.int8, n, L.mode)
+        self.imu = np.frombuffer(buf, np.float64, L.n_imu * 10, L.imu).reshape(L.n_imu, 10)
+        self.ft = np.frombuffer(buf, np.float64, L.n_ft * 6, L.ft).reshape(L.n_ft, 6)
+        ring = np.frombuffer(buf, np.uint8, L.capacity * L.slot_size, L.ring).reshape(L.capacity, L.slot_size)
+        #: per slot: the int64 head words, the positions and the velocities
+        self.slot_words = [ring[i, : SLOT_WORDS_HEAD * 8].view(np.int64) for i in range(L.capacity)]
+        self.slot_position = [ring[i, SLOT_WORDS_HEAD * 8:(SLOT_WORDS_HEAD + n) * 8].view(np.float64)
+                              for i in range(L.capacity)]
+        self.slot_velocity = [ring[i, (SLOT_WORDS_HEAD + n) * 8:(SLOT_WORDS_HEAD + 2 * n) * 8].view(np.float64)
+                              for i in range(L.capacity)]
+
+    @property
+    def name(self) -> str:
+        return self.shm.name
+
+    def meta(self) -> dict[str, Any]:
+        L = self.layout
+        return json.loads(bytes(self.shm.buf[L.meta:L.meta + L.meta_len]).decode())
+
+    def release(self) -> None:
+        """Drop every view, then unmap (the views would keep the buffer exported)."""
+        for attr in ("header", "seqlock", "requests", "producer", "consumer", "state", "command", "fault",
+                     "mode", "imu", "ft", "slot_words", "slot_position", "slot_velocity"):
+            setattr(self, attr, None)
+        try:
+            self.shm.close()
+        except BufferError:  # a caller still holds a view; the mapping goes with the process
+            log.warning("shared memory %s still has views; left mapped", self.shm.name)
+
+
+def create_segment(robot: str, meta: dict[str, Any], *, dof: int, n_imu: int, n_ft: int,
+                   capacity: int, period_ns: int, can_rearm: bool) -> Segment:
+    """Make the robot's segment; one left by a process that is gone is replaced."""
+    name = segment_name(robot)
+    blob = json.dumps(meta).encode()
+    layout = Layout(dof, n_imu, n_ft, capacity, len(blob))
+    try:
+        shm = shared_memory.SharedMemory(name, create=True, size=layout.size)
+    except FileExistsError:
+        _remove_stale(name, robot)
+        shm = shared_memory.SharedMemory(name, create=True, size=layout.size)
+    shm.buf[: layout.size] = bytes(layout.size)  # touch every page now, not in the tick
+    shm.buf[layout.meta:layout.meta + len(blob)] = blob
+    seg = Segment(shm, layout, owner=True)
+    h = seg.header
+    h[H_VERSION], h[H_PID], h[H_STATUS], h[H_DOF] = VERSION, os.getpid(), STATUS_STARTING, dof
+    h[H_PERIOD_NS], h[H_CAPACITY], h[H_META_LEN] = period_ns, capacity, len(blob)
+    h[H_N_IMU], h[H_N_FT], h[H_CAN_REARM], h[H_SIZE] = n_imu, n_ft, int(can_rearm), layout.size
+    h[H_MAGIC] = MAGIC  # last: a reader that sees the magic sees the shape
+    return seg
+
+
+def _remove_stale(name: str, robot: str) -> None:
+    old = shared_memory.SharedMemory(name)
+    try:
+        words = np.frombuffer(old.buf, np.int64, HEADER_WORDS) if old.size >= HEADER_WORDS * 8 else None
+        pid = int(words[H_PID]) if words is not None and words[H_MAGIC] == MAGIC else 0
+        status = int(words[H_STATUS]) if words is not None else STATUS_CLOSED
+        del words
+        if pid_alive(pid) and status != STATUS_CLOSED:
+            if pid != os.getpid():
+                _untrack(old)
+            raise SegmentBusy(f"robot {robot!r} is already served by process {pid} (shared memory /{name})")
+        log.warning("replacing shared memory /%s left by process %d, which is gone", name, pid)
+        old.unlink()
+    finally:
+        old.close()
+
+
+def attach_segment(robot: str) -> Segment:
+    """Map a running robot's segment (the client's side); RobotNotRunning if there is none."""
+    name = segment_name(robot)
+    try:
+        shm = shared_memory.SharedMemory(name)
+    except FileNotFoundError:
+        raise RobotNotRunning(f"robot {robot!r} is not running: no shared memory /{name} "
+                              "(is the loop up with [client] shm = true?)") from None
+    words = np.frombuffer(shm.buf, np.int64, HEADER_WORDS) if shm.size >= HEADER_WORDS * 8 else None
+    try:
+        if words is None or words[H_MAGIC] != MAGIC:
+            raise RobotNotRunning(f"robot {robot!r} is not running: /{name} is not ready or not an aiohal segment")
+        if words[H_VERSION] != VERSION:
+            raise ShmError(f"/{name} has layout version {int(words[H_VERSION])}, this client reads {VERSION}")
+        pid, status = int(words[H_PID]), int(words[H_STATUS])
+        if status == STATUS_CLOSED or not pid_alive(pid):
+            raise RobotNotRunning(f"robot {robot!r} is not running: /{name} was left by process {pid}, "
+                                  + ("which closed it" if status == STATUS_CLOSED else "which is gone"))
+        layout = Layout(int(words[H_DOF]), int(words[H_N_IMU]), int(words[H_N_FT]),
+                        int(words[H_CAPACITY]), int(words[H_META_LEN]))
+    except BaseException:
+        del words
+        shm.close()
+        raise
+    del words
+    if pid != os.getpid():
+        _untrack(shm)
+    return Segment(shm, layout, owner=False)
+
+
+def _untrack(shm: shared_memory.SharedMemory) -> None:
+    """Python < 3.13 registers a segment it attaches to with this process's resource tracker,
+    which would unlink it when this process ends: the robot's, not ours to remove."""
+    try:
+        resource_tracker.unregister(shm._name, "shared_memory")  # noqa: SLF001
+    except Exception:
+        pass
+
+
+# ---------------------------------------------------------------- the loop's side
+
+
+class ShmDoor:
+    """The loop's side: makes the segment, publishes state at the end of every tick, acts on
+    safety requests, and hands the setpoint ring to the ``stream`` controller."""
+
+    def __init__(self, control: Any, capacity: int) -> None:
+        robot = control.robot
+        self.control = control
+        self.robot_name = robot.name
+        meta = {
+            "robot": robot.name,
+            "joints": list(robot.joint_names),
+            "position_min": robot.position_min.tolist(),
+            "position_max": robot.position_max.tolist(),
+            "velocity": robot.velocity_limit.tolist(),
+            "state_rows": list(JOINT_STATE_FIELDS),
+            "command_rows": list(JOINT_COMMAND_FIELDS),
+            "imu": list(robot.imu.names),
+            "force_torque": list(robot.force_torque.names),
+        }
+        self.segment = create_segment(
+            robot.name, _finite_json(meta), dof=robot.dof, n_imu=len(robot.imu), n_ft=len(robot.force_torque),
+            capacity=capacity, period_ns=control.period_ns, can_rearm=callable(getattr(control, "rearm", None)))
+        self.requests_acted = 0
+        self.publish = self._make_publisher()
+        _DOORS[robot.name] = self
+
+    def activate(self) -> None:
+        self.segment.header[H_STATUS] = STATUS_ACTIVE
+
+    def _make_publisher(self):
+        """The per-tick closure: byte copies between memoryviews (cheapest on cold caches),
+        sequence stores as single aligned int64 stores, no allocation of arrays, no syscall."""
+        seg, robot, control = self.segment, self.control.robot, self.control
+        seq = memoryview(seg.seqlock).cast("B").cast("q")
+        req = memoryview(seg.requests).cast("B").cast("q")
+        pairs = [(memoryview(dst).cast("B"), memoryview(src).cast("B"))
+                 for dst, src in ((seg.state, robot.state.block), (seg.command, robot.command.block),
+                                  (seg.fault, robot.state.fault), (seg.mode, robot.command.mode),
+                                  (seg.imu, robot.imu.values), (seg.ft, robot.force_torque.values))
+                 if src is not None and src.size]
+        (d_state, s_state), (d_cmd, s_cmd), (d_fault, s_fault), (d_mode, s_mode) = pairs[:4]
+        devices = pairs[4:]
+        # released at close: a memoryview left over the segment would keep it mapped
+        self._views = [seq, req, *(v for pair in pairs for v in pair)]
+        clock = robot.clock
+        counter = [0]  # the sequence, kept here: the tick never reads it back from the segment
+        seen = [0, 0, 0]
+
+        def publish(_loop: Any) -> None:
+            s = counter[0] + 1
+            seq[S_SEQ] = s  # odd: writing
+            seq[S_TICK] = clock.tick
+            seq[S_NOW_NS] = clock.now_ns
+            seq[S_LEVEL] = control.level
+            d_state[:] = s_state
+            d_cmd[:] = s_cmd
+            d_fault[:] = s_fault
+            d_mode[:] = s_mode
+            for d, src in devices:
+                d[:] = src
+            seq[S_SEQ] = s + 1  # even: consistent
+            counter[0] = s + 1
+            if req[R_HOLD] != seen[0] or req[R_ESTOP] != seen[1] or req[R_REARM] != seen[2]:
+                self._act(req, seen)
+
+        return publish
+
+    def _act(self, req: memoryview, seen: list[int]) -> None:
+        """A client asked for a safety change (rare: off the per-tick path). The snapshot of
+        the next tick shows its effect; a client waits for that tick (see the client)."""
+        control = self.control
+        if req[R_ESTOP] != seen[1]:
+            seen[1] = req[R_ESTOP]
+            log.warning("robot %s: emergency stop requested by a shared-memory client", self.robot_name)
+            control.estop()
+            req[R_ESTOP_DONE] = seen[1]
+        if req[R_HOLD] != seen[0]:
+            seen[0] = req[R_HOLD]
+            control.enter_hold("requested by a shared-memory client")
+            req[R_HOLD_DONE] = seen[0]
+        if req[R_REARM] != seen[2]:
+            seen[2] = req[R_REARM]
+            rearm = getattr(control, "rearm", None)
+            if callable(rearm):
+                rearm()
+            req[R_REARM_DONE] = seen[2]
+        self.requests_acted += 1
+
+    def close(self) -> None:
+        """Mark the segment closed (attached clients see it at once) and remove it."""
+        if _DOORS.get(self.robot_name) is self:
+            del _DOORS[self.robot_name]
+        seg = self.segment
+        if seg.header is None:
+            return
+        seg.header[H_STATUS] = STATUS_CLOSED
+        self.publish = None
+        for view in self._views:
+            view.release()
+        self._views = []
+        try:
+            seg.shm.unlink()
+        except FileNotFoundError:
+            pass
+        seg.release()
+
+
+_DOORS: dict[str, ShmDoor] = {}
+
+
+def door(robot: str) -> ShmDoor | None:
+    """The open door of a robot in this process (the ``stream`` controller finds its ring here)."""
+    return _DOORS.get(robot)
+
+
+def _finite_json(meta: dict[str, Any]) -> dict[str, Any]:
+    """JSON has no inf: an absent limit is written as null."""
+    def fix(v: Any) -> Any:
+        if isinstance(v, float) and not np.isfinite(v):
+            return None
+        if isinstance(v, list):
+            return [fix(x) for x in v]
+        return v
+    return {k: fix(v) for k, v in meta.items()}

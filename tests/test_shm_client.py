@@ -1,0 +1,340 @@
+"""The shared-memory door: consistent reads under a fast writer, the setpoint ring's order,
+wrap and underrun, the stream controller's interpolation, safety requests, and clear errors."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+
+import numpy as np
+import pytest
+
+from aiohal import shm
+from aiohal.client import BufferFull, CommandBusy, JointMismatch, NotStreaming, RobotClient, RobotNotRunning
+from aiohal.config import parse_config
+from aiohal.errors import ConfigError
+from aiohal.loop import ControlLoop
+from aiohal.safety import SafetyLevel
+from conftest import ROOT
+from helpers import arm_raw, virtual_loop
+
+JOINTS = ["j0", "j1", "j2"]
+
+
+def unique(prefix: str = "shm") -> str:
+    return f"{prefix}_{uuid.uuid4().hex[:8]}"
+
+
+def stream_raw(name: str, *, capacity: int = 16, dry: float = 0.1, clock: str = "virtual") -> dict:
+    raw = arm_raw(3, type="stream", params={"dry_after_s": dry})
+    raw["robot"]["name"] = name
+    raw["loop"]["clock"] = clock
+    raw["client"] = {"shm": True, "capacity": capacity}
+    for joint in raw["joints"].values():  # limits that leave the streamed points as they are
+        joint.update(velocity=100.0, acceleration=1e6)
+    # the mock mirrors the command, so the measured state shows what the controller sent
+    return raw
+
+
+# ---------------------------------------------------------------- seqlock
+
+
+def test_no_torn_read_under_a_fast_writer():
+    name, dof = unique("torn"), 64
+    writer = subprocess.Popen([sys.executable, str(ROOT / "tests" / "shm_writer.py"), name, str(dof), "3"],
+                              cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        assert writer.stdout.readline().strip() == "ready"
+        client = RobotClient(name)
+        snapshots, ticks, unguarded_torn = 0, set(), 0
+        end = time.monotonic() + 1.5
+        seg = client._seg
+        raw_state, raw_cmd = np.empty((6, dof)), np.empty((6, dof))
+        state = None
+        while time.monotonic() < end and snapshots < 200_000:
+            state = client.read(state)
+            k = state.tick
+            # every array of one snapshot was written at the same tick
+            assert (state.state == k).all() and (state.command == k).all(), f"torn snapshot at tick {k}"
+            assert (state.fault == (k & 0xFFFF)).all() and state.now_ns == k
+            ticks.add(k)
+            snapshots += 1
+            # the same copies without the sequence check, to show that the writer overlaps readers
+            np.copyto(raw_state, seg.state)
+            np.copyto(raw_cmd, seg.command)
+            unguarded_torn += raw_state[0, 0] != raw_cmd[-1, -1]
+        client.close()
+        assert len(ticks) > 100, "the writer did not run while the reader read"
+        print(f"{snapshots} consistent snapshots of {len(ticks)} ticks; {unguarded_torn} torn without the seqlock")
+    finally:
+        writer.wait(timeout=30)
+    assert writer.returncode == 0
+
+
+# ---------------------------------------------------------------- ring and stream controller
+
+
+@pytest.mark.asyncio
+async def test_points_are_applied_in_order_through_a_wrapping_ring():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, capacity=4, dry=1.0))
+    async with loop:
+        with RobotClient(name, joints=JOINTS, command=True) as client:
+            await loop.run(ticks=2)
+            # point k (1..20) at T0 + (k-1)·3 ms, value 0.01·k: in order, the command is one line
+            t0 = client.read().now_ns + 3_000_000
+            k, full, checked = 1, 0, 0
+            while k <= 20 or client.pending:
+                while k <= 20:
+                    try:
+                        client.send([0.01 * k] * 3, t_ns=t0 + (k - 1) * 3_000_000)
+                    except BufferFull:
+                        full += 1
+                        break
+                    k += 1
+                assert client.pending <= 4
+                await loop.run(ticks=2)
+                s = client.read()
+                if t0 <= s.now_ns <= t0 + 19 * 3_000_000:
+                    expected = 0.01 * (1 + (s.now_ns - t0) / 3e6)
+                    np.testing.assert_allclose(s.command_position, expected, atol=1e-12)
+                    checked += 1
+            assert full >= 10 and checked >= 15  # the ring was full often; 20 points through 4 slots
+            await loop.run(ticks=10)
+            np.testing.assert_allclose(client.read().command_position, 0.2, atol=1e-12)
+            assert client.applied == 20 and client.refused == 0 and client.pending == 0
+        assert loop.level == SafetyLevel.RUN and not loop.faults
+
+
+@pytest.mark.asyncio
+async def test_linear_interpolation_between_points():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=1.0))
+    async with loop:
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            t0 = client.read().now_ns
+            client.send([0.0, 0.0, 0.0], t_ns=t0 + 1_000_000)
+            client.send([0.1, -0.1, 0.05], t_ns=t0 + 101_000_000)
+            await loop.run(ticks=51)  # 50 ms into the 100 ms segment
+            s = client.read()
+            frac = (s.now_ns - (t0 + 1_000_000)) / 100e6
+            assert 0.4 < frac < 0.6
+            np.testing.assert_allclose(s.command_position, frac * np.array([0.1, -0.1, 0.05]), atol=1e-12)
+            np.testing.assert_allclose(s.command_velocity, [1.0, -1.0, 0.5], atol=1e-9)
+
+
+@pytest.mark.asyncio
+async def test_hermite_interpolation_with_velocities():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=1.0))
+    async with loop:
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            t0 = client.read().now_ns + 1_000_000
+            T = 0.2
+            qa, va, qb, vb = np.array([0.0, 0.1, 0.2]), np.array([0.5, 0.0, -0.5]), np.array([0.1, 0.3, 0.0]), np.zeros(3)
+            client.send(qa, velocity=va, t_ns=t0)
+            client.send(qb, velocity=vb, t_ns=t0 + int(T * 1e9))
+            await loop.run(ticks=71)
+            s = client.read()
+            u = (s.now_ns - t0) / 1e9 / T
+            h = np.array([2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2])
+            expected = h[0] * qa + h[1] * T * va + h[2] * qb + h[3] * T * vb
+            dh = np.array([6 * u**2 - 6 * u, 3 * u**2 - 4 * u + 1, -6 * u**2 + 6 * u, 3 * u**2 - 2 * u])
+            expected_v = (dh[0] * qa + dh[2] * qb) / T + dh[1] * va + dh[3] * vb
+            np.testing.assert_allclose(s.command_position, expected, atol=1e-12)
+            np.testing.assert_allclose(s.command_velocity, expected_v, atol=1e-9)
+            await loop.run(ticks=200)  # past the last point: it is held exactly
+            np.testing.assert_allclose(client.read().command_position, qb, atol=1e-12)
+
+
+@pytest.mark.asyncio
+async def test_underrun_holds_the_last_point_then_faults_to_hold():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=0.05))
+    async with loop:
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            client.send([0.02, 0.0, -0.02])
+            await loop.run(ticks=40)  # dry for 40 ms < 50 ms: holding, still running
+            s = client.read()
+            assert s.level == SafetyLevel.RUN and not loop.faults
+            np.testing.assert_allclose(s.command_position, [0.02, 0.0, -0.02])
+            await loop.run(ticks=20)
+            assert loop.level == SafetyLevel.HOLD
+            assert [f.source for f in loop.faults] == ["controller:stream"]
+            assert "StreamUnderrun" in loop.faults[0].error
+            np.testing.assert_allclose(client.read().command_position, [0.02, 0.0, -0.02])
+            with pytest.raises(NotStreaming):
+                client.send([0.0] * 3)
+
+
+@pytest.mark.asyncio
+async def test_a_point_the_tick_finds_invalid_is_refused_and_counted():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=1.0))
+    async with loop:
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            with pytest.raises(ValueError, match="not finite for.*j1"):
+                client.send([0.0, np.nan, 0.0])
+            with pytest.raises(ValueError, match="out of range for.*j2"):
+                client.send([0.0, 0.0, 5.0])
+            with pytest.raises(ValueError, match="expected 3 values"):
+                client.send([0.0, 0.0])
+            with pytest.raises(JointMismatch, match="unknown joint"):
+                client.send({"j0": 0.0, "j1": 0.0, "j9": 0.0})
+            assert client.pending == 0  # nothing was queued
+            # a writer that skips the client's checks: the tick refuses the point
+            seg = client._seg
+            head = int(seg.producer[shm.P_HEAD])
+            seg.slot_position[head % 16][:] = [0.0, np.inf, 0.0]
+            seg.slot_words[head % 16][:] = 0
+            seg.producer[shm.P_HEAD] = head + 1
+            client.send({"j0": 0.01, "j1": 0.02, "j2": 0.03})
+            await loop.run(ticks=3)
+            assert client.refused == 1 and client.applied == 1
+            np.testing.assert_allclose(client.read().position, [0.01, 0.02, 0.03])
+        assert loop.level == SafetyLevel.RUN
+
+
+# ---------------------------------------------------------------- safety requests
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("request_name, level", [("hold", SafetyLevel.HOLD), ("estop", SafetyLevel.ESTOP)])
+async def test_safety_request_from_a_client(request_name, level):
+    name = unique()
+    loop = ControlLoop(parse_config(stream_raw(name, dry=10.0, clock="sleep")))
+    async with loop:
+        run = asyncio.create_task(loop.run(duration=5.0))
+        try:
+            client = RobotClient(name)
+            await asyncio.to_thread(client.wait_tick, 0, 5.0)
+            await asyncio.to_thread(getattr(client, request_name), 5.0)
+            assert loop.level == level
+            tick = client.read().tick
+            await asyncio.to_thread(client.wait_tick, tick + 2, 5.0)
+            assert client.read().level == level
+            with pytest.raises(shm.ShmError, match="no re-arm"):
+                client.rearm()
+            client.close()
+        finally:
+            loop.request_stop()
+            await run
+    assert loop.faults == []
+
+
+# ---------------------------------------------------------------- errors
+
+
+def test_not_running_is_a_clear_error():
+    with pytest.raises(RobotNotRunning, match="no shared memory /aiohal.nobody_here"):
+        RobotClient("nobody_here")
+    with pytest.raises(shm.ShmError, match="cannot name a shared-memory segment"):
+        RobotClient("a/b")
+
+
+def test_stream_without_the_door_is_a_config_error():
+    raw = arm_raw(3, type="stream")
+    with pytest.raises(ConfigError, match=r"controller.type: the stream controller .* \[client\] shm = true"):
+        parse_config(raw)
+
+
+@pytest.mark.asyncio
+async def test_joint_mismatch_command_lock_and_closed_robot():
+    name = unique()
+    loop = virtual_loop(stream_raw(name))
+    async with loop:
+        with pytest.raises(JointMismatch, match=r"not named by the client: \['j2'\]"):
+            RobotClient(name, joints=["j0", "j1"])
+        with pytest.raises(JointMismatch, match="another order"):
+            RobotClient(name, joints=["j1", "j0", "j2"])
+        first = RobotClient(name, command=True)
+        with pytest.raises(CommandBusy):
+            RobotClient(name, command=True)
+        reader = RobotClient(name)  # reading needs no lock
+        with pytest.raises(shm.ShmError, match="command=True"):
+            reader.send([0.0] * 3)
+        first.close()
+        RobotClient(name, command=True).close()  # released with the first client
+    with pytest.raises(RobotNotRunning, match="has stopped"):
+        reader.read()
+    reader.close()
+    with pytest.raises(RobotNotRunning):
+        RobotClient(name)
+
+
+_KILLED_OWNER = """
+import sys, os, signal
+from multiprocessing import resource_tracker
+from aiohal.shm import create_segment
+seg = create_segment(sys.argv[1], {"joints": []}, dof=1, n_imu=0, n_ft=0, capacity=2, period_ns=1, can_rearm=False)
+seg.header[1 + 2] = 1  # STATUS_ACTIVE
+resource_tracker.unregister(seg.shm._name, "shared_memory")  # as after a kill of the whole group
+print("made", flush=True)
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+@pytest.mark.asyncio
+async def test_a_segment_left_by_a_killed_process_is_replaced():
+    name = unique("stale")
+    proc = subprocess.run([sys.executable, "-c", _KILLED_OWNER, name], cwd=ROOT, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.stdout.strip() == "made" and proc.returncode == -signal.SIGKILL
+    assert os.path.exists(f"/dev/shm/aiohal.{name}")
+    with pytest.raises(RobotNotRunning, match="which is gone"):
+        RobotClient(name)
+    loop = virtual_loop(stream_raw(name))
+    async with loop:  # replaces it
+        with RobotClient(name, joints=JOINTS) as client:
+            await loop.run(ticks=3)
+            assert client.read().tick == 3
+    assert not os.path.exists(f"/dev/shm/aiohal.{name}")
+
+
+@pytest.mark.asyncio
+async def test_a_second_live_loop_with_the_same_name_is_refused():
+    name = unique()
+    async with virtual_loop(stream_raw(name)):
+        with pytest.raises(shm.SegmentBusy, match=f"already served by process {os.getpid()}"):
+            virtual_loop(stream_raw(name)).configure()
+        code = ("import sys; from aiohal.shm import create_segment; create_segment(sys.argv[1], {}, dof=1, n_imu=0, "
+                "n_ft=0, capacity=2, period_ns=1, can_rearm=False)")
+        proc = subprocess.run([sys.executable, "-c", code, name], cwd=ROOT, capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 1 and f"SegmentBusy: robot '{name}' is already served by process" in proc.stderr
+
+
+# ---------------------------------------------------------------- a planner in another process
+
+
+@pytest.mark.asyncio
+async def test_planner_example_streams_from_another_process():
+    name = unique("planner")
+    raw = stream_raw(name, dry=0.5, clock="auto")
+    loop = ControlLoop(parse_config(raw))  # the real clock: the planner runs in wall time
+    async with loop:
+        run = asyncio.create_task(loop.run(duration=20.0))
+        try:
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, str(ROOT / "examples" / "shm_planner.py"), name, "--duration", "1.0",
+                "--amplitude", "0.1", cwd=ROOT, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            out, err = await asyncio.wait_for(proc.communicate(), 30)
+            assert proc.returncode == 0, err.decode()
+            assert loop.level == SafetyLevel.HOLD
+        finally:
+            loop.request_stop()
+            await run
+    summary = json.loads(out)
+    assert summary["points_sent"] == 101 and summary["points_applied"] == 101 and summary["points_refused"] == 0
+    assert summary["level"] == "hold" and loop.faults == []
+    # the last point of sin(2π·0.5·t) at t = 1 s is back at the start pose
+    np.testing.assert_allclose(summary["final_command"], [0.0, 0.0, 0.0], atol=1e-6)
