@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -68,10 +69,29 @@ def _sensor_name(options: MujocoOptions, device: str, field: str, suffix: str) -
     return options.sensors.get(device, {}).get(field, f"{device}_{suffix}")
 
 
+def fit_timestep(model, period_s: float) -> int:
+    """Substeps per tick; when the tick period is not a whole number of the model's timesteps,
+    the timestep is shortened (never lengthened: that could make the model unstable) so that
+    a whole number of them fills the period, and the simulation keeps time with the ticks."""
+    timestep = model.opt.timestep
+    steps = period_s / timestep
+    substeps = max(1, round(steps))
+    if abs(steps - substeps) > 1e-6:
+        substeps = math.ceil(steps)
+        model.opt.timestep = period_s / substeps
+        log.info("tick period %g ms is not a whole number of model timesteps (%g ms): %d substep(s) of %g ms",
+                 period_s * 1e3, timestep * 1e3, substeps, model.opt.timestep * 1e3)
+    return substeps
+
+
 class MujocoDriver(Driver):
     Options = MujocoOptions
     device_kinds = frozenset({"imu", "force_torque"})
     options: MujocoOptions
+    # what close() and estop() look at, set before open() can fail half-way
+    _pending: asyncio.Future | None = None
+    _executor: ThreadPoolExecutor | None = None
+    _viewer = None
 
     @classmethod
     def check_config(cls, options, joints, devices, robot):
@@ -111,14 +131,7 @@ class MujocoDriver(Driver):
         names = [opts.joint_map.get(j, j) for j in view.joint_names]
         self.qpos_adr, self.dof_adr = joint_addresses(self.model, names)
         self.actuators = actuator_for_joints(self.model, names)
-        period_s = view.clock.period_ns * 1e-9
-        steps = period_s / self.model.opt.timestep
-        self.substeps = int(round(steps))
-        if self.substeps < 1 or abs(steps - self.substeps) > 1e-6:
-            raise ValueError(
-                f"the tick period {period_s * 1e3:g} ms is not a whole number of model timesteps "
-                f"({self.model.opt.timestep * 1e3:g} ms)"
-            )
+        self.substeps = fit_timestep(self.model, view.clock.period_ns * 1e-9)
         n = view.dof
         lo = self.model.actuator_ctrlrange[self.actuators, 0]
         hi = self.model.actuator_ctrlrange[self.actuators, 1]

@@ -311,3 +311,31 @@ async def test_every_device_field_reads_its_own_sensor_when_another_driver_owns_
     extra = robot.device("extra_ft")
     assert list(extra.force) == [1.0, 2.0, 3.0] and list(extra.torque) == [4.0, 5.0, 6.0]
     assert np.linalg.norm(robot.device("l_ankle_ft").force) > 10.0  # a leg's weight: real sensor values
+
+
+@pytest.mark.parametrize("rate", [2000, 1500, 300])
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_any_rate_runs_the_model_in_step_with_the_ticks(rate):
+    # 1 ms model timestep: 0.5, 0.667 and 3.33 ms periods are not whole numbers of it, so the
+    # driver shortens the timestep to fill each period with whole substeps
+    config = load_config(CONFIGS / "kuka_lwr_sim.toml").with_loop(rate_hz=rate)
+    loop = lockstep(config)
+    async with loop:
+        report = await loop.run(ticks=100)
+        sim = loop.slots[0].driver
+        assert sim.model.opt.timestep <= 0.001
+        assert sim.substeps * sim.model.opt.timestep == pytest.approx(loop.period_s, rel=1e-12)
+    assert report["faults"] == []
+    assert report["drivers"]["sim"]["sim_time_s"] == pytest.approx(100 * loop.period_s, abs=2e-6)
+
+
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_a_driver_whose_open_failed_closes_without_a_second_error(tmp_path):
+    from aiohal.drivers.mujoco import MujocoDriver
+
+    config = load_config(CONFIGS / "kuka_lwr_sim.toml")
+    dc = config.drivers[0]
+    driver = MujocoDriver(dc.name, config.build_robot().driver_view(dc.joints), dc.options)
+    driver.estop()
+    await driver.close()  # open() never ran (or failed before its first line)
+    assert driver.health()["sim_steps"] == 0
