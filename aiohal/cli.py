@@ -11,6 +11,7 @@ import argparse
 import asyncio
 import json
 import logging
+import math
 import signal
 import sys
 from collections.abc import Sequence
@@ -68,6 +69,44 @@ def _print_config_error(exc: ConfigError) -> None:
         print(f"  {issue}", file=sys.stderr)
 
 
+#: the longest --duration (about 31 years); to run for ever, leave --duration out
+MAX_DURATION_S = 1e9
+
+
+def _number(text: str, what: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number of {what} (got {text})")
+    return value
+
+
+def _duration(text: str) -> float:
+    value = _number(text, "seconds")
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0 s (got {text}); leave it out to run until stopped")
+    if value > MAX_DURATION_S:
+        raise argparse.ArgumentTypeError(
+            f"must be at most {MAX_DURATION_S:g} s (got {text}); leave it out to run until stopped")
+    return value
+
+
+def _rate(text: str) -> float:
+    value = _number(text, "Hz")
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0 Hz (got {text})")
+    return value
+
+
+def _spin_guard(text: str) -> float:
+    value = _number(text, "µs")
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more µs (got {text})")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m aiohal",
@@ -75,18 +114,30 @@ def _parser() -> argparse.ArgumentParser:
         "check CONFIG, schema, plugins.",
     )
     p.add_argument("config", type=Path, help="robot configuration (TOML)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to run (default: until Ctrl-C/SIGTERM)")
-    p.add_argument("--rate", type=float, default=None, help="tick rate in Hz (overrides loop.rate_hz)")
+    p.add_argument("--duration", type=_duration, default=None, help="seconds to run (default: until Ctrl-C/SIGTERM)")
+    p.add_argument("--rate", type=_rate, default=None, help="tick rate in Hz (overrides loop.rate_hz)")
     p.add_argument("--clock", choices=("auto", "timerfd", "sleep", "virtual"), default=None,
                    help="wake source (overrides loop.clock)")
     p.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio", help="event loop implementation")
-    p.add_argument("--spin-guard-us", type=float, default=None, metavar="US",
+    p.add_argument("--spin-guard-us", type=_spin_guard, default=None, metavar="US",
                    help="precision mode: wake US early and spin to each deadline (overrides realtime.spin_guard_us)")
     p.add_argument("--log-format", choices=("auto", "console", "json"), default="auto")
     p.add_argument("--report-json", type=Path, default=None, metavar="PATH", help="write the run report as JSON")
     p.add_argument("--quiet", action="store_true", help="do not print the report")
     p.add_argument("--version", action="version", version=f"aiohal {__version__}")
     return p
+
+
+def _override_error(exc: ValueError, section: str, option: str, config_path: Path) -> ConfigError:
+    """A command-line override the config models refuse, named by its option."""
+    if isinstance(exc, ValidationError):
+        issues = [
+            ConfigIssue(f"{option} ({section}." + ".".join(map(str, e["loc"])) + ")", describe_validation_error(e))
+            for e in exc.errors()
+        ]
+    else:
+        issues = [ConfigIssue(option, str(exc))]
+    return ConfigError(issues, str(config_path))
 
 
 def _apply_overrides(config: Config, args: argparse.Namespace) -> Config:
@@ -99,20 +150,14 @@ def _apply_overrides(config: Config, args: argparse.Namespace) -> Config:
         try:
             config = config.with_realtime(spin_guard_us=args.spin_guard_us)
         except ValueError as exc:  # pydantic's ValidationError is a ValueError too
-            raise ConfigError([ConfigIssue("realtime.spin_guard_us (command line)", str(exc).splitlines()[0])],
-                              str(args.config)) from None
+            raise _override_error(exc, "realtime", "--spin-guard-us", args.config) from None
     if not changes:
         return config
     try:
         return config.with_loop(**changes)
-    except ValidationError as exc:
-        issues = [
-            ConfigIssue("loop." + ".".join(map(str, e["loc"])) + " (command line)", describe_validation_error(e))
-            for e in exc.errors()
-        ]
-        raise ConfigError(issues, str(args.config)) from None
     except ValueError as exc:
-        raise ConfigError([ConfigIssue("loop.rate_hz (command line)", str(exc))], str(args.config)) from None
+        option = "--rate" if args.rate is not None else "--clock"
+        raise _override_error(exc, "loop", option, args.config) from None
 
 
 def _loop_factory(name: str):
@@ -176,10 +221,16 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
     report = control.report()
     if not args.quiet:
         print(format_report(report), flush=True)
+    status = 1 if control.faults else 0
     if args.report_json is not None:
-        write_json(report, args.report_json)
+        try:
+            write_json(report, args.report_json, protect=(args.config,))
+        except (OSError, ValueError) as exc:  # the path changed during the run
+            log.error("report not written: %s", exc)
+            print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
+            status = 1
     log.info("stopped: %s", control.stop_reason)
-    return 1 if control.faults else 0
+    return status
 
 
 def cmd_run(argv: Sequence[str]) -> int:
@@ -193,6 +244,14 @@ def cmd_run(argv: Sequence[str]) -> int:
     except AiohalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.report_json is not None:
+        from .report import check_output_path
+
+        try:
+            check_output_path(args.report_json, protect=(args.config,))
+        except ValueError as exc:
+            print(f"error: --report-json: {exc}", file=sys.stderr)
+            return 2
     configure_logging(args.log_format)
     with asyncio.Runner(loop_factory=factory) as runner:
         return runner.run(_run(config, args))

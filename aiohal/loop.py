@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -395,6 +396,8 @@ class ControlLoop:
         if self.state != "active":
             raise LifecycleError(f"run() in state {self.state!r}; use activate() or 'async with'")
         if duration is not None:
+            if not (duration > 0 and math.isfinite(duration * 1e9)):
+                raise ValueError(f"duration must be a finite number of seconds more than 0 (got {duration})")
             ticks = max(1, round(duration * 1e9 / self.period_ns))
         self._stop = False
         self.stop_reason = ""

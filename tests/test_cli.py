@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -119,16 +121,46 @@ def test_run_with_bad_config_exits_2_before_starting(tmp_path):
     assert not report.exists()
 
 
-def test_negative_rate_exits_2_naming_loop_rate_hz(tmp_path):
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("--rate", "-5"), "argument --rate: must be more than 0 Hz (got -5)"),
+        (("--rate", "nan"), "argument --rate: must be a finite number of Hz (got nan)"),
+        (("--rate", "inf"), "argument --rate: must be a finite number of Hz (got inf)"),
+        (("--duration", "nan"), "argument --duration: must be a finite number of seconds (got nan)"),
+        (("--duration", "inf"), "argument --duration: must be a finite number of seconds (got inf)"),
+        (("--duration", "1e300"), "argument --duration: must be at most 1e+09 s (got 1e300)"),
+        (("--duration", "-1"), "argument --duration: must be more than 0 s (got -1)"),
+        (("--duration", "0"), "argument --duration: must be more than 0 s (got 0)"),
+        (("--duration", "ten"), "argument --duration: 'ten' is not a number"),
+        (("--spin-guard-us", "-5"), "argument --spin-guard-us: must be 0 or more µs (got -5)"),
+        (("--spin-guard-us", "nan"), "argument --spin-guard-us: must be a finite number of µs (got nan)"),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, tuple) else "",
+)
+def test_bad_run_option_exits_2_naming_the_option(tmp_path, args, message):
     report = tmp_path / "report.json"
-    proc = run_cli("configs/mock_arm.toml", "--rate", "-5", "--duration", "0.1", "--report-json", report)
+    proc = run_cli("configs/mock_arm.toml", *args, "--report-json", report)
+    assert proc.returncode == 2
+    assert_no_traceback(proc)
+    assert message in proc.stderr.splitlines()[-1], proc.stderr
+    assert proc.stdout == ""
+    assert not report.exists()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("--rate", "60000"), "--rate (loop.rate_hz): input should be less than or equal to 50000 (got 60000.0)"),
+        (("--rate", "0.01"), "--rate (loop.rate_hz): input should be greater than or equal to 0.1 (got 0.01)"),
+    ],
+)
+def test_run_option_out_of_the_config_range_exits_2_naming_the_option(args, message):
+    proc = run_cli("configs/mock_arm.toml", *args, "--duration", "0.1")
     assert proc.returncode == 2
     assert_no_traceback(proc)
     assert proc.stderr.splitlines()[0] == "configs/mock_arm.toml: invalid configuration (1 error(s)):"
-    (line,) = issue_lines(proc.stderr)
-    assert line.startswith("loop.rate_hz (command line): ")
-    assert "greater than or equal to 0.1" in line
-    assert not report.exists()
+    assert issue_lines(proc.stderr) == [message]
 
 
 def test_schema_prints_valid_json():
@@ -198,5 +230,71 @@ def test_spin_guard_from_the_command_line(tmp_path):
 
     proc = run_cli("configs/mock_arm.toml", "--duration", "0.2", "--spin-guard-us", "800")
     assert proc.returncode == 2
-    assert "realtime.spin_guard_us (command line)" in proc.stderr
+    assert issue_lines(proc.stderr) == ["--spin-guard-us: realtime.spin_guard_us 800 is more than half the period"]
     assert_no_traceback(proc)
+
+
+# ---------------------------------------------------------------- --report-json never destroys anything
+
+
+def _report_targets(tmp_path: Path) -> dict[str, tuple[Path, str]]:
+    """Paths the report must not replace, each with a word of the reason printed."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    kept = tmp_path / "kept.json"
+    kept.write_text("keep me\n")
+    link = tmp_path / "link.json"
+    link.symlink_to(kept)
+    config = tmp_path / "robot.toml"
+    config.write_text((ROOT / "configs" / "mock_arm.toml").read_text())
+    return {
+        "fifo": (fifo, "not a regular file"),
+        "symlink": (link, "symbolic link"),
+        "directory": (tmp_path, "directory"),
+        "directory-with-slash": (Path(f"{tmp_path}/"), "directory"),
+        "config": (config, "configuration file"),
+        "missing-directory": (tmp_path / "nowhere" / "report.json", "does not exist"),
+        "device": (tmp_path / "null", "not a regular file"),
+    }
+
+
+@pytest.mark.parametrize(
+    "target", ["fifo", "symlink", "directory", "directory-with-slash", "config", "missing-directory", "device"]
+)
+def test_report_json_refuses_what_it_would_destroy_before_starting(tmp_path, target):
+    if target == "device":  # a device of its own: a regression must not replace /dev/null
+        try:
+            os.mknod(tmp_path / "null", 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+        except PermissionError:
+            pytest.skip("making a device node needs root")
+    path, reason = _report_targets(tmp_path)[target]
+    config = tmp_path / "robot.toml"
+    before = {p.name: (p.lstat().st_mode, p.read_text() if p.is_file() else None) for p in tmp_path.iterdir()}
+    proc = run_cli(config, "--duration", "0.1", "--clock", "virtual", "--report-json", path)
+    assert proc.returncode == 2, proc.stderr
+    assert_no_traceback(proc)
+    assert proc.stderr.startswith("error: --report-json: ") and reason in proc.stderr, proc.stderr
+    assert "starting robot" not in proc.stderr and proc.stdout == ""  # nothing started
+    after = {p.name: (p.lstat().st_mode, p.read_text() if p.is_file() else None) for p in tmp_path.iterdir()}
+    assert after == before  # nothing replaced, no temporary file left
+    assert not Path(f"{tmp_path}.tmp").exists()
+
+
+def test_report_json_replaces_a_regular_file_through_its_own_directory(tmp_path):
+    report = tmp_path / "report.json"
+    report.write_text("old\n")
+    proc = run_cli("configs/mock_arm.toml", "--duration", "0.1", "--clock", "virtual", "--quiet",
+                   "--report-json", report)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(report.read_text())["ticks"] == 100
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]  # no temporary file left
+
+
+def test_report_json_that_became_unwritable_during_the_run_loses_only_the_file(tmp_path):
+    from aiohal.report import write_json
+
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    gone.rmdir()
+    with pytest.raises(ValueError, match="does not exist"):
+        write_json({"ticks": 1}, gone / "report.json")
