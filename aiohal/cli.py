@@ -12,6 +12,7 @@ import asyncio
 import json
 import logging
 import math
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -22,6 +23,7 @@ from pydantic import ValidationError
 from . import __version__, plugins
 from .config import Config, describe_validation_error, json_schema, load_config
 from .errors import AiohalError, ConfigError, ConfigIssue
+from .safety import SafetyLevel
 
 log = logging.getLogger("aiohal.cli")
 
@@ -68,6 +70,9 @@ def _print_config_error(exc: ConfigError) -> None:
     for issue in exc.issues:
         print(f"  {issue}", file=sys.stderr)
 
+
+#: after a second signal, how long the emergency-stopped drivers may take to close
+FORCED_CLOSE_S = 0.05
 
 #: the longest --duration (about 31 years); to run for ever, leave --duration out
 MAX_DURATION_S = 1e9
@@ -170,67 +175,101 @@ def _loop_factory(name: str):
     return asyncio.new_event_loop
 
 
-async def _run(config: Config, args: argparse.Namespace) -> int:
-    from .loop import ControlLoop
-    from .report import format_report, write_json
+class _Outcome:
+    """How a run ended, for cmd_run: its exit status, and whether to leave at once (a driver
+    was abandoned in close(): its thread may never finish, and waiting for it would hang)."""
 
-    control = ControlLoop(config)
+    def __init__(self) -> None:
+        self.status = 0
+        self.leave_now = False
+
+
+async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> int:
     loop = asyncio.get_running_loop()
     task = asyncio.current_task()
+    stage = "starting"  # -> running -> closing -> reporting: what a second signal interrupts
+    control = None
+    early: list[signal.Signals] = []  # signals before the robot was built: nothing to stop yet
 
     def on_signal(name: str) -> None:
+        if control is None:
+            early.append(signal.Signals[name])
+            return
         if not control.stop_requested:
             log.info("%s received: stopping", name)
             control.request_stop(name)
-        else:  # a second signal: stop the hardware now, abandon what is pending
-            log.warning("%s received again: emergency stop", name)
-            control.estop()
-            if task is not None:
-                task.cancel()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal, sig.name)
-
-    log.info("starting robot %s: %d joints, %d driver(s), controller %s at %.0f Hz",
-             config.robot.name, len(config.joints), len(config.drivers), config.controller.type, config.loop.rate_hz)
-    try:
-        await control.activate()
-    except AiohalError as exc:
-        log.error("bring-up failed: %s", exc)
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    except asyncio.CancelledError:  # a second signal while a driver was still opening
+            return
+        if outcome.leave_now:
+            return  # the emergency stop is done and reported once
+        # a second signal: stop the hardware now, abandon what is pending
+        log.warning("%s received again: emergency stop", name)
+        outcome.leave_now = True
+        control.stop_reason = f"{name} received twice: emergency stop"
         control.estop()
-        print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
-        return 1
-    log.info("running%s; Ctrl-C or SIGTERM stops safely",
-             f" for {args.duration:g} s" if args.duration is not None else "")
+        control.record_fault("signal", stage, f"{name} received twice: every driver emergency-stopped")
+        if task is not None and stage != "reporting":
+            task.cancel()
+
+    # while the modules load, a plain handler notes a signal at once (the loop's would only
+    # run at the next await, after the robot was built)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: early.append(signal.Signals(signum)))
     try:
-        if not control.stop_requested:
-            await control.run(args.duration)
-    except asyncio.CancelledError:
-        control.stop_reason = "forced by a second signal"
-        control.record_fault("runtime", "run", "forced by a second signal: drivers emergency-stopped")
-    try:
-        await control.deactivate()
-    except asyncio.CancelledError:
-        control.record_fault("runtime", "close", "forced by a second signal: drivers emergency-stopped, not all closed")
+        from .loop import ControlLoop
+        from .report import format_report, write_json
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, on_signal, sig.name)
+        if early or (task is not None and task.cancelling()):  # Ctrl-C while starting: leave quietly
+            log.info("interrupted while starting: nothing was started")
+            return 128 + (early[0] if early else signal.SIGINT)
+        control = ControlLoop(config)
+        log.info("starting robot %s: %d joints, %d driver(s), controller %s at %.0f Hz",
+                 config.robot.name, len(config.joints), len(config.drivers), config.controller.type,
+                 config.loop.rate_hz)
+        try:
+            await control.activate()
+        except AiohalError as exc:
+            log.error("bring-up failed: %s", exc)
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        except asyncio.CancelledError:  # a second signal while a driver was still opening
+            print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
+            return 1
+        log.info("running%s; Ctrl-C or SIGTERM stops safely",
+                 f" for {args.duration:g} s" if args.duration is not None else "")
+        stage = "running"
+        try:
+            if not control.stop_requested:
+                await control.run(args.duration)
+        except asyncio.CancelledError:
+            pass  # the second signal: recorded by its handler
+        stage = "closing"
+        try:
+            if outcome.leave_now:  # emergency-stopped: a moment to close, no waiting for a close() that hangs
+                await asyncio.wait_for(control.deactivate(), FORCED_CLOSE_S)
+            else:
+                await control.deactivate()
+        except (asyncio.CancelledError, TimeoutError):
+            control.record_fault("signal", "close", "drivers emergency-stopped, not all closed")
+        stage = "reporting"
+        outcome.leave_now |= any(slot.status == "abandoned" for slot in control.slots)
+        report = control.report()
+        if not args.quiet:
+            print(format_report(report), flush=True)
+        status = 1 if control.faults or control.worst_level <= SafetyLevel.ESTOP else 0
+        if args.report_json is not None:
+            try:
+                write_json(report, args.report_json, protect=(args.config,))
+            except (OSError, ValueError) as exc:  # the path changed during the run
+                log.error("report not written: %s", exc)
+                print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
+                status = 1
+        log.info("stopped: %s", control.stop_reason)
+        return status
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
-    report = control.report()
-    if not args.quiet:
-        print(format_report(report), flush=True)
-    status = 1 if control.faults else 0
-    if args.report_json is not None:
-        try:
-            write_json(report, args.report_json, protect=(args.config,))
-        except (OSError, ValueError) as exc:  # the path changed during the run
-            log.error("report not written: %s", exc)
-            print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
-            status = 1
-    log.info("stopped: %s", control.stop_reason)
-    return status
 
 
 def cmd_run(argv: Sequence[str]) -> int:
@@ -253,8 +292,20 @@ def cmd_run(argv: Sequence[str]) -> int:
             print(f"error: --report-json: {exc}", file=sys.stderr)
             return 2
     configure_logging(args.log_format)
-    with asyncio.Runner(loop_factory=factory) as runner:
-        return runner.run(_run(config, args))
+    outcome = _Outcome()
+    runner = asyncio.Runner(loop_factory=factory)
+    try:
+        status = runner.run(_run(config, args, outcome))
+    finally:
+        if outcome.leave_now:
+            # an emergency stop or an abandoned close(): every driver is stopped and the report
+            # is out; do not wait for threads that may never return (nor for a clean shutdown)
+            logging.shutdown()
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(1)
+        runner.close()
+    return status
 
 
 def cmd_check(argv: Sequence[str]) -> int:

@@ -93,6 +93,8 @@ class ControlLoop:
         self.multirate = (TargetExtrapolator(self.robot.command, self.period_s, every, config.controller.extrapolate)
                           if every > 1 else None)
         self.level = SafetyLevel.OFF
+        #: the most severe level since activate(): the report's "safety_worst"
+        self.worst_level = SafetyLevel.OFF
         self.faults: list[FaultRecord] = []
         self.slots: list[DriverSlot] = []
         self._active: list[DriverSlot] = []
@@ -188,7 +190,7 @@ class ControlLoop:
         cmd.feedforward[:] = 0.0
         cmd.mode[cmd.mode == Mode.NONE] = Mode.POSITION
         self.limiter.reset(state.position)
-        self.level = SafetyLevel.RUN
+        self.level = self.worst_level = SafetyLevel.RUN
         self.state = "active"
         self._k_start = 0  # controller time counts from activation, across run() calls
         self._last_update_k = 0
@@ -275,6 +277,8 @@ class ControlLoop:
                 self.record_fault(f"driver:{slot.name}", "estop", exc)
         if self.level > SafetyLevel.ESTOP:
             self.level = SafetyLevel.ESTOP
+        if self.worst_level > SafetyLevel.ESTOP or self.worst_level == SafetyLevel.OFF:
+            self.worst_level = SafetyLevel.ESTOP
 
     def add_publisher(self, publish: Callable[[ControlLoop], None]) -> None:
         """Call ``publish(loop)`` at the end of every tick; it must not block."""
@@ -319,6 +323,7 @@ class ControlLoop:
             return
         log.warning("robot %s goes to hold: %s", self.robot.name, reason)
         self.level = SafetyLevel.HOLD
+        self.worst_level = min(self.worst_level, SafetyLevel.HOLD)
         old = self.controller
         if old is not None and old is not self._hold:
             try:
@@ -618,6 +623,7 @@ class ControlLoop:
             "duration_s": round(span, 4),
             **summary,
             "safety_level": self.level.name.lower(),
+            "safety_worst": self.worst_level.name.lower(),
             "stop_reason": self.stop_reason,
             "commands_refused": self.limiter.refused,
             "faults": [f.as_dict() for f in self.faults],

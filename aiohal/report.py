@@ -26,6 +26,17 @@ def _fmt(value: Any) -> str:
 _DRIVER_KEYS = {"type", "status", "joints", "read_us_mean", "write_us_mean", "read_us_max", "write_us_max"}
 
 
+# what each safety level means, said as what happened to the robot
+_WORST = {"run": "ran normally", "hold": "went to hold", "estop": "EMERGENCY-STOPPED", "off": "never ran"}
+_FINAL = {"off": "drivers closed", "estop": "drivers emergency-stopped", "hold": "holding", "run": "still running"}
+
+
+def _safety(report: dict[str, Any]) -> str:
+    worst = report.get("safety_worst", report["safety_level"])
+    final = report["safety_level"]
+    return f"{_WORST.get(worst, worst)}; at the end: {_FINAL.get(final, final)}"
+
+
 def format_report(report: dict[str, Any]) -> str:
     lat, work = report["lateness_us"], report["work_us"]
     target, achieved = report["rate_hz_target"], report["rate_hz_achieved"]
@@ -47,7 +58,7 @@ def format_report(report: dict[str, Any]) -> str:
         "  realtime     "
         + (", ".join(f"{k} {v}" for k, v in report.get("realtime", {}).items() if k != "warnings") or "none")
         + "".join(f"\n  WARNING      {w}" for w in report.get("realtime", {}).get("warnings", [])),
-        f"  safety       {report['safety_level']}  (stop: {report['stop_reason']})",
+        f"  safety       {_safety(report)}  (stop: {report['stop_reason']})",
     ]
     for name, d in report["drivers"].items():
         lines.append(
