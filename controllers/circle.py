@@ -56,14 +56,15 @@ class CircleController(Controller):
     @classmethod
     def check_config(cls, params, joints, robot):
         path = params.model or robot.model
+        where = "params.model" if params.model else "/robot.model"  # the key that named the file
         if path is None:
             return [("params.model", "no model: set params.model or [robot] model")]
         if not os.path.exists(path):
-            return [("params.model", f"file not found: {path}")]
+            return [(where, f"file not found: {path}")]
         try:
             names = model_names(str(path))
         except ValueError as exc:
-            return [("params.model", str(exc))]
+            return [(where, str(exc))]
         issues = []
         for i, site in enumerate(params.sites):
             if site not in names.sites:

@@ -100,14 +100,15 @@ class MujocoDriver(Driver):
         issues += unknown_joint_issues("options.kd", options.kd, joints)
         issues += unknown_joint_issues("options.joint_map", options.joint_map, joints)
         path = options.model or robot.model
+        where = "options.model" if options.model else "/robot.model"  # the key that named the file
         if path is None:
             return issues + [("options.model", "no model: set options.model or [robot] model")]
         if not os.path.exists(path):
-            return issues + [("options.model", f"file not found: {path}")]
+            return issues + [(where, f"file not found: {path}")]
         try:
             names = model_names(str(path))
         except ValueError as exc:
-            return issues + [("options.model", str(exc))]
+            return issues + [(where, str(exc))]
         for joint in joints:
             mjcf = options.joint_map.get(joint, joint)
             if mjcf not in names.joints:

@@ -298,3 +298,31 @@ def test_report_json_that_became_unwritable_during_the_run_loses_only_the_file(t
     gone.rmdir()
     with pytest.raises(ValueError, match="does not exist"):
         write_json({"ticks": 1}, gone / "report.json")
+
+
+# ---------------------------------------------------------------- configs that are not configs
+
+
+@pytest.mark.parametrize(
+    "make, reason",
+    [
+        (lambda tmp: Path("/dev/zero"), "larger than 1024 KiB"),
+        (lambda tmp: write(tmp, "# padding\n" * 110_000), "larger than 1024 KiB"),
+        (lambda tmp: write(tmp, "x = " + "[" * 50_000 + "]" * 50_000 + "\n"), "nest more than 32 levels"),
+        (lambda tmp: write(tmp, "x = " + "[" * 40 + "]" * 40 + "\n"), "nest more than 32 levels"),
+        (lambda tmp: write(tmp, "x = " + "{a = " * 40 + "1" + "}" * 40 + "\n"), "nest more than 32 levels"),
+    ],
+    ids=["dev-zero", "over-1-MiB", "50000-nested-arrays", "40-nested-arrays", "40-nested-tables"],
+)
+def test_check_refuses_a_file_too_big_or_too_deep(tmp_path, make, reason):
+    path = make(tmp_path)
+    # capped address space: a regression that reads /dev/zero to the end fails, not the machine
+    proc = subprocess.run(
+        [sys.executable, "-c", "import resource, sys, runpy; resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30)); "
+         "sys.argv = ['aiohal', 'check', sys.argv[1]]; runpy.run_module('aiohal', run_name='__main__')", str(path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert_no_traceback(proc)
+    assert issue_lines(proc.stderr) == [issue for issue in issue_lines(proc.stderr) if reason in issue]
+    assert len(issue_lines(proc.stderr)) == 1

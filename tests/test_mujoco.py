@@ -339,3 +339,11 @@ async def test_a_driver_whose_open_failed_closes_without_a_second_error(tmp_path
     driver.estop()
     await driver.close()  # open() never ran (or failed before its first line)
     assert driver.health()["sim_steps"] == 0
+
+
+def test_a_missing_robot_model_is_reported_once_at_the_key_that_names_it(tmp_path):
+    raw = tomllib.loads((CONFIGS / "kuka_lwr_sim.toml").read_text())
+    raw["robot"]["model"] = "models/nothere.xml"
+    with pytest.raises(ConfigError) as info:
+        parse_config(raw, base_dir=CONFIGS)
+    assert [str(i) for i in info.value.issues] == [f"robot.model: file not found: {CONFIGS / 'models/nothere.xml'}"]
