@@ -336,13 +336,18 @@ def cmd_schema(argv: Sequence[str]) -> int:
 def cmd_plugins(argv: Sequence[str]) -> int:
     p = argparse.ArgumentParser(prog="python -m aiohal plugins", description="List drivers and controllers.")
     p.parse_args(argv)
-    for kind in ("driver", "controller"):
+    tables = {
+        kind: [(spec, "ok" if error is None else f"unavailable: {error}") for spec, error in plugins.describe(kind)]
+        + [(spec, "ignored: a built-in has this name") for spec in plugins.shadowed(kind)]
+        for kind in ("driver", "controller")
+    }
+    rows = [row for table in tables.values() for row in table]
+    name_width = max(len(spec.name) for spec, _ in rows)
+    source_width = max(len(spec.source) for spec, _ in rows)
+    for kind, table in tables.items():
         print(f"{kind}s:")
-        for spec, error in plugins.describe(kind):
-            status = "ok" if error is None else f"unavailable: {error}"
-            print(f"  {spec.name:<12} {spec.source:<28} {status}")
-        for spec in plugins.shadowed(kind):
-            print(f"  {spec.name:<12} {spec.source:<28} ignored: a built-in has this name")
+        for spec, status in table:
+            print(f"  {spec.name:<{name_width}}  {spec.source:<{source_width}}  {status}")
     return 0
 
 

@@ -613,13 +613,18 @@ def json_schema() -> dict[str, Any]:
     props["driver"]["minItems"] = 1
     for kind, section_key, field_name in (("driver", "DriverSection", "options"), ("controller", "ControllerSection", "params")):
         clauses = []
+        names = []  # only the plugins that load: a broken one is no choice for a config
         for spec, error in plugins.describe(kind):
             if error is not None:
                 continue
             name = spec.name
             cls = plugins.load(kind, name)
             model = cls.Options if kind == "driver" else cls.Params
-            sub = model.model_json_schema(ref_template="#/$defs/{model}")
+            try:
+                sub = model.model_json_schema(ref_template="#/$defs/{model}")
+            except Exception:  # noqa: BLE001 - a plugin whose options have no JSON Schema: left out
+                continue
+            names.append(name)
             defs.update(sub.pop("$defs", {}))
             def_name = f"{kind}_{name}_{field_name}"
             defs[def_name] = sub
@@ -632,7 +637,7 @@ def json_schema() -> dict[str, Any]:
         # a model used directly as a top-level section is inlined in props, not in $defs
         section_schema = defs[section_key] if section_key in defs else props[kind]
         section_schema["allOf"] = clauses
-        section_schema["properties"]["type"]["enum"] = sorted(plugins.available(kind))
+        section_schema["properties"]["type"]["enum"] = sorted(names)
     return _finite_defaults({
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": "aiohal robot configuration",
