@@ -405,3 +405,16 @@ def test_shipped_arm_and_hand_config_moves_grasps_and_moves_again(tmp_path):
     (grasp,) = ctrl["hand_steps"]
     assert grasp["outcome"] == "object" and grasp["position"] == pytest.approx(0.6, abs=0.02)
     assert report["faults"] == [] and report["drivers"]["hand"]["hand"] == "ok"
+
+
+def test_hand_for_joint_finds_the_hand_each_joint_carries():
+    from aiohal.robot import JointSpec, Robot
+
+    joints = [JointSpec(name, i, -1.0, 1.0, 1.0, 10.0, 10.0) for i, name in enumerate(("l_wrist", "r_wrist", "neck"))]
+    robot = Robot("two_hands", joints, devices=[("left", "hand", "l_wrist"), ("right", "hand", "r_wrist")])
+    view = robot.controller_view()
+    for finder in (robot.hand_for_joint, view.hand_for_joint):
+        assert finder("l_wrist") is robot.hand["left"]
+        assert finder("r_wrist") is robot.hand["right"]
+        with pytest.raises(KeyError, match="no hand is carried by joint 'neck'"):
+            finder("neck")
