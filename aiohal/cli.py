@@ -128,7 +128,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="precision mode: wake US early and spin to each deadline (overrides realtime.spin_guard_us)")
     p.add_argument("--log-format", choices=("auto", "console", "json"), default="auto")
     p.add_argument("--report-json", type=Path, default=None, metavar="PATH", help="write the run report as JSON")
-    p.add_argument("--quiet", action="store_true", help="do not print the report")
+    p.add_argument("--quiet", action="store_true", help="print only warnings and errors: no report, no progress")
     p.add_argument("--version", action="version", version=f"aiohal {__version__}")
     return p
 
@@ -291,7 +291,7 @@ def cmd_run(argv: Sequence[str]) -> int:
         except ValueError as exc:
             print(f"error: --report-json: {exc}", file=sys.stderr)
             return 2
-    configure_logging(args.log_format)
+    configure_logging(args.log_format, logging.WARNING if args.quiet else logging.INFO)
     outcome = _Outcome()
     runner = asyncio.Runner(loop_factory=factory)
     try:

@@ -115,6 +115,7 @@ class ControlLoop:
         self._missed_before = 0
         self._warn = RateLimitedLogger(log)
         self._heap_frozen = False
+        self.event_loop = ""  # the event loop's implementation, set by run()
 
     # ------------------------------------------------------------ lifecycle
 
@@ -409,12 +410,17 @@ class ControlLoop:
         for slot in self.slots:
             slot.read_ns = slot.write_ns = slot.max_read_ns = slot.max_write_ns = 0
         self.state = "running"
+        self.event_loop = type(asyncio.get_running_loop()).__module__.partition(".")[0]  # asyncio or uvloop
         self._run_finished.clear()
         self.realtime = RealtimeState()
         try:
             if self.source.kind == "virtual":
                 # a virtual clock runs flat out: SCHED_FIFO would starve the machine (and be throttled)
-                self.realtime.warnings.append("virtual clock: real-time settings not applied")
+                rt = self.config.realtime
+                asked = [name for name, value in (("priority", rt.priority), ("lock_memory", rt.lock_memory),
+                                                  ("cpus", rt.cpus), ("spin_guard_us", rt.spin_guard_us)) if value]
+                if asked:  # by design, not a fault: a note, not a warning
+                    self.realtime.applied["not_applied"] = f"{', '.join(asked)} (virtual clock)"
             else:
                 self.realtime = apply_realtime(self.config.realtime)
             if self._heap_frozen:
@@ -613,6 +619,7 @@ class ControlLoop:
             "robot": self.robot.name,
             "joints": self.robot.dof,
             "clock": self.source.kind,
+            "event_loop": self.event_loop,
             **self._waits(),
             "overrun_policy": self.config.loop.overrun,
             "realtime": self.realtime.report() if self.realtime else {},

@@ -13,18 +13,45 @@ from typing import Any
 
 
 def _fmt(value: Any) -> str:
+    """A value as a person reads it: no Python reprs (None, [], {...}, True)."""
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
     if isinstance(value, float):
         if math.isnan(value):
             return "-"
         if 0 < abs(value) < 0.1:
             return f"{value:.3g}"
         return f"{value:,.2f}" if abs(value) < 1e6 else f"{value:.3g}"
+    if isinstance(value, dict):
+        return "(" + ", ".join(_item(k, v) for k, v in value.items()) + ")" if value else "none"
+    if isinstance(value, (list, tuple)):
+        return "; ".join(_fmt(v) for v in value) if value else "none"
     return str(value)
+
+
+#: key suffixes that carry a unit: ``sim_time_s`` reads "sim time 1.00 s"
+_UNITS = (("_rad_or_m", " rad or m"), ("_per_s", "/s"), ("_percent", " %"), ("_us", " µs"), ("_ms", " ms"),
+          ("_ns", " ns"), ("_hz", " Hz"), ("_rad", " rad"), ("_s", " s"), ("_m", " m"))
+
+
+def _item(key: str, value: Any) -> str:
+    unit = ""
+    for suffix, name in _UNITS:
+        if key.endswith(suffix) and len(key) > len(suffix):
+            key, unit = key[: -len(suffix)], name
+            break
+    shown = _fmt(value)
+    return f"{key.replace('_', ' ')} {shown}{unit if shown != '-' else ''}"
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 # the loop's own per-driver figures; anything else a driver's health() added is printed after them
 _DRIVER_KEYS = {"type", "status", "joints", "read_us_mean", "write_us_mean", "read_us_max", "write_us_max"}
-
 
 # what each safety level means, said as what happened to the robot
 _WORST = {"run": "ran normally", "hold": "went to hold", "estop": "EMERGENCY-STOPPED", "off": "never ran"}
@@ -41,12 +68,16 @@ def format_report(report: dict[str, Any]) -> str:
     lat, work = report["lateness_us"], report["work_us"]
     target, achieved = report["rate_hz_target"], report["rate_hz_achieved"]
     error_pct = (achieved - target) / target * 100 if target and not math.isnan(achieved) else float("nan")
+    achieved_text = "-" if math.isnan(achieved) else f"{achieved:.3f} Hz ({error_pct:+.4f} %)"
+    event_loop = f" on {report['event_loop']}" if report.get("event_loop") else ""
+    realtime = report.get("realtime", {})
     lines = [
-        f"aiohal run report: {report['robot']} ({report['joints']} joints, clock {report['clock']}, "
-        f"overrun policy {report['overrun_policy']})",
-        f"  rate         target {_fmt(target)} Hz, achieved {achieved:.3f} Hz ({error_pct:+.4f} %)",
-        f"  ticks        {report['ticks']} in {_fmt(report['duration_s'])} s, missed {report['missed_ticks']}, "
-        f"overruns {report['overruns']}",
+        f"aiohal run report: {report['robot']} ({_count(report['joints'], 'joint')}, clock {report['clock']}"
+        f"{event_loop}, overrun policy {report['overrun_policy']})",
+        f"  rate         target {_fmt(target)} Hz, achieved {achieved_text}",
+        f"  ticks        {report['ticks']} in {_fmt(report['duration_s'])} s; deadlines missed "
+        f"{report['missed_ticks']} (passed while a tick was late), ticks over the period {report['overruns']} "
+        "(work longer than one period)",
         f"  lateness µs  p50 {_fmt(lat['p50'])}  p99 {_fmt(lat['p99'])}  p99.9 {_fmt(lat['p999'])}  "
         f"max {_fmt(lat['max'])}",
         f"  drift        {_fmt(report['drift_us'])} µs",
@@ -56,20 +87,20 @@ def format_report(report: dict[str, Any]) -> str:
         + "  (p50/p99)",
         f"  cpu          {_fmt(report['cpu_percent'])} % of one core",
         "  realtime     "
-        + (", ".join(f"{k} {v}" for k, v in report.get("realtime", {}).items() if k != "warnings") or "none")
-        + "".join(f"\n  WARNING      {w}" for w in report.get("realtime", {}).get("warnings", [])),
-        f"  safety       {_safety(report)}  (stop: {report['stop_reason']})",
+        + (", ".join(_item(k, v) for k, v in realtime.items() if k != "warnings") or "none")
+        + "".join(f"\n  WARNING      {w}" for w in realtime.get("warnings", [])),
+        f"  safety       {_safety(report)}  (stop: {report['stop_reason'] or '-'})",
     ]
     for name, d in report["drivers"].items():
         lines.append(
-            f"  driver       {name} [{d['type']}] {d['status']}, {d['joints']} joints, "
+            f"  driver       {name} [{d['type']}] {d['status']}, {_count(d['joints'], 'joint')}, "
             f"read {_fmt(d['read_us_mean'])} µs, write {_fmt(d['write_us_mean'])} µs (mean)"
         )
-        health = [f"{k} {_fmt(v)}" for k, v in d.items() if k not in _DRIVER_KEYS and not isinstance(v, (dict, list))]
+        health = [_item(k, v) for k, v in d.items() if k not in _DRIVER_KEYS]
         if health:
             lines.append("               " + ", ".join(health))
     ctrl = report["controller"]
-    extra = ", ".join(f"{k} {_fmt(v)}" for k, v in ctrl.items() if k != "type")
+    extra = ", ".join(_item(k, v) for k, v in ctrl.items() if k != "type")
     lines.append(f"  controller   {ctrl['type']}" + (f": {extra}" if extra else ""))
     for fault in report["faults"]:
         lines.append(f"  FAULT        {fault['source']} in {fault['phase']} at tick {fault['tick']}: {fault['error']}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import stat
 import subprocess
 import sys
@@ -183,7 +184,7 @@ def test_short_virtual_run_writes_a_report(tmp_path):
     proc = run_cli("configs/mock_arm.toml", "--duration", "0.3", "--clock", "virtual", "--report-json", report_path)
     assert proc.returncode == 0, proc.stderr
     assert_no_traceback(proc)
-    assert proc.stdout.startswith("aiohal run report: mock_arm (7 joints, clock virtual, overrun policy skip)")
+    assert proc.stdout.startswith("aiohal run report: mock_arm (7 joints, clock virtual on asyncio, overrun policy skip)")
     assert "ticks        300 in " in proc.stdout
     report = json.loads(report_path.read_text())
     assert REPORT_KEYS <= set(report)
@@ -326,3 +327,45 @@ def test_check_refuses_a_file_too_big_or_too_deep(tmp_path, make, reason):
     assert_no_traceback(proc)
     assert issue_lines(proc.stderr) == [issue for issue in issue_lines(proc.stderr) if reason in issue]
     assert len(issue_lines(proc.stderr)) == 1
+
+
+# ---------------------------------------------------------------- the report reads right
+
+ONE_JOINT = """
+[robot]
+name = "one"
+
+[joints.j0]
+velocity = 2.0
+
+[[driver]]
+type = "mock"
+joints = ["j0"]
+
+[controller]
+type = "sine"
+"""
+
+
+@pytest.mark.parametrize("event_loop", ["asyncio", "uvloop"])
+def test_the_report_reads_as_plain_words_with_units(tmp_path, event_loop):
+    proc = run_cli(write(tmp_path, ONE_JOINT), "--duration", "0.2", "--clock", "virtual", "--loop", event_loop)
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout
+    assert f"(1 joint, clock virtual on {event_loop}," in out
+    assert "deadlines missed 0 (passed while a tick was late), ticks over the period" in out
+    assert "  safety       ran normally; at the end: drivers closed  (stop: duration reached)" in out
+    assert "WARNING" not in out  # nothing is wrong with a chosen virtual clock
+    assert re.search(r"controller   sine: tracking rms \S+ rad or m, tracking max \S+ rad or m$", out, re.M), out
+    assert "[mock] closed, 1 joint," in out
+    for repr_text in ("None", "[]", "{", "True", "False", "_"):  # no Python reprs, no raw keys
+        assert repr_text not in out.split("aiohal run report:")[1].replace("p99.9", ""), (repr_text, out)
+
+
+def test_quiet_prints_nothing_when_nothing_is_wrong(tmp_path):
+    report = tmp_path / "report.json"
+    proc = run_cli(write(tmp_path, ONE_JOINT), "--duration", "0.1", "--clock", "virtual", "--quiet",
+                   "--log-format", "json", "--report-json", report)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "" and proc.stderr == ""
+    assert json.loads(report.read_text())["ticks"] == 100
