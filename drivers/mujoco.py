@@ -37,7 +37,7 @@ from pydantic import Field
 
 from aiohal import kernel_call
 from aiohal.config import ConfigPath
-from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
+from aiohal.hal import Driver, JointValues, Options, did_you_mean, unknown_joint_issues
 
 from .mujoco_model import actuator_for_joints, joint_addresses, load_model, model_names, sensor_slice
 
@@ -58,6 +58,8 @@ class MujocoOptions(Options):
     kd: JointValues = Field(20.0, description="Velocity gain (N·m·s/rad), scalar or per joint.")
     gravity_compensation: bool = Field(True, description="Add qfrc_bias (gravity, Coriolis) to the torque.")
     initial_position: JointValues = Field(0.0, description="Start position, scalar or per joint.")
+    keyframe: str | None = Field(None, description="Start from this keyframe of the model (e.g. \"home\"); "
+                                 "initial_position, if given too, then sets the joints it names.")
     joint_map: dict[str, str] = Field(default_factory=dict, description="Config joint -> MJCF joint name.")
     sensors: dict[str, dict[str, str]] = Field(
         default_factory=dict, description="Device -> {field: MJCF sensor name}, to override the naming rule."
@@ -67,6 +69,11 @@ class MujocoOptions(Options):
 
 def _sensor_name(options: MujocoOptions, device: str, field: str, suffix: str) -> str:
     return options.sensors.get(device, {}).get(field, f"{device}_{suffix}")
+
+
+def _keyframes(path: str) -> list[str]:
+    model = load_model(path)
+    return [model.key(i).name for i in range(model.nkey)]
 
 
 def fit_timestep(model, period_s: float) -> int:
@@ -109,6 +116,12 @@ class MujocoDriver(Driver):
             names = model_names(str(path))
         except ValueError as exc:
             return issues + [(where, str(exc))]
+        if options.keyframe is not None:
+            keys = _keyframes(str(path))
+            if options.keyframe not in keys:
+                hint = did_you_mean(options.keyframe, keys)
+                issues.append(("options.keyframe", f'no keyframe "{options.keyframe}" in the model '
+                               f"{os.path.basename(path)}{hint or ' (it has: ' + (', '.join(keys) or 'none') + ')'}"))
         for joint in joints:
             mjcf = options.joint_map.get(joint, joint)
             if mjcf not in names.joints:
@@ -142,7 +155,18 @@ class MujocoDriver(Driver):
                                 np.where(limited, lo, -np.inf), np.where(limited, hi, np.inf)])
         self._index = np.array([self.qpos_adr, self.dof_adr, self.actuators], dtype=np.intp)  # qpos, dof, actuator
         self.tau = np.zeros(n)
-        start = np.clip(view.per_joint(opts.initial_position), view.position_min, view.position_max)
+        if opts.keyframe is not None:  # the whole model's pose (a floating base's too), then the overrides
+            mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key(opts.keyframe).id)
+            start = self.data.qpos[self.qpos_adr].copy()
+            if "initial_position" in opts.model_fields_set:
+                given = opts.initial_position
+                named = given if isinstance(given, dict) else dict.fromkeys(view.joint_names, given)
+                for i, joint in enumerate(view.joint_names):
+                    if joint in named:
+                        start[i] = named[joint]
+        else:
+            start = view.per_joint(opts.initial_position)
+        start = np.clip(start, view.position_min, view.position_max)
         self.data.qpos[self.qpos_adr] = start
         mujoco.mj_forward(self.model, self.data)
         self._bind_kernels()
