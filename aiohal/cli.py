@@ -308,6 +308,10 @@ def cmd_run(argv: Sequence[str]) -> int:
     return status
 
 
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def cmd_check(argv: Sequence[str]) -> int:
     p = argparse.ArgumentParser(prog="python -m aiohal check", description="Validate robot configurations.")
     p.add_argument("configs", type=Path, nargs="+")
@@ -320,8 +324,8 @@ def cmd_check(argv: Sequence[str]) -> int:
             _print_config_error(exc)
             status = 2
             continue
-        drivers = ", ".join(f"{d.name} ({d.type}, {len(d.joints)} joints)" for d in config.drivers)
-        print(f"{path}: ok: robot {config.robot.name}, {len(config.joints)} joints, drivers: {drivers}, "
+        drivers = ", ".join(f"{d.name} ({d.type}, {_count(len(d.joints), 'joint')})" for d in config.drivers)
+        print(f"{path}: ok: robot {config.robot.name}, {_count(len(config.joints), 'joint')}, drivers: {drivers}, "
               f"controller {config.controller.type} at {config.loop.rate_hz:g} Hz")
     return status
 

@@ -369,3 +369,72 @@ def test_quiet_prints_nothing_when_nothing_is_wrong(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == "" and proc.stderr == ""
     assert json.loads(report.read_text())["ticks"] == 100
+
+
+# ---------------------------------------------------------------- the simulators' command lines
+
+
+@pytest.mark.parametrize(
+    "module, args, message",
+    [
+        ("aiohal.drivers.hands.robotiq_sim", ["--port", "70000"], "argument --port: must be from 0 to 65535 (got 70000)"),
+        ("aiohal.drivers.hands.robotiq_sim", ["--port", "-1"], "argument --port: must be from 0 to 65535 (got -1)"),
+        ("aiohal.drivers.hands.robotiq_sim", ["--device-id", "300"], "argument --device-id: must be from 1 to 247"),
+        ("aiohal.drivers.hands.robotiq_sim", ["--object", "nan"], "argument --object: must be from 0 to 1 (got nan)"),
+        ("aiohal.drivers.hands.robotiq_sim", ["--activation-time", "-1"], "argument --activation-time: must be from 0"),
+        ("aiohal.drivers.ethercat.sim", ["--ifname", "an-interface-name-too-long"],
+         "argument --ifname: 'an-interface-name-too-long' is not an interface name"),
+        ("aiohal.drivers.ethercat.sim", ["--ifname", ""], "argument --ifname: '' is not an interface name"),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, list) else None,
+)
+def test_simulator_command_lines_refuse_bad_arguments(module, args, message):
+    proc = subprocess.run([sys.executable, "-m", module, *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=TIMEOUT)
+    assert proc.returncode == 2, proc.stderr
+    assert_no_traceback(proc)
+    assert message in proc.stderr.splitlines()[-1], proc.stderr
+
+
+def test_robotiq_sim_on_a_port_in_use_says_so(tmp_path):
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "aiohal.drivers.hands.robotiq_sim", "--port", str(port)],
+                              cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT)
+    assert proc.returncode == 1, proc.stderr
+    assert_no_traceback(proc)
+    assert proc.stderr.splitlines()[-1].startswith(f"error: cannot serve on 127.0.0.1:{port}: "), proc.stderr
+
+
+def test_readme_commands_run_with_the_python_that_has_aiohal():
+    # `python -m aiohal...` needs the Python aiohal is installed in: the README names .venv's
+    readme = (ROOT / "README.md").read_text()
+    commands = re.findall(r"([^\s`]*python3?) -m (aiohal[\w.]*)", readme)
+    assert commands
+    assert {python for python, _ in commands} == {".venv/bin/python"}, commands
+    for module in sorted({module for _, module in commands}):
+        proc = subprocess.run([sys.executable, "-m", module, "--help"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=TIMEOUT)
+        assert proc.returncode == 0, (module, proc.stderr)
+
+
+def test_pyproject_declares_its_license_as_spdx():
+    # a table or a License classifier makes setuptools warn on every install
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "MIT"
+    assert not [c for c in project["classifiers"] if c.startswith("License ::")]
+
+
+def test_make_bench_quick_exists_and_the_readme_says_how_long_bench_takes():
+    makefile = (ROOT / "Makefile").read_text()
+    recipe = re.search(r"^bench-quick:.*\n((?:\t.*\n)+)", makefile, re.M)
+    assert recipe, "no bench-quick target"
+    modules = re.findall(r"-m benchmarks\.(\w+)", recipe.group(1))
+    assert modules and all((ROOT / "benchmarks" / f"{m}.py").exists() for m in modules)
+    readme = (ROOT / "README.md").read_text()
+    assert "`make bench-quick`" in readme
+    assert re.search(r"`make bench` runs .* takes about half an\s+hour \(31 min", readme, re.S)
