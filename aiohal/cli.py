@@ -23,6 +23,7 @@ from pydantic import ValidationError
 from . import __version__, plugins
 from .config import Config, describe_validation_error, json_schema, load_config
 from .errors import AiohalError, ConfigError, ConfigIssue
+from .report import check_output_path, counted
 from .safety import SafetyLevel
 
 log = logging.getLogger("aiohal.cli")
@@ -176,11 +177,10 @@ def _loop_factory(name: str):
 
 
 class _Outcome:
-    """How a run ended, for cmd_run: its exit status, and whether to leave at once (a driver
-    was abandoned in close(): its thread may never finish, and waiting for it would hang)."""
+    """What cmd_run must know of how a run ended: whether to leave at once (an emergency stop
+    by a second signal, or a driver abandoned in close(): its thread may never finish)."""
 
     def __init__(self) -> None:
-        self.status = 0
         self.leave_now = False
 
 
@@ -284,8 +284,6 @@ def cmd_run(argv: Sequence[str]) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.report_json is not None:
-        from .report import check_output_path
-
         try:
             check_output_path(args.report_json, protect=(args.config,))
         except ValueError as exc:
@@ -308,10 +306,6 @@ def cmd_run(argv: Sequence[str]) -> int:
     return status
 
 
-def _count(n: int, noun: str) -> str:
-    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
-
-
 def cmd_check(argv: Sequence[str]) -> int:
     p = argparse.ArgumentParser(prog="python -m aiohal check", description="Validate robot configurations.")
     p.add_argument("configs", type=Path, nargs="+")
@@ -324,8 +318,8 @@ def cmd_check(argv: Sequence[str]) -> int:
             _print_config_error(exc)
             status = 2
             continue
-        drivers = ", ".join(f"{d.name} ({d.type}, {_count(len(d.joints), 'joint')})" for d in config.drivers)
-        print(f"{path}: ok: robot {config.robot.name}, {_count(len(config.joints), 'joint')}, drivers: {drivers}, "
+        drivers = ", ".join(f"{d.name} ({d.type}, {counted(len(d.joints), 'joint')})" for d in config.drivers)
+        print(f"{path}: ok: robot {config.robot.name}, {counted(len(config.joints), 'joint')}, drivers: {drivers}, "
               f"controller {config.controller.type} at {config.loop.rate_hz:g} Hz")
     return status
 

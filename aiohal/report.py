@@ -46,7 +46,8 @@ def _item(key: str, value: Any) -> str:
     return f"{key.replace('_', ' ')} {shown}{unit if shown != '-' else ''}"
 
 
-def _count(n: int, noun: str) -> str:
+def counted(n: int, noun: str) -> str:
+    """``1 joint``, ``7 joints``."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
@@ -72,7 +73,7 @@ def format_report(report: dict[str, Any]) -> str:
     event_loop = f" on {report['event_loop']}" if report.get("event_loop") else ""
     realtime = report.get("realtime", {})
     lines = [
-        f"aiohal run report: {report['robot']} ({_count(report['joints'], 'joint')}, clock {report['clock']}"
+        f"aiohal run report: {report['robot']} ({counted(report['joints'], 'joint')}, clock {report['clock']}"
         f"{event_loop}, overrun policy {report['overrun_policy']})",
         f"  rate         target {_fmt(target)} Hz, achieved {achieved_text}",
         f"  ticks        {report['ticks']} in {_fmt(report['duration_s'])} s; deadlines missed "
@@ -93,7 +94,7 @@ def format_report(report: dict[str, Any]) -> str:
     ]
     for name, d in report["drivers"].items():
         lines.append(
-            f"  driver       {name} [{d['type']}] {d['status']}, {_count(d['joints'], 'joint')}, "
+            f"  driver       {name} [{d['type']}] {d['status']}, {counted(d['joints'], 'joint')}, "
             f"read {_fmt(d['read_us_mean'])} µs, write {_fmt(d['write_us_mean'])} µs (mean)"
         )
         health = [_item(k, v) for k, v in d.items() if k not in _DRIVER_KEYS]
