@@ -27,10 +27,11 @@ def _reap_processes():
             proc.wait(timeout=10)
 
 
-def _start(tmp_path, *extra):
+def _start(tmp_path, *extra, config=CONFIGS / "mock_arm.toml"):
+    """The robot of ``config`` running in a process, once it logged that it runs."""
     report = tmp_path / "report.json"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "aiohal", str(CONFIGS / "mock_arm.toml"), "--log-format", "json",
+        [sys.executable, "-m", "aiohal", str(config), "--log-format", "json",
          "--report-json", str(report), *extra],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -72,18 +73,9 @@ def test_second_signal_forces_emergency_stop(tmp_path):
         'dynamics = "first_order"', 'dynamics = "first_order"\nfaults = { close_hangs = true }'
     )
     cfg.write_text(text)
-    report = tmp_path / "report.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "aiohal", str(cfg), "--log-format", "json", "--report-json", str(report)],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    _STARTED.append(proc)
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        line = proc.stderr.readline()
-        if not line or json.loads(line)["event"].startswith("running"):
-            break
+    proc, report, _ = _start(tmp_path, config=cfg)
     proc.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + 30
     while time.monotonic() < deadline:  # the first signal is handled before the second is sent
         line = proc.stderr.readline()
         if not line or "received: stopping" in line:
@@ -126,17 +118,7 @@ def test_two_signals_half_a_millisecond_apart_are_an_emergency_stop(tmp_path, cl
         text = text.replace('dynamics = "first_order"', 'dynamics = "first_order"\nfaults = { close_hangs = "thread" }')
         text = text.replace("rate_hz = 1000", "rate_hz = 1000\nclose_timeout_ms = 60000")  # longer than the test
     cfg.write_text(text)
-    report = tmp_path / "report.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "aiohal", str(cfg), "--log-format", "json", "--report-json", str(report)],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    _STARTED.append(proc)
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        line = proc.stderr.readline()
-        if not line or json.loads(line)["event"].startswith("running"):
-            break
+    proc, report, _ = _start(tmp_path, config=cfg)
     proc.send_signal(signal.SIGINT)
     time.sleep(0.0005)
     proc.send_signal(signal.SIGINT)
