@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed-dev
 CONFIG ?= configs/kuka_lwr_sim.toml
 ARGS ?= --duration 10
 
-.PHONY: run test check figures bench clean
+.PHONY: run test check figures bench bench-quick clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -43,6 +43,15 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.host_gaps --json bench-results/host_gaps.json
 	$(PY) -m benchmarks.tick_phase $$([ "$$(id -u)" = 0 ] && echo --fifo) --json bench-results/tick_phase.json
 	@if [ "$$(id -u)" = 0 ]; then $(PY) -m benchmarks.ethercat --json bench-results/ethercat.json; else echo "benchmarks.ethercat skipped: needs root"; fi
+
+# a few of the benchmarks, shortened: a first look in a few minutes (bench takes about 30)
+bench-quick: $(STAMP)
+	mkdir -p bench-results/quick
+	$(PY) -m benchmarks.tick --seconds 2 --json bench-results/quick/tick.json
+	$(PY) -m benchmarks.breakdown --seconds 2 --warmup 0.5 --json bench-results/quick/breakdown.json
+	$(PY) -m benchmarks.overhead --seconds 1 --warmup 0.5 --repeat 2 --json bench-results/quick/overhead.json
+	$(PY) -m benchmarks.robots --seconds 2 --json bench-results/quick/robots.json
+	$(PY) -m benchmarks.kernel_call --rounds 5 --json bench-results/quick/kernel_call.json
 
 figures: $(STAMP)
 	$(PY) -m pip install -q -e '.[plot]'

@@ -11,6 +11,8 @@ import argparse
 import asyncio
 import json
 import logging
+import math
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -21,6 +23,8 @@ from pydantic import ValidationError
 from . import __version__, plugins, run_outputs
 from .config import Config, describe_validation_error, json_schema, load_config
 from .errors import AiohalError, ConfigError, ConfigIssue
+from .report import check_output_path, counted
+from .safety import SafetyLevel
 
 log = logging.getLogger("aiohal.cli")
 
@@ -68,6 +72,47 @@ def _print_config_error(exc: ConfigError) -> None:
         print(f"  {issue}", file=sys.stderr)
 
 
+#: after a second signal, how long the emergency-stopped drivers may take to close
+FORCED_CLOSE_S = 0.05
+
+#: the longest --duration (about 31 years); to run for ever, leave --duration out
+MAX_DURATION_S = 1e9
+
+
+def _number(text: str, what: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number of {what} (got {text})")
+    return value
+
+
+def _duration(text: str) -> float:
+    value = _number(text, "seconds")
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0 s (got {text}); leave it out to run until stopped")
+    if value > MAX_DURATION_S:
+        raise argparse.ArgumentTypeError(
+            f"must be at most {MAX_DURATION_S:g} s (got {text}); leave it out to run until stopped")
+    return value
+
+
+def _rate(text: str) -> float:
+    value = _number(text, "Hz")
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be more than 0 Hz (got {text})")
+    return value
+
+
+def _spin_guard(text: str) -> float:
+    value = _number(text, "µs")
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more µs (got {text})")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m aiohal",
@@ -75,19 +120,32 @@ def _parser() -> argparse.ArgumentParser:
         "check CONFIG, schema, plugins.",
     )
     p.add_argument("config", type=Path, help="robot configuration (TOML)")
-    p.add_argument("--duration", type=float, default=None, help="seconds to run (default: until Ctrl-C/SIGTERM)")
-    p.add_argument("--rate", type=float, default=None, help="tick rate in Hz (overrides loop.rate_hz)")
+    p.add_argument("--duration", type=_duration, default=None, help="seconds to run (default: until Ctrl-C/SIGTERM)")
+    p.add_argument("--rate", type=_rate, default=None, help="tick rate in Hz (overrides loop.rate_hz)")
     p.add_argument("--clock", choices=("auto", "timerfd", "sleep", "virtual"), default=None,
                    help="wake source (overrides loop.clock)")
     p.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio", help="event loop implementation")
-    p.add_argument("--spin-guard-us", type=float, default=None, metavar="US",
+    p.add_argument("--spin-guard-us", type=_spin_guard, default=None, metavar="US",
                    help="precision mode: wake US early and spin to each deadline (overrides realtime.spin_guard_us)")
     p.add_argument("--log-format", choices=("auto", "console", "json"), default="auto")
     p.add_argument("--report-json", type=Path, default=None, metavar="PATH", help="write the run report as JSON")
-    p.add_argument("--quiet", action="store_true", help="do not print the report (nor the live status)")
+    p.add_argument("--quiet", action="store_true",
+                   help="print only warnings and errors: no report, no progress, no live status")
     run_outputs.add_arguments(p)
     p.add_argument("--version", action="version", version=f"aiohal {__version__}")
     return p
+
+
+def _override_error(exc: ValueError, section: str, option: str, config_path: Path) -> ConfigError:
+    """A command-line override the config models refuse, named by its option."""
+    if isinstance(exc, ValidationError):
+        issues = [
+            ConfigIssue(f"{option} ({section}." + ".".join(map(str, e["loc"])) + ")", describe_validation_error(e))
+            for e in exc.errors()
+        ]
+    else:
+        issues = [ConfigIssue(option, str(exc))]
+    return ConfigError(issues, str(config_path))
 
 
 def _apply_overrides(config: Config, args: argparse.Namespace) -> Config:
@@ -100,20 +158,14 @@ def _apply_overrides(config: Config, args: argparse.Namespace) -> Config:
         try:
             config = config.with_realtime(spin_guard_us=args.spin_guard_us)
         except ValueError as exc:  # pydantic's ValidationError is a ValueError too
-            raise ConfigError([ConfigIssue("realtime.spin_guard_us (command line)", str(exc).splitlines()[0])],
-                              str(args.config)) from None
+            raise _override_error(exc, "realtime", "--spin-guard-us", args.config) from None
     if not changes:
         return config
     try:
         return config.with_loop(**changes)
-    except ValidationError as exc:
-        issues = [
-            ConfigIssue("loop." + ".".join(map(str, e["loc"])) + " (command line)", describe_validation_error(e))
-            for e in exc.errors()
-        ]
-        raise ConfigError(issues, str(args.config)) from None
     except ValueError as exc:
-        raise ConfigError([ConfigIssue("loop.rate_hz (command line)", str(exc))], str(args.config)) from None
+        option = "--rate" if args.rate is not None else "--clock"
+        raise _override_error(exc, "loop", option, args.config) from None
 
 
 def _loop_factory(name: str):
@@ -126,64 +178,103 @@ def _loop_factory(name: str):
     return asyncio.new_event_loop
 
 
-async def _run(config: Config, args: argparse.Namespace) -> int:
-    from .loop import ControlLoop
-    from .report import format_report, write_json
+class _Outcome:
+    """What cmd_run must know of how a run ended: whether to leave at once (an emergency stop
+    by a second signal, or a driver abandoned in close(): its thread may never finish)."""
 
-    control = ControlLoop(config)
+    def __init__(self) -> None:
+        self.leave_now = False
+
+
+async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> int:
     loop = asyncio.get_running_loop()
     task = asyncio.current_task()
+    stage = "starting"  # -> running -> closing -> reporting: what a second signal interrupts
+    control = None
+    early: list[signal.Signals] = []  # signals before the robot was built: nothing to stop yet
 
     def on_signal(name: str) -> None:
+        if control is None:
+            early.append(signal.Signals[name])
+            return
         if not control.stop_requested:
             log.info("%s received: stopping", name)
             control.request_stop(name)
-        else:  # a second signal: stop the hardware now, abandon what is pending
-            log.warning("%s received again: emergency stop", name)
-            control.estop()
-            if task is not None:
-                task.cancel()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal, sig.name)
-
-    log.info("starting robot %s: %d joints, %d driver(s), controller %s at %.0f Hz",
-             config.robot.name, len(config.joints), len(config.drivers), config.controller.type, config.loop.rate_hz)
-    try:
-        await control.activate()
-    except AiohalError as exc:
-        log.error("bring-up failed: %s", exc)
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    except asyncio.CancelledError:  # a second signal while a driver was still opening
+            return
+        if outcome.leave_now:
+            return  # the emergency stop is done and reported once
+        # a second signal: stop the hardware now, abandon what is pending
+        log.warning("%s received again: emergency stop", name)
+        outcome.leave_now = True
+        control.stop_reason = f"{name} received twice: emergency stop"
         control.estop()
-        print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
-        return 1
-    outputs = run_outputs.RunOutputs(control, config, args)
-    outputs.start()
-    log.info("running%s; Ctrl-C or SIGTERM stops safely",
-             f" for {args.duration:g} s" if args.duration is not None else "")
+        control.record_fault("signal", stage, f"{name} received twice: every driver emergency-stopped")
+        if task is not None and stage != "reporting":
+            task.cancel()
+
+    # while the modules load, a plain handler notes a signal at once (the loop's would only
+    # run at the next await, after the robot was built)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: early.append(signal.Signals(signum)))
     try:
-        if not control.stop_requested:
-            await control.run(args.duration)
-    except asyncio.CancelledError:
-        control.stop_reason = "forced by a second signal"
-        control.record_fault("runtime", "run", "forced by a second signal: drivers emergency-stopped")
-    try:
-        await control.deactivate()
-    except asyncio.CancelledError:
-        control.record_fault("runtime", "close", "forced by a second signal: drivers emergency-stopped, not all closed")
+        from .loop import ControlLoop
+        from .report import format_report, write_json
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, on_signal, sig.name)
+        if early or (task is not None and task.cancelling()):  # Ctrl-C while starting: leave quietly
+            log.info("interrupted while starting: nothing was started")
+            return 128 + (early[0] if early else signal.SIGINT)
+        control = ControlLoop(config)
+        log.info("starting robot %s: %d joints, %d driver(s), controller %s at %.0f Hz",
+                 config.robot.name, len(config.joints), len(config.drivers), config.controller.type,
+                 config.loop.rate_hz)
+        try:
+            await control.activate()
+        except AiohalError as exc:
+            log.error("bring-up failed: %s", exc)
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        except asyncio.CancelledError:  # a second signal while a driver was still opening
+            print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
+            return 1
+        outputs = run_outputs.RunOutputs(control, config, args)
+        outputs.start()
+        log.info("running%s; Ctrl-C or SIGTERM stops safely",
+                 f" for {args.duration:g} s" if args.duration is not None else "")
+        stage = "running"
+        try:
+            if not control.stop_requested:
+                await control.run(args.duration)
+        except asyncio.CancelledError:
+            pass  # the second signal: recorded by its handler
+        stage = "closing"
+        try:
+            if outcome.leave_now:  # emergency-stopped: a moment to close, no waiting for a close() that hangs
+                await asyncio.wait_for(control.deactivate(), FORCED_CLOSE_S)
+            else:
+                await control.deactivate()
+        except (asyncio.CancelledError, TimeoutError):
+            control.record_fault("signal", "close", "drivers emergency-stopped, not all closed")
+        stage = "reporting"
+        outcome.leave_now |= any(slot.status == "abandoned" for slot in control.slots)
+        report = control.report()
+        report.update(outputs.close())
+        if not args.quiet:
+            print(format_report(report), flush=True)
+        status = 1 if control.faults or control.worst_level <= SafetyLevel.ESTOP else 0
+        if args.report_json is not None:
+            try:
+                write_json(report, args.report_json, protect=(args.config,))
+            except (OSError, ValueError) as exc:  # the path changed during the run
+                log.error("report not written: %s", exc)
+                print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
+                status = 1
+        log.info("stopped: %s", control.stop_reason)
+        return status
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
-    report = control.report()
-    report.update(outputs.close())
-    if not args.quiet:
-        print(format_report(report), flush=True)
-    if args.report_json is not None:
-        write_json(report, args.report_json)
-    log.info("stopped: %s", control.stop_reason)
-    return 1 if control.faults else 0
 
 
 def cmd_run(argv: Sequence[str]) -> int:
@@ -198,9 +289,27 @@ def cmd_run(argv: Sequence[str]) -> int:
     except AiohalError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    configure_logging(args.log_format)
-    with asyncio.Runner(loop_factory=factory) as runner:
-        return runner.run(_run(config, args))
+    if args.report_json is not None:
+        try:
+            check_output_path(args.report_json, protect=(args.config,))
+        except ValueError as exc:
+            print(f"error: --report-json: {exc}", file=sys.stderr)
+            return 2
+    configure_logging(args.log_format, logging.WARNING if args.quiet else logging.INFO)
+    outcome = _Outcome()
+    runner = asyncio.Runner(loop_factory=factory)
+    try:
+        status = runner.run(_run(config, args, outcome))
+    finally:
+        if outcome.leave_now:
+            # an emergency stop or an abandoned close(): every driver is stopped and the report
+            # is out; do not wait for threads that may never return (nor for a clean shutdown)
+            logging.shutdown()
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(1)
+        runner.close()
+    return status
 
 
 def cmd_check(argv: Sequence[str]) -> int:
@@ -215,8 +324,8 @@ def cmd_check(argv: Sequence[str]) -> int:
             _print_config_error(exc)
             status = 2
             continue
-        drivers = ", ".join(f"{d.name} ({d.type}, {len(d.joints)} joints)" for d in config.drivers)
-        print(f"{path}: ok: robot {config.robot.name}, {len(config.joints)} joints, drivers: {drivers}, "
+        drivers = ", ".join(f"{d.name} ({d.type}, {counted(len(d.joints), 'joint')})" for d in config.drivers)
+        print(f"{path}: ok: robot {config.robot.name}, {counted(len(config.joints), 'joint')}, drivers: {drivers}, "
               f"controller {config.controller.type} at {config.loop.rate_hz:g} Hz")
     return status
 
@@ -231,13 +340,18 @@ def cmd_schema(argv: Sequence[str]) -> int:
 def cmd_plugins(argv: Sequence[str]) -> int:
     p = argparse.ArgumentParser(prog="python -m aiohal plugins", description="List drivers and controllers.")
     p.parse_args(argv)
-    for kind in ("driver", "controller"):
+    tables = {
+        kind: [(spec, "ok" if error is None else f"unavailable: {error}") for spec, error in plugins.describe(kind)]
+        + [(spec, "ignored: a built-in has this name") for spec in plugins.shadowed(kind)]
+        for kind in ("driver", "controller")
+    }
+    rows = [row for table in tables.values() for row in table]
+    name_width = max(len(spec.name) for spec, _ in rows)
+    source_width = max(len(spec.source) for spec, _ in rows)
+    for kind, table in tables.items():
         print(f"{kind}s:")
-        for spec, error in plugins.describe(kind):
-            status = "ok" if error is None else f"unavailable: {error}"
-            print(f"  {spec.name:<12} {spec.source:<28} {status}")
-        for spec in plugins.shadowed(kind):
-            print(f"  {spec.name:<12} {spec.source:<28} ignored: a built-in has this name")
+        for spec, status in table:
+            print(f"  {spec.name:<{name_width}}  {spec.source:<{source_width}}  {status}")
     return 0
 
 

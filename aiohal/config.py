@@ -8,9 +8,9 @@ errors. Paths in a config are relative to the config file.
 
 from __future__ import annotations
 
-import difflib
 import fnmatch
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -19,9 +19,9 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
 
 from . import plugins
-from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
-from .hal import Options
 from .bridge import BridgeSection
+from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
+from .hal import Options, did_you_mean
 from .realtime import RealtimeSection
 from .record.options import RecordSection
 from .robot import JointSpec, Robot
@@ -152,6 +152,7 @@ SECTIONS: dict[str, Any] = {
     "bridge": BridgeSection,
 }
 REQUIRED_SECTIONS = ("joints", "driver")
+_GLOB = "*?["  # a driver's joints are names or fnmatch patterns
 
 
 # ---------------------------------------------------------------- the validated result
@@ -237,9 +238,9 @@ def describe_validation_error(err: dict[str, Any], allowed: list[str] | None = N
     if kind == "missing":
         return "required key is missing"
     if kind == "extra_forbidden":
-        key = str(err["loc"][-1])
-        close = difflib.get_close_matches(key, allowed or [], n=1)
-        return "unknown key" + (f' (did you mean "{close[0]}"?)' if close else "")
+        return "unknown key" + did_you_mean(str(err["loc"][-1]), allowed or [])
+    if isinstance(value, float) and not math.isfinite(value) and kind != "value_error":
+        return f"must be a finite number (got {value})"
     msg = err["msg"]
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, ") :]
@@ -247,6 +248,57 @@ def describe_validation_error(err: dict[str, Any], allowed: list[str] | None = N
     if isinstance(value, (str, int, float, bool)) and kind != "value_error":
         msg += f" (got {value!r})"
     return msg
+
+
+#: pydantic names the member of a union an error came from in its location
+#: (``frequency.float``, ``frequency.dict[str,float]``): not a key the user wrote
+_UNION_TAG = re.compile(r"^(float|int|str|bool|none|bytes)$|[\[(]|^(function-|constrained-|lax-|json-or-python)")
+#: errors that only say the value is of another member's kind
+_WRONG_KIND = {"float_type", "float_parsing", "int_type", "int_parsing", "int_from_float", "string_type",
+               "bool_type", "bool_parsing", "dict_type", "list_type", "tuple_type", "none_required",
+               "literal_error", "model_type", "path_type", "is_instance_of", "enum"}
+
+
+def _kind_of(tag: str) -> str:
+    if tag.startswith("literal["):
+        return " or ".join(f'"{v.strip()[1:-1]}"' if v.strip()[:1] in "'\"" else v.strip()
+                           for v in tag[len("literal["):-1].split(","))
+    named = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
+    for prefix, kind in (("dict[", "a table"), ("list[", "an array"), ("tuple[", "an array"), ("set[", "an array")):
+        if tag.startswith(prefix):
+            return kind
+    return named.get(tag, tag)
+
+
+def _collapse_unions(errors: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One error per value for a union: the errors of the member the value was meant for (a
+    table's bad entry), else one "must be a number or a table" line; union tags left out."""
+    out: list[dict[str, Any]] = []
+    groups: dict[tuple[Any, ...], list[tuple[str, dict[str, Any]]]] = {}
+    for err in errors:
+        loc = tuple(err["loc"])
+        at = next((i for i, part in enumerate(loc) if isinstance(part, str) and _UNION_TAG.search(part)), None)
+        if at is None:
+            out.append(err)
+            continue
+        clean = {**err, "loc": loc[:at] + tuple(p for p in loc[at + 1:] if not (isinstance(p, str) and _UNION_TAG.search(p)))}
+        if loc[:at] not in groups:
+            groups[loc[:at]] = []
+            out.append({"loc": loc[:at], "_group": True})  # keeps the order of the errors
+        groups[loc[:at]].append((loc[at], clean))
+    result: list[dict[str, Any]] = []
+    for err in out:
+        if not err.get("_group"):
+            result.append(err)
+            continue
+        members = groups[err["loc"]]
+        meant = [e for _, e in members if len(e["loc"]) > len(err["loc"]) or e["type"] not in _WRONG_KIND]
+        if meant:
+            result.extend(meant)
+        else:
+            kinds = " or ".join(dict.fromkeys(_kind_of(tag) for tag, _ in members))
+            result.append({"loc": err["loc"], "type": "union", "msg": f"must be {kinds}", "input": members[0][1].get("input")})
+    return result
 
 
 def _model_fields(model: Any, loc: tuple[Any, ...]) -> list[str] | None:
@@ -274,7 +326,7 @@ def _validate(
     try:
         return TypeAdapter(schema).validate_python(data, context=context)
     except ValidationError as exc:
-        for err in exc.errors():
+        for err in _collapse_unions(exc.errors()):
             loc = tuple(err["loc"])
             item_model = schema
             sub_loc = loc
@@ -291,15 +343,13 @@ def _validate(
 def _expand(patterns: list[str], names: tuple[str, ...], path: str, issues: list[ConfigIssue]) -> list[str]:
     out: list[str] = []
     for pattern in patterns:
-        if any(c in pattern for c in "*?["):
+        if any(c in pattern for c in _GLOB):
             matched = [n for n in names if fnmatch.fnmatchcase(n, pattern) and n not in out]
             if not matched:
                 issues.append(ConfigIssue(path, f'pattern "{pattern}" matches no joint'))
             out.extend(matched)
         elif pattern not in names:
-            close = difflib.get_close_matches(pattern, names, n=1)
-            hint = f' (did you mean "{close[0]}"?)' if close else ""
-            issues.append(ConfigIssue(path, f'unknown joint "{pattern}"{hint}'))
+            issues.append(ConfigIssue(path, f'unknown joint "{pattern}"{did_you_mean(pattern, names)}'))
         elif pattern in out:
             issues.append(ConfigIssue(path, f'joint "{pattern}" is listed twice'))
         else:
@@ -325,6 +375,13 @@ def _plugin_checks(cls: type, where: str, *args: Any) -> list[tuple[str, str]]:
         return [("", f"{cls.__name__}.check_config failed: {type(exc).__name__}: {exc}")]
 
 
+def _plugin_path(where: str, rel: str) -> str:
+    """A plugin check's path: relative to its section, or from the top when it starts with /."""
+    if rel.startswith("/"):
+        return rel[1:]
+    return f"{where}.{rel}" if rel else where
+
+
 def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Path | None = None) -> Config:
     """Validate a parsed TOML document; raises ConfigError listing every issue."""
     base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
@@ -335,8 +392,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
 
     for key in raw:
         if key not in SECTIONS:
-            close = difflib.get_close_matches(key, list(SECTIONS), n=1)
-            issues.append(ConfigIssue(key, "unknown section" + (f' (did you mean "{close[0]}"?)' if close else "")))
+            issues.append(ConfigIssue(key, "unknown section" + did_you_mean(key, SECTIONS)))
     for key in REQUIRED_SECTIONS:
         if key not in raw:
             issues.append(ConfigIssue(key, "required section is missing"))
@@ -365,25 +421,35 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     elif "joints" in raw and not raw_joints:
         issues.append(ConfigIssue("joints", "the robot needs at least one joint"))
     for name, body in raw_joints.items():
+        if not name.strip() or any(c in name for c in _GLOB):
+            issues.append(ConfigIssue(f'joints."{name}"', "a joint name must not be empty nor contain * ? [ "
+                                      "(drivers name their joints with those patterns)"))
         if not isinstance(body, dict):
             issues.append(ConfigIssue(f"joints.{name}", "must be a table"))
-            continue
-        joint = _validate(JointSection, {**default_values, **body}, f"joints.{name}", issues, context)
+            joint = None
+        else:
+            joint = _validate(JointSection, {**default_values, **body}, f"joints.{name}", issues, context)
         if joint is not None:
             lo, hi = joint.position
             joint_specs.append(
                 JointSpec(name, len(joint_specs), lo, hi, joint.velocity, joint.acceleration, joint.effort)
             )
+        else:  # reported above; the plugins still know its name, so nothing follows from it
+            joint_specs.append(JointSpec(name, len(joint_specs), -math.inf, math.inf, math.inf, math.inf, math.inf))
     joint_names = tuple(raw_joints)
 
     # devices
     devices = _validate(dict[str, DeviceSection], raw.get("devices", {}), "devices", issues, context) or {}
+    for dev_name in devices:
+        if not dev_name.strip():
+            issues.append(ConfigIssue('devices.""', "a device name must not be empty"))
     for dev_name, dev in devices.items():
         if dev.type == "hand":
             if dev.joint is None:
                 issues.append(ConfigIssue(f"devices.{dev_name}.joint", "a hand needs the joint that carries it"))
             elif dev.joint not in joint_names:
-                issues.append(ConfigIssue(f"devices.{dev_name}.joint", f'unknown joint "{dev.joint}"'))
+                issues.append(ConfigIssue(f"devices.{dev_name}.joint",
+                                          f'unknown joint "{dev.joint}"{did_you_mean(dev.joint, joint_names)}'))
         elif dev.joint is not None:
             issues.append(ConfigIssue(f"devices.{dev_name}.joint", f"only a hand is carried by a joint, not a {dev.type}"))
 
@@ -434,7 +500,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         dev_kinds: dict[str, str] = {}
         for dev_name in section.devices:
             if dev_name not in devices:
-                issues.append(ConfigIssue(f"{where}.devices", f'unknown device "{dev_name}"'))
+                issues.append(ConfigIssue(f"{where}.devices",
+                                          f'unknown device "{dev_name}"{did_you_mean(dev_name, devices)}'))
                 continue
             kind = devices[dev_name].type
             dev_kinds[dev_name] = kind
@@ -450,7 +517,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         if options is None:
             continue
         for rel, msg in _plugin_checks(cls, where, options, joints, dev_kinds, robot or RobotSection()):
-            issues.append(ConfigIssue(f"{where}.{rel}" if rel else where, msg))
+            issues.append(ConfigIssue(_plugin_path(where, rel), msg))
         drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options))
 
     if isinstance(raw.get("driver"), list) and not drivers_incomplete:  # raw_drivers is [] after a malformed section
@@ -470,7 +537,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
             params = _validate(cls.Params, section.params, "controller.params", issues, context)
             if params is not None:
                 for rel, msg in _plugin_checks(cls, "controller", params, tuple(joint_specs), robot or RobotSection()):
-                    issues.append(ConfigIssue(f"controller.{rel}" if rel else "controller", msg))
+                    issues.append(ConfigIssue(_plugin_path("controller", rel), msg))
                 controller = ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
 
     client = _validate(ClientSection, raw.get("client", {}), "client", issues, context)
@@ -489,8 +556,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         issues.append(ConfigIssue("controller.type", "the stream controller reads setpoints from shared memory: "
                                   "set [client] shm = true"))
 
-    if issues:
-        raise ConfigError(issues, str(path) if path else None)
+    if issues:  # each once: a scalar that is wrong for every joint is one mistake
+        raise ConfigError(list(dict.fromkeys(issues)), str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
     return Config(
         robot=robot,
@@ -508,17 +575,55 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     )
 
 
+#: the largest config file read (the largest shipped config is about 10 KiB); a device or a
+#: huge file is refused instead of read until memory runs out
+MAX_CONFIG_BYTES = 1 << 20
+#: how deeply tables and arrays may nest (the shipped configs use 4 levels)
+MAX_DEPTH = 32
+
+
+def _depth_exceeds(value: Any, limit: int) -> bool:
+    """Whether tables and arrays nest more than ``limit`` levels deep (without recursion)."""
+    stack = [(value, 0)]
+    while stack:
+        node, depth = stack.pop()
+        if isinstance(node, dict):
+            children = node.values()
+        elif isinstance(node, list):
+            children = node
+        else:
+            continue
+        if depth >= limit:
+            return True
+        stack.extend((child, depth + 1) for child in children)
+    return False
+
+
 def load_config(path: str | Path) -> Config:
     """Read and validate a robot TOML file."""
     path = Path(path)
+    source = str(path)
     try:
-        text = path.read_bytes().decode("utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError([ConfigIssue("", f"cannot read the file: {exc}")], str(path)) from None
+        with open(path, "rb") as f:
+            data = f.read(MAX_CONFIG_BYTES + 1)
+    except OSError as exc:
+        raise ConfigError([ConfigIssue("", f"cannot read the file: {exc}")], source) from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError([ConfigIssue("", f"the file is larger than {MAX_CONFIG_BYTES // 1024} KiB: "
+                                       "not a robot configuration")], source)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError([ConfigIssue("", f"cannot read the file: {exc}")], source) from None
+    too_deep = ConfigError([ConfigIssue("", f"tables or arrays nest more than {MAX_DEPTH} levels deep")], source)
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError([ConfigIssue("", f"invalid TOML: {exc}")], str(path)) from None
+        raise ConfigError([ConfigIssue("", f"invalid TOML: {exc}")], source) from None
+    except RecursionError:  # the parser recurses per nested array or inline table
+        raise too_deep from None
+    if _depth_exceeds(raw, MAX_DEPTH):
+        raise too_deep
     return parse_config(raw, base_dir=path.resolve().parent, path=path)
 
 
@@ -537,13 +642,18 @@ def json_schema() -> dict[str, Any]:
     props["driver"]["minItems"] = 1
     for kind, section_key, field_name in (("driver", "DriverSection", "options"), ("controller", "ControllerSection", "params")):
         clauses = []
+        names = []  # only the plugins that load: a broken one is no choice for a config
         for spec, error in plugins.describe(kind):
             if error is not None:
                 continue
             name = spec.name
             cls = plugins.load(kind, name)
             model = cls.Options if kind == "driver" else cls.Params
-            sub = model.model_json_schema(ref_template="#/$defs/{model}")
+            try:
+                sub = model.model_json_schema(ref_template="#/$defs/{model}")
+            except Exception:  # noqa: BLE001 - a plugin whose options have no JSON Schema: left out
+                continue
+            names.append(name)
             defs.update(sub.pop("$defs", {}))
             def_name = f"{kind}_{name}_{field_name}"
             defs[def_name] = sub
@@ -556,7 +666,7 @@ def json_schema() -> dict[str, Any]:
         # a model used directly as a top-level section is inlined in props, not in $defs
         section_schema = defs[section_key] if section_key in defs else props[kind]
         section_schema["allOf"] = clauses
-        section_schema["properties"]["type"]["enum"] = sorted(plugins.available(kind))
+        section_schema["properties"]["type"]["enum"] = sorted(names)
     return _finite_defaults({
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": "aiohal robot configuration",

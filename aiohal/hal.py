@@ -9,10 +9,12 @@ before anything starts.
 from __future__ import annotations
 
 import abc
+import difflib
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Annotated, Any, ClassVar
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from .robot import DriverView, JointSpec, RobotView
 
@@ -24,21 +26,45 @@ JointValues = FiniteFloat | dict[str, FiniteFloat]
 
 
 class Options(BaseModel):
-    """Base of every driver's options and controller's parameters: unknown keys are errors."""
+    """Base of every driver's options and controller's parameters: unknown keys are errors,
+    and so is NaN in any number field (it would pass or fail a bound by accident)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_nan(cls, value: Any) -> Any:
+        if isinstance(value, float) and math.isnan(value):
+            raise ValueError("must be a finite number (got nan)")
+        return value
 
 
 class NoOptions(Options):
     pass
 
 
+def did_you_mean(name: str, choices: Iterable[str]) -> str:
+    """`` (did you mean "a3"?)`` for the known name closest to ``name`` (same letters in
+    another case first), or an empty string."""
+    choices = list(choices)
+    same_case = [c for c in choices if c.casefold() == name.casefold()]
+    if same_case:
+        return f' (did you mean "{same_case[0]}"?)'
+    close = difflib.get_close_matches(name, choices, n=1)
+    # short names: one character off (a8 -> a3) is below difflib's cutoff; the first declared
+    typo = [c for c in choices if len(c) == len(name) and sum(a != b for a, b in zip(c, name)) == 1]
+    best = close or typo
+    return f' (did you mean "{best[0]}"?)' if best else ""
+
+
 def unknown_joint_issues(path: str, mapping: Any, allowed: Iterable[str]) -> list[tuple[str, str]]:
     """Issues for keys of a {joint: value} table that are not among ``allowed`` joints."""
     if not isinstance(mapping, Mapping):
         return []
-    allowed = set(allowed)
-    return [(f"{path}.{key}", f'unknown joint "{key}"') for key in mapping if key not in allowed]
+    allowed = list(allowed)
+    known = set(allowed)
+    return [(f"{path}.{key}", f'unknown joint "{key}"{did_you_mean(key, allowed)}')
+            for key in mapping if key not in known]
 
 
 class Driver(abc.ABC):
@@ -67,7 +93,8 @@ class Driver(abc.ABC):
         the ``[robot]`` section (its ``model`` path, resolved).
 
         Returns (path relative to the driver's entry, e.g. ``options.kp`` or ``joints``,
-        message) pairs; empty when all is well.
+        message) pairs; empty when all is well. A path that starts with ``/`` names a key
+        from the top of the file (``/robot.model``): where the user wrote the value.
         """
         return []
 
@@ -103,7 +130,8 @@ class Controller(abc.ABC):
     @classmethod
     def check_config(cls, params: Options, joints: Sequence[JointSpec], robot: Any) -> list[tuple[str, str]]:
         """Extra checks of params against the robot's joints, limits and ``[robot]`` section;
-        (path relative to ``[controller]``, e.g. ``params.pose``, message) pairs."""
+        (path relative to ``[controller]``, e.g. ``params.pose``, or from the top of the file
+        when it starts with ``/``, message) pairs."""
         return []
 
     def configure(self, robot: RobotView, params: Options) -> None:

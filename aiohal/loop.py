@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -93,6 +94,8 @@ class ControlLoop:
         self.multirate = (TargetExtrapolator(self.robot.command, self.period_s, every, config.controller.extrapolate)
                           if every > 1 else None)
         self.level = SafetyLevel.OFF
+        #: the most severe level since activate(): the report's "safety_worst"
+        self.worst_level = SafetyLevel.OFF
         self.faults: list[FaultRecord] = []
         self.slots: list[DriverSlot] = []
         self._active: list[DriverSlot] = []
@@ -114,6 +117,7 @@ class ControlLoop:
         self._warn = RateLimitedLogger(log)
         self._heap_frozen = False
         self.doors: Doors | None = None
+        self.event_loop = ""  # the event loop's implementation, set by run()
 
     # ------------------------------------------------------------ lifecycle
 
@@ -190,7 +194,7 @@ class ControlLoop:
         cmd.feedforward[:] = 0.0
         cmd.mode[cmd.mode == Mode.NONE] = Mode.POSITION
         self.limiter.reset(state.position)
-        self.level = SafetyLevel.RUN
+        self.level = self.worst_level = SafetyLevel.RUN
         self.state = "active"
         self._k_start = 0  # controller time counts from activation, across run() calls
         self._last_update_k = 0
@@ -280,6 +284,8 @@ class ControlLoop:
                 self.record_fault(f"driver:{slot.name}", "estop", exc)
         if self.level > SafetyLevel.ESTOP:
             self.level = SafetyLevel.ESTOP
+        if self.worst_level > SafetyLevel.ESTOP or self.worst_level == SafetyLevel.OFF:
+            self.worst_level = SafetyLevel.ESTOP
 
     def add_publisher(self, publish: Callable[[ControlLoop], None]) -> None:
         """Call ``publish(loop)`` at the end of every tick; it must not block."""
@@ -324,6 +330,7 @@ class ControlLoop:
             return
         log.warning("robot %s goes to hold: %s", self.robot.name, reason)
         self.level = SafetyLevel.HOLD
+        self.worst_level = min(self.worst_level, SafetyLevel.HOLD)
         old = self.controller
         if old is not None and old is not self._hold:
             try:
@@ -401,18 +408,25 @@ class ControlLoop:
         if self.state != "active":
             raise LifecycleError(f"run() in state {self.state!r}; use activate() or 'async with'")
         if duration is not None:
+            if not (duration > 0 and math.isfinite(duration * 1e9)):
+                raise ValueError(f"duration must be a finite number of seconds more than 0 (got {duration})")
             ticks = max(1, round(duration * 1e9 / self.period_ns))
         self._stop = False
         self.stop_reason = ""
         for slot in self.slots:
             slot.read_ns = slot.write_ns = slot.max_read_ns = slot.max_write_ns = 0
         self.state = "running"
+        self.event_loop = type(asyncio.get_running_loop()).__module__.partition(".")[0]  # asyncio or uvloop
         self._run_finished.clear()
         self.realtime = RealtimeState()
         try:
             if self.source.kind == "virtual":
                 # a virtual clock runs flat out: SCHED_FIFO would starve the machine (and be throttled)
-                self.realtime.warnings.append("virtual clock: real-time settings not applied")
+                rt = self.config.realtime
+                asked = [name for name, value in (("priority", rt.priority), ("lock_memory", rt.lock_memory),
+                                                  ("cpus", rt.cpus), ("spin_guard_us", rt.spin_guard_us)) if value]
+                if asked:  # by design, not a fault: a note, not a warning
+                    self.realtime.applied["not_applied"] = f"{', '.join(asked)} (virtual clock)"
             else:
                 self.realtime = apply_realtime(self.config.realtime)
             if self._heap_frozen:
@@ -611,6 +625,7 @@ class ControlLoop:
             "robot": self.robot.name,
             "joints": self.robot.dof,
             "clock": self.source.kind,
+            "event_loop": self.event_loop,
             **self._waits(),
             "overrun_policy": self.config.loop.overrun,
             "realtime": self.realtime.report() if self.realtime else {},
@@ -621,6 +636,7 @@ class ControlLoop:
             "duration_s": round(span, 4),
             **summary,
             "safety_level": self.level.name.lower(),
+            "safety_worst": self.worst_level.name.lower(),
             "stop_reason": self.stop_reason,
             "commands_refused": self.limiter.refused,
             "faults": [f.as_dict() for f in self.faults],

@@ -100,6 +100,25 @@ def _import_target(spec: PluginSpec) -> type:
     return obj
 
 
+def _check_class(spec: PluginSpec, obj: object) -> type:
+    """The target must be a Driver or Controller class with its options model: anything else
+    would only fail later, inside a config that uses it (``AttributeError: Options``)."""
+    from .hal import Controller, Driver, Options
+
+    base, model_attr = (Driver, "Options") if spec.kind == "driver" else (Controller, "Params")
+    where = f'{spec.kind} "{spec.name}": {spec.target}'
+    if not (isinstance(obj, type) and issubclass(obj, base)):
+        what = f"a {type(obj).__name__}" if not isinstance(obj, type) else f"the class {obj.__name__}"
+        raise PluginError(f"{where} is {what}, not a subclass of aiohal.{base.__name__}")
+    model = getattr(obj, model_attr, None)
+    if not (isinstance(model, type) and issubclass(model, Options)):
+        raise PluginError(f"{where}: its {model_attr} is not a subclass of aiohal.Options")
+    if getattr(obj, "__abstractmethods__", None):
+        missing = ", ".join(sorted(obj.__abstractmethods__))
+        raise PluginError(f"{where} does not implement {missing}")
+    return obj
+
+
 @lru_cache(maxsize=None)
 def load(kind: str, name: str) -> type:
     """The driver or controller class registered under ``name``."""
@@ -107,7 +126,7 @@ def load(kind: str, name: str) -> type:
     if name not in specs:
         known = ", ".join(sorted(specs)) or "none"
         raise PluginError(f'unknown {kind} "{name}" (available: {known})')
-    return _import_target(specs[name])
+    return _check_class(specs[name], _import_target(specs[name]))
 
 
 def describe(kind: str) -> list[tuple[PluginSpec, str | None]]:

@@ -2,36 +2,83 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import stat
+import tempfile
 from pathlib import Path
 from typing import Any
 
 
 def _fmt(value: Any) -> str:
+    """A value as a person reads it: no Python reprs (None, [], {...}, True)."""
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
     if isinstance(value, float):
         if math.isnan(value):
             return "-"
         if 0 < abs(value) < 0.1:
             return f"{value:.3g}"
         return f"{value:,.2f}" if abs(value) < 1e6 else f"{value:.3g}"
+    if isinstance(value, dict):
+        return "(" + ", ".join(_item(k, v) for k, v in value.items()) + ")" if value else "none"
+    if isinstance(value, (list, tuple)):
+        return "; ".join(_fmt(v) for v in value) if value else "none"
     return str(value)
+
+
+#: key suffixes that carry a unit: ``sim_time_s`` reads "sim time 1.00 s"
+_UNITS = (("_rad_or_m", " rad or m"), ("_per_s", "/s"), ("_percent", " %"), ("_us", " µs"), ("_ms", " ms"),
+          ("_ns", " ns"), ("_hz", " Hz"), ("_rad", " rad"), ("_s", " s"), ("_m", " m"))
+
+
+def _item(key: str, value: Any) -> str:
+    unit = ""
+    for suffix, name in _UNITS:
+        if key.endswith(suffix) and len(key) > len(suffix):
+            key, unit = key[: -len(suffix)], name
+            break
+    shown = _fmt(value)
+    return f"{key.replace('_', ' ')} {shown}{unit if shown != '-' else ''}"
+
+
+def counted(n: int, noun: str) -> str:
+    """``1 joint``, ``7 joints``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 # the loop's own per-driver figures; anything else a driver's health() added is printed after them
 _DRIVER_KEYS = {"type", "status", "joints", "read_us_mean", "write_us_mean", "read_us_max", "write_us_max"}
+
+# what each safety level means, said as what happened to the robot
+_WORST = {"run": "ran normally", "hold": "went to hold", "estop": "EMERGENCY-STOPPED", "off": "never ran"}
+_FINAL = {"off": "drivers closed", "estop": "drivers emergency-stopped", "hold": "holding", "run": "still running"}
+
+
+def _safety(report: dict[str, Any]) -> str:
+    worst = report.get("safety_worst", report["safety_level"])
+    final = report["safety_level"]
+    return f"{_WORST.get(worst, worst)}; at the end: {_FINAL.get(final, final)}"
 
 
 def format_report(report: dict[str, Any]) -> str:
     lat, work = report["lateness_us"], report["work_us"]
     target, achieved = report["rate_hz_target"], report["rate_hz_achieved"]
     error_pct = (achieved - target) / target * 100 if target and not math.isnan(achieved) else float("nan")
+    achieved_text = "-" if math.isnan(achieved) else f"{achieved:.3f} Hz ({error_pct:+.4f} %)"
+    event_loop = f" on {report['event_loop']}" if report.get("event_loop") else ""
+    realtime = report.get("realtime", {})
     lines = [
-        f"aiohal run report: {report['robot']} ({report['joints']} joints, clock {report['clock']}, "
-        f"overrun policy {report['overrun_policy']})",
-        f"  rate         target {_fmt(target)} Hz, achieved {achieved:.3f} Hz ({error_pct:+.4f} %)",
-        f"  ticks        {report['ticks']} in {_fmt(report['duration_s'])} s, missed {report['missed_ticks']}, "
-        f"overruns {report['overruns']}",
+        f"aiohal run report: {report['robot']} ({counted(report['joints'], 'joint')}, clock {report['clock']}"
+        f"{event_loop}, overrun policy {report['overrun_policy']})",
+        f"  rate         target {_fmt(target)} Hz, achieved {achieved_text}",
+        f"  ticks        {report['ticks']} in {_fmt(report['duration_s'])} s; deadlines missed "
+        f"{report['missed_ticks']} (passed while a tick was late), ticks over the period {report['overruns']} "
+        "(work longer than one period)",
         f"  lateness µs  p50 {_fmt(lat['p50'])}  p99 {_fmt(lat['p99'])}  p99.9 {_fmt(lat['p999'])}  "
         f"max {_fmt(lat['max'])}",
         f"  drift        {_fmt(report['drift_us'])} µs",
@@ -41,20 +88,20 @@ def format_report(report: dict[str, Any]) -> str:
         + "  (p50/p99)",
         f"  cpu          {_fmt(report['cpu_percent'])} % of one core",
         "  realtime     "
-        + (", ".join(f"{k} {v}" for k, v in report.get("realtime", {}).items() if k != "warnings") or "none")
-        + "".join(f"\n  WARNING      {w}" for w in report.get("realtime", {}).get("warnings", [])),
-        f"  safety       {report['safety_level']}  (stop: {report['stop_reason']})",
+        + (", ".join(_item(k, v) for k, v in realtime.items() if k != "warnings") or "none")
+        + "".join(f"\n  WARNING      {w}" for w in realtime.get("warnings", [])),
+        f"  safety       {_safety(report)}  (stop: {report['stop_reason'] or '-'})",
     ]
     for name, d in report["drivers"].items():
         lines.append(
-            f"  driver       {name} [{d['type']}] {d['status']}, {d['joints']} joints, "
+            f"  driver       {name} [{d['type']}] {d['status']}, {counted(d['joints'], 'joint')}, "
             f"read {_fmt(d['read_us_mean'])} µs, write {_fmt(d['write_us_mean'])} µs (mean)"
         )
-        health = [f"{k} {_fmt(v)}" for k, v in d.items() if k not in _DRIVER_KEYS and not isinstance(v, (dict, list))]
+        health = [_item(k, v) for k, v in d.items() if k not in _DRIVER_KEYS]
         if health:
             lines.append("               " + ", ".join(health))
     ctrl = report["controller"]
-    extra = ", ".join(f"{k} {_fmt(v)}" for k, v in ctrl.items() if k != "type")
+    extra = ", ".join(_item(k, v) for k, v in ctrl.items() if k != "type")
     lines.append(f"  controller   {ctrl['type']}" + (f": {extra}" if extra else ""))
     rec = report.get("record")
     if rec:
@@ -75,9 +122,59 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
-def write_json(report: dict[str, Any], path: str | Path) -> None:
-    """Write the report as strict JSON (NaN becomes null), atomically."""
+def check_output_path(path: str | Path, *, protect: tuple[Path, ...] = ()) -> Path:
+    """Where the report may go, checked before anything starts; ValueError says why not.
+
+    The report only ever replaces a regular file: a device, FIFO, symlink or directory at
+    ``path`` is left alone, and so is any file in ``protect`` (the config it came from).
+    """
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n")
-    tmp.replace(path)
+    if path.name in ("", ".", ".."):
+        raise ValueError(f"{path} is a directory, not a file name")
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        st = None
+    except OSError as exc:
+        raise ValueError(f"cannot use {path}: {exc.strerror}") from None
+    if st is not None:
+        if stat.S_ISLNK(st.st_mode):
+            raise ValueError(f"{path} is a symbolic link; give the file it points to, or a new name")
+        if stat.S_ISDIR(st.st_mode):
+            raise ValueError(f"{path} is a directory, not a file name")
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path} exists and is not a regular file (a device, FIFO or socket)")
+        for other in protect:
+            try:
+                if os.path.samefile(path, other):
+                    raise ValueError(f"{path} is the configuration file; the report would replace it")
+            except OSError:
+                continue
+    parent = path.parent
+    if not parent.is_dir():
+        raise ValueError(f"the directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"the directory {parent} is not writable")
+    return path
+
+
+def write_json(report: dict[str, Any], path: str | Path, *, protect: tuple[Path, ...] = ()) -> None:
+    """Write the report as strict JSON (NaN becomes null), atomically: through a temporary file
+    in the target's own directory, renamed over the target only if that is a regular file."""
+    path = check_output_path(path, protect=protect)
+    text = json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for the temporary file, not the report
+        check_output_path(path, protect=protect)  # nothing else took the name meanwhile
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise

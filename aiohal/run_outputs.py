@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import AiohalError, MissingDependencyError
+from .report import check_output_path
 
 log = logging.getLogger(__name__)
 
@@ -36,10 +37,10 @@ def check(config: Any, args: argparse.Namespace) -> None:
     """Refuse what cannot work before anything starts (the CLI exits 2)."""
     path = record_path(config, args)
     if path is not None:
-        if not path.parent.is_dir():
-            raise AiohalError(f"--record {path}: the folder {path.parent} does not exist")
-        if path.is_dir():
-            raise AiohalError(f"--record {path}: is a folder")
+        try:  # the same rule as the report: only ever replace a regular file, never the config
+            check_output_path(path, protect=(args.config,))
+        except ValueError as exc:
+            raise AiohalError(f"--record {path}: {exc}") from None
     if (path is not None or args.foxglove is not None) and importlib.util.find_spec("mcap") is None:
         raise MissingDependencyError("recording needs mcap: pip install 'aiohal[record]'")
     if args.foxglove is not None:

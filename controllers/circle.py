@@ -8,7 +8,13 @@ Each tick, damped-least-squares differential IK moves the *commanded* configurat
 ``dq = Jᵀ (J Jᵀ + λ² I)⁻¹ (ẋ_d + K (x_d - x(q*))) · dt``, clipped to the joint velocity
 limits and kept inside the joint ranges; the command is q* with velocity dq/dt. The circle's
 centre is the start position plus ``offset`` (by default the start lies on the circle), and
-the target ramps in from the start pose with a minimum-jerk blend over ``ramp`` seconds.
+the target ramps in from the start pose with a minimum-jerk blend over ``ramp`` seconds;
+``center`` places it in world coordinates instead.
+
+It says when it cannot do its job: at start, a circle farther from the first joint of a site's
+chain than the chain's links reach is an error, and a start pose whose Jacobian cannot move
+the site in the circle's plane is a warning (``start_warning`` in the report); while it runs,
+a tracking error above ``max_error_m`` is a fault (the loop holds the robot).
 
 The tracking error is measured on the robot: the site position computed from the *measured*
 joint positions against the target the previous command was made for. RMS and max after the
@@ -17,13 +23,14 @@ ramp are reported as ``rms_error_m`` and ``max_error_m``.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 from typing import Literal
 
 import mujoco
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from aiohal.config import ConfigPath
 from aiohal.hal import Controller, Options
@@ -31,7 +38,15 @@ from aiohal.robot import Mode
 
 from aiohal.mjcf import joint_addresses, load_model, model_names
 
+log = logging.getLogger(__name__)
+
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
+
+#: below this singular value (m/rad) of a site's Jacobian in the circle's plane, the start
+#: pose is singular: the IK's first steps go nowhere (a straight arm: 0)
+SINGULAR_M_PER_RAD = 1e-3
+
+Point = tuple[float, float, float]
 
 
 class CircleParams(Options):
@@ -39,14 +54,28 @@ class CircleParams(Options):
     radius: float = Field(0.1, gt=0, description="Circle radius (m).")
     period: float = Field(5.0, gt=0, description="Time for one turn (s).")
     plane: Literal["xy", "yz", "xz"] = Field("yz", description="Plane of the circle (world axes).")
-    offset: tuple[float, float, float] | None = Field(
+    offset: Point | None = Field(
         None, description="Centre minus start position (m); default: -radius along the plane's first axis."
+    )
+    center: Point | list[Point] | None = Field(
+        None, description="Centre in world coordinates (m), one for every site or one per site; instead of offset."
+    )
+    max_error_m: float = Field(
+        0.05, gt=0, description="Tracking error (m) above which the controller faults and the robot holds."
     )
     ramp: float = Field(1.0, ge=0, description="Blend from the start pose onto the circle (s).")
     damping: float = Field(0.02, gt=0, description="Damped least squares λ (m).")
     gain: float = Field(20.0, ge=0, description="Task-space feedback on the commanded pose (1/s).")
     joints: list[str] | None = Field(None, description="Joints the IK may move; default: every joint.")
     model: ConfigPath | None = Field(None, description="MJCF model; default: [robot] model.")
+
+    @model_validator(mode="after")
+    def _one_centre(self) -> CircleParams:
+        if self.offset is not None and self.center is not None:
+            raise ValueError("give center or offset, not both")
+        if isinstance(self.center, list) and len(self.center) != len(self.sites):
+            raise ValueError(f"center: {len(self.center)} points for {len(self.sites)} sites (one, or one per site)")
+        return self
 
 
 class CircleController(Controller):
@@ -56,14 +85,15 @@ class CircleController(Controller):
     @classmethod
     def check_config(cls, params, joints, robot):
         path = params.model or robot.model
+        where = "params.model" if params.model else "/robot.model"  # the key that named the file
         if path is None:
             return [("params.model", "no model: set params.model or [robot] model")]
         if not os.path.exists(path):
-            return [("params.model", f"file not found: {path}")]
+            return [(where, f"file not found: {path}")]
         try:
             names = model_names(str(path))
         except ValueError as exc:
-            return [("params.model", str(exc))]
+            return [(where, str(exc))]
         issues = []
         for i, site in enumerate(params.sites):
             if site not in names.sites:
@@ -128,9 +158,17 @@ class CircleController(Controller):
         self.q_cmd = robot.state.position.copy()  # IK integrates the commanded configuration
         self.x_start = np.zeros(3 * len(self.site_ids))
         site_positions = _kinematics(self)
-        site_positions(self.q_cmd, self.x_start, False)
-        offset = np.array(self.params.offset) if self.params.offset is not None else -self.params.radius * self.u
-        self.center = self.x_start + np.tile(offset, len(self.site_ids))
+        site_positions(self.q_cmd, self.x_start, True)  # the Jacobian too, for _check_start
+        params = self.params
+        if params.center is not None:
+            center = np.array(params.center, dtype=float)
+            self.center = np.tile(center, len(self.site_ids)) if center.ndim == 1 else center.ravel()
+        else:
+            offset = np.array(params.offset) if params.offset is not None else -params.radius * self.u
+            self.center = self.x_start + np.tile(offset, len(self.site_ids))
+        self.start_warning = _check_start(self)  # raises if a circle is out of reach
+        if self.start_warning:
+            log.warning("circle: %s", self.start_warning)
         self._error = [0.0, 0.0, 0]  # tracking: sum of squares, largest square, samples
         robot.command.mode[:] = Mode.POSITION
         robot.command.velocity[:] = 0.0
@@ -141,13 +179,57 @@ class CircleController(Controller):
 
     def metrics(self) -> dict:
         sum_sq, max_sq, samples = getattr(self, "_error", (0.0, 0.0, 0))
+        warning = {"start_warning": self.start_warning} if getattr(self, "start_warning", "") else {}
         if not samples:
-            return {"rms_error_m": None, "max_error_m": None, "samples": 0}
+            return {"rms_error_m": None, "max_error_m": None, "samples": 0, **warning}
         return {
             "rms_error_m": round(math.sqrt(sum_sq / samples), 6),
             "max_error_m": round(math.sqrt(max_sq), 6),
             "samples": samples,
+            **warning,
         }
+
+
+def _check_start(c: CircleController) -> str:
+    """Raise ValueError for a circle no pose can reach; a warning for a singular start pose.
+
+    Reach: along a site's chain of moving joints, the distance between consecutive joint
+    anchors does not change with the pose, so their sum (plus the site's distance from the last
+    anchor, plus the travel of slide joints) bounds how far from the first anchor the site gets.
+    Run once, before the first tick (its SVD may start BLAS's threads: not on the tick).
+    """
+    model, data, p = c.model, c.data, c.params
+    moving = {int(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, n)) for n in (p.joints or c.robot.joint_names)}
+    angles = np.linspace(0.0, 2.0 * math.pi, 73)
+    a, b = PLANES[p.plane]
+    warnings = []
+    for i, (name, sid) in enumerate(zip(p.sites, c.site_ids)):
+        chain = []  # moving joints from the site's body to the root
+        body = int(model.site_bodyid[sid])
+        while body > 0:
+            first = int(model.body_jntadr[body])
+            chain += [j for j in range(first + int(model.body_jntnum[body]) - 1, first - 1, -1) if j in moving]
+            body = int(model.body_parentid[body])
+        if not chain:
+            raise ValueError(f'site "{name}": no joint the circle may move carries it')
+        anchors = [data.xanchor[j] for j in reversed(chain)] + [data.site_xpos[sid]]
+        reach = sum(float(np.linalg.norm(q - r)) for r, q in zip(anchors, anchors[1:]))
+        reach += sum(float(np.ptp(model.jnt_range[j])) for j in chain if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE)
+        points = np.repeat(c.center[3 * i : 3 * i + 3][None, :], len(angles), axis=0)
+        points[:, a] += p.radius * np.cos(angles)
+        points[:, b] += p.radius * np.sin(angles)
+        farthest = float(np.linalg.norm(points - anchors[0], axis=1).max())
+        if farthest > reach + 1e-9:
+            joint = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, chain[-1])
+            raise ValueError(f'site "{name}": the circle comes {farthest:.3f} m from joint "{joint}", '
+                             f"farther than the chain reaches ({reach:.3f} m)")
+        in_plane = c.J[3 * i : 3 * i + 3][[a, b]]  # the site's Jacobian rows of the circle's axes
+        smallest = float(np.linalg.svd(in_plane, compute_uv=False).min())
+        if smallest < SINGULAR_M_PER_RAD:
+            warnings.append(f'site "{name}": the start pose is singular in the {p.plane} plane '
+                            f"(smallest singular value {smallest:.2g} m/rad); the circle may be tracked "
+                            "poorly: start from another pose (initial_position or keyframe)")
+    return "; ".join(warnings)
 
 
 # The tick's work is a closure over the controller's arrays, built once at start(): every
@@ -181,6 +263,7 @@ def _tick_function(c: CircleController, site_positions):
     """``update(t, dt)`` of a started controller."""
     p = c.params
     radius, omega, ramp, gain = p.radius, c.omega, p.ramp, p.gain
+    allowed_sq = p.max_error_m**2
     t0, center, x_start, U, V, reg = c.t0, c.center, c.x_start, c.U, c.V, c._reg
     J, A, w, dq, x, err, task, x_d, v_d, tmp = c.J, c._A, c._w, c._dq, c._x, c._err, c._task, c._x_d, c._v_d, c._tmp
     q_min, q_max, max_step, rows, q_cmd = c.q_min, c.q_max, c.max_step, c.rows, c.q_cmd
@@ -212,6 +295,8 @@ def _tick_function(c: CircleController, site_positions):
                     max_sq = e
             error[0], error[1] = sum_sq, max_sq
             error[2] += sites
+            if max_sq > allowed_sq:
+                raise RuntimeError(f"tracking error {math.sqrt(max_sq):.3f} m exceeds max_error_m {p.max_error_m:g} m")
         # target: x = centre + r(cos·U + sin·V),  v = rω(-sin·U + cos·V)
         phase = omega * elapsed
         c, s = cos(phase), sin(phase)

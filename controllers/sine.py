@@ -85,8 +85,8 @@ class SineController(Controller):
     def metrics(self) -> dict:
         sum_sq, largest, samples = getattr(self, "_error", (0.0, 0.0, 0.0))
         if not samples:
-            return {"tracking_rms": float("nan"), "tracking_max": float("nan")}
-        return {"tracking_rms": round(math.sqrt(sum_sq / samples), 6), "tracking_max": round(float(largest), 6)}
+            return {"tracking_rms_rad_or_m": float("nan"), "tracking_max_rad_or_m": float("nan")}
+        return {"tracking_rms_rad_or_m": round(math.sqrt(sum_sq / samples), 6), "tracking_max_rad_or_m": round(float(largest), 6)}
 
 
 def _tick_function(c: SineController):

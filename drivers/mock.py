@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import math
+import threading
 import time
 from typing import Literal
 
@@ -29,7 +30,9 @@ class MockFaults(Options):
     feedback_lost_at_tick: int | None = Field(None, ge=0, description="Stop updating state from this tick.")
     feedback_lost_for: int = Field(0, ge=0, description="Ticks without feedback; 0 = for good.")
     estop_error: bool = Field(False, description="Raise in estop() (to test isolation).")
-    close_hangs: bool = Field(False, description="close() never returns (to test a forced stop).")
+    close_hangs: bool | Literal["thread"] = Field(
+        False, description="close() never returns (to test a forced stop); \"thread\": it waits for ever on a "
+        "worker thread, as a blocking call in asyncio.to_thread would, which the process cannot join.")
 
 
 class MockOptions(Options):
@@ -210,7 +213,10 @@ class MockDriver(Driver):
             raise RuntimeError("injected estop error")
 
     async def close(self) -> None:
-        if self.options.faults.close_hangs:
+        hangs = self.options.faults.close_hangs
+        if hangs == "thread":
+            await asyncio.to_thread(threading.Event().wait)  # never set
+        elif hangs:
             await asyncio.get_running_loop().create_future()  # never resolved
         self.closed = True
 

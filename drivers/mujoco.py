@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -36,7 +37,7 @@ from pydantic import Field
 
 from aiohal import kernel_call
 from aiohal.config import ConfigPath
-from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
+from aiohal.hal import Driver, JointValues, Options, did_you_mean, unknown_joint_issues
 
 from aiohal.mjcf import actuator_for_joints, joint_addresses, load_model, model_names, sensor_slice
 
@@ -57,6 +58,8 @@ class MujocoOptions(Options):
     kd: JointValues = Field(20.0, description="Velocity gain (N·m·s/rad), scalar or per joint.")
     gravity_compensation: bool = Field(True, description="Add qfrc_bias (gravity, Coriolis) to the torque.")
     initial_position: JointValues = Field(0.0, description="Start position, scalar or per joint.")
+    keyframe: str | None = Field(None, description="Start from this keyframe of the model (e.g. \"home\"); "
+                                 "initial_position, if given too, then sets the joints it names.")
     joint_map: dict[str, str] = Field(default_factory=dict, description="Config joint -> MJCF joint name.")
     sensors: dict[str, dict[str, str]] = Field(
         default_factory=dict, description="Device -> {field: MJCF sensor name}, to override the naming rule."
@@ -68,10 +71,34 @@ def _sensor_name(options: MujocoOptions, device: str, field: str, suffix: str) -
     return options.sensors.get(device, {}).get(field, f"{device}_{suffix}")
 
 
+def _keyframes(path: str) -> list[str]:
+    model = load_model(path)
+    return [model.key(i).name for i in range(model.nkey)]
+
+
+def fit_timestep(model, period_s: float) -> int:
+    """Substeps per tick; when the tick period is not a whole number of the model's timesteps,
+    the timestep is shortened (never lengthened: that could make the model unstable) so that
+    a whole number of them fills the period, and the simulation keeps time with the ticks."""
+    timestep = model.opt.timestep
+    steps = period_s / timestep
+    substeps = max(1, round(steps))
+    if abs(steps - substeps) > 1e-6:
+        substeps = math.ceil(steps)
+        model.opt.timestep = period_s / substeps
+        log.info("tick period %g ms is not a whole number of model timesteps (%g ms): %d substep(s) of %g ms",
+                 period_s * 1e3, timestep * 1e3, substeps, model.opt.timestep * 1e3)
+    return substeps
+
+
 class MujocoDriver(Driver):
     Options = MujocoOptions
     device_kinds = frozenset({"imu", "force_torque"})
     options: MujocoOptions
+    # what close() and estop() look at, set before open() can fail half-way
+    _pending: asyncio.Future | None = None
+    _executor: ThreadPoolExecutor | None = None
+    _viewer = None
 
     @classmethod
     def check_config(cls, options, joints, devices, robot):
@@ -80,14 +107,21 @@ class MujocoDriver(Driver):
         issues += unknown_joint_issues("options.kd", options.kd, joints)
         issues += unknown_joint_issues("options.joint_map", options.joint_map, joints)
         path = options.model or robot.model
+        where = "options.model" if options.model else "/robot.model"  # the key that named the file
         if path is None:
             return issues + [("options.model", "no model: set options.model or [robot] model")]
         if not os.path.exists(path):
-            return issues + [("options.model", f"file not found: {path}")]
+            return issues + [(where, f"file not found: {path}")]
         try:
             names = model_names(str(path))
         except ValueError as exc:
-            return issues + [("options.model", str(exc))]
+            return issues + [(where, str(exc))]
+        if options.keyframe is not None:
+            keys = _keyframes(str(path))
+            if options.keyframe not in keys:
+                hint = did_you_mean(options.keyframe, keys)
+                issues.append(("options.keyframe", f'no keyframe "{options.keyframe}" in the model '
+                               f"{os.path.basename(path)}{hint or ' (it has: ' + (', '.join(keys) or 'none') + ')'}"))
         for joint in joints:
             mjcf = options.joint_map.get(joint, joint)
             if mjcf not in names.joints:
@@ -111,14 +145,7 @@ class MujocoDriver(Driver):
         names = [opts.joint_map.get(j, j) for j in view.joint_names]
         self.qpos_adr, self.dof_adr = joint_addresses(self.model, names)
         self.actuators = actuator_for_joints(self.model, names)
-        period_s = view.clock.period_ns * 1e-9
-        steps = period_s / self.model.opt.timestep
-        self.substeps = int(round(steps))
-        if self.substeps < 1 or abs(steps - self.substeps) > 1e-6:
-            raise ValueError(
-                f"the tick period {period_s * 1e3:g} ms is not a whole number of model timesteps "
-                f"({self.model.opt.timestep * 1e3:g} ms)"
-            )
+        self.substeps = fit_timestep(self.model, view.clock.period_ns * 1e-9)
         n = view.dof
         lo = self.model.actuator_ctrlrange[self.actuators, 0]
         hi = self.model.actuator_ctrlrange[self.actuators, 1]
@@ -128,7 +155,18 @@ class MujocoDriver(Driver):
                                 np.where(limited, lo, -np.inf), np.where(limited, hi, np.inf)])
         self._index = np.array([self.qpos_adr, self.dof_adr, self.actuators], dtype=np.intp)  # qpos, dof, actuator
         self.tau = np.zeros(n)
-        start = np.clip(view.per_joint(opts.initial_position), view.position_min, view.position_max)
+        if opts.keyframe is not None:  # the whole model's pose (a floating base's too), then the overrides
+            mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key(opts.keyframe).id)
+            start = self.data.qpos[self.qpos_adr].copy()
+            if "initial_position" in opts.model_fields_set:
+                given = opts.initial_position
+                named = given if isinstance(given, dict) else dict.fromkeys(view.joint_names, given)
+                for i, joint in enumerate(view.joint_names):
+                    if joint in named:
+                        start[i] = named[joint]
+        else:
+            start = view.per_joint(opts.initial_position)
+        start = np.clip(start, view.position_min, view.position_max)
         self.data.qpos[self.qpos_adr] = start
         mujoco.mj_forward(self.model, self.data)
         self._bind_kernels()

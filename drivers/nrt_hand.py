@@ -25,7 +25,7 @@ from aiohal.hal import Driver, Options
 from aiohal.pipe import NrtPeer
 from aiohal.robot import Fault
 
-from .hands.base import FAULT_NONE
+from .hands.base import FAULT_NONE, describe_fault
 from .hands.messages import HandCommandMsg, HandStateMsg
 
 SERVICE = "aiohal.drivers.hands.service:serve"
@@ -78,6 +78,8 @@ class NrtHandDriver(Driver):
         self._sent: tuple[float, float, float] | None = None
         self._sent_ns = 0
         self.lost_reason = ""
+        self.was_lost = ""  # the last loss, kept after the hand came back: the report says so
+        self.faults_seen: list[int] = []  # every fault code the hand reported, in order
         self._reported_code = FAULT_NONE
         self.state_msg: HandStateMsg | None = None
         deadline = time.monotonic() + opts.start_timeout_s
@@ -118,12 +120,16 @@ class NrtHandDriver(Driver):
         clock = view.clock
         if self._take_state():
             hand.mark_fresh(clock.tick, clock.now_ns)
-            self.lost_reason = ""  # fresh state again: a stall is over
+            if self.lost_reason:  # fresh state again: a stall is over
+                self.was_lost, self.lost_reason = self.lost_reason, ""
             code = self.state_msg.fault
             if code != self._reported_code:
                 self._reported_code = code
                 if code != FAULT_NONE:
-                    view.report_fault("read", f"hand {hand.name} reports fault code {code:#x}")
+                    if code not in self.faults_seen:
+                        self.faults_seen.append(code)
+                    view.report_fault("read", f"hand {hand.name} reports fault code "
+                                      f"{describe_fault(code, self.options.backend)}")
             bits = Fault.HARDWARE if code != FAULT_NONE else 0
         else:
             bits = self._age_fault(time.monotonic_ns())
@@ -161,6 +167,17 @@ class NrtHandDriver(Driver):
         if peer is not None:
             await asyncio.to_thread(peer.stop, 1.0)
 
+    def _hand_summary(self) -> str:
+        """"ok" only for a hand that never faulted nor went silent during the run."""
+        said = []
+        if self.lost_reason:
+            said.append(f"lost: {self.lost_reason}")
+        elif self.was_lost:
+            said.append(f"was lost ({self.was_lost}), then answered again")
+        if self.faults_seen:
+            said.append("faulted: " + ", ".join(describe_fault(c, self.options.backend) for c in self.faults_seen))
+        return "; ".join(said) or "ok"
+
     def health(self) -> dict:
         peer = getattr(self, "peer", None)
         if peer is None:
@@ -171,7 +188,7 @@ class NrtHandDriver(Driver):
             "pid": peer.pid,
             "alive": peer.alive(),
             "exitcode": peer.exitcode,
-            "hand": f"lost: {self.lost_reason}" if self.lost_reason else "ok",
+            "hand": self._hand_summary(),
             "hand_fault_code": None if msg is None else msg.fault,
             "pipe": dict(self.pipe.counters),
         }

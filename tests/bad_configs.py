@@ -156,7 +156,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "mock-initial-position-unknown-joint",
         GOOD + "\n[driver.options]\ninitial_position = { j1 = 0.5, j7 = 0.1 }\n",
-        ('driver[0].options.initial_position.j7: unknown joint "j7"',),
+        ('driver[0].options.initial_position.j7: unknown joint "j7" (did you mean "j0"?)',),
     ),
     BadConfig(
         "homing-pose-unknown-joint",
@@ -206,6 +206,75 @@ CASES: list[BadConfig] = [
         "driver-as-table",
         _replace("[[driver]]", "[driver]"),
         ("driver: must be an array of tables: write [[driver]]",),
+    ),
+    # numbers that are not numbers: one plain message
+    BadConfig("rate-nan", _replace("rate_hz = 1000", "rate_hz = nan"), ("loop.rate_hz: must be a finite number (got nan)",)),
+    BadConfig("rate-inf", _replace("rate_hz = 1000", "rate_hz = inf"), ("loop.rate_hz: must be a finite number (got inf)",)),
+    BadConfig(
+        "velocity-nan",
+        _replace("[joints.j1]\nposition = [-2.0, 2.0]\nvelocity = 2.0", "[joints.j1]\nposition = [-2.0, 2.0]\nvelocity = nan"),
+        ("joints.j1.velocity: must be a finite number (got nan)",),
+    ),
+    BadConfig(
+        "sine-ramp-nan",
+        GOOD + '\n[controller]\ntype = "sine"\n[controller.params]\nramp = nan\n',
+        ("controller.params.ramp: must be a finite number (got nan)",),
+    ),
+    # an error does not bring follow-on errors about what it broke
+    BadConfig(
+        "bad-velocity-has-no-follow-on",
+        _replace("[joints.j1]\nposition = [-2.0, 2.0]\nvelocity = 2.0", "[joints.j1]\nposition = [-2.0, 2.0]\nvelocity = -1")
+        + '\n[controller]\ntype = "sine"\n[controller.params]\namplitude = { j1 = 0.1 }\n',
+        ("joints.j1.velocity: input should be greater than 0 (got -1)",),
+    ),
+    # a union's value: no pydantic member names in the path, one line
+    BadConfig(
+        "sine-frequency-not-a-number",
+        GOOD + '\n[controller]\ntype = "sine"\n[controller.params]\nfrequency = "fast"\n',
+        ("controller.params.frequency: must be a number or a table (got 'fast')",),
+    ),
+    BadConfig(
+        "sine-frequency-nan",
+        GOOD + '\n[controller]\ntype = "sine"\n[controller.params]\nfrequency = nan\n',
+        ("controller.params.frequency: must be a finite number (got nan)",),
+    ),
+    BadConfig(
+        "sine-frequency-table-entry",
+        GOOD + '\n[controller]\ntype = "sine"\n[controller.params]\nfrequency = { j1 = "x" }\n',
+        ("controller.params.frequency.j1: input should be a valid number, unable to parse string as a number (got 'x')",),
+    ),
+    BadConfig(
+        "mock-fault-union",
+        GOOD + '\n[driver.options.faults]\nclose_hangs = "sometimes"\n',
+        ("driver[0].options.faults.close_hangs: must be true or false or \"thread\" (got 'sometimes')",),
+    ),
+    # each error once: a scalar that is wrong for every joint is one mistake
+    BadConfig(
+        "sine-negative-frequency-once",
+        GOOD + '\n[controller]\ntype = "sine"\n[controller.params]\nfrequency = -1.0\n',
+        ("controller.params.frequency: must be >= 0 (got -1.0)",),
+    ),
+    # did you mean, also for a name in another case
+    BadConfig(
+        "joint-in-another-case",
+        GOOD + '\n[controller]\ntype = "sine"\n[controller.params]\namplitude = { J1 = 0.1 }\n',
+        ('controller.params.amplitude.J1: unknown joint "J1" (did you mean "j1"?)',),
+    ),
+    BadConfig(
+        "driver-joint-one-letter-off",
+        _replace('joints = ["j0", "j1", "j2"]', 'joints = ["j0", "j1", "j8"]'),
+        ('driver[0].joints: unknown joint "j8" (did you mean "j0"?)', "joints.j2: no driver owns this joint"),
+    ),
+    BadConfig(
+        "hand-on-a-joint-in-another-case",
+        _replace('joints = ["j0", "j1", "j2"]', 'joints = ["j0", "j1", "j2"]\ndevices = ["gripper"]')
+        + '\n[devices.gripper]\ntype = "hand"\njoint = "J2"\n',
+        ('devices.gripper.joint: unknown joint "J2" (did you mean "j2"?)',),
+    ),
+    BadConfig(
+        "empty-joint-name",
+        GOOD.replace('[joints.j2]', '[joints.""]').replace('"j2"]', '"*"]'),
+        ('joints."": a joint name must not be empty nor contain * ? [ (drivers name their joints with those patterns)',),
     ),
 ]
 

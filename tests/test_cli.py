@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import re
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -119,16 +122,46 @@ def test_run_with_bad_config_exits_2_before_starting(tmp_path):
     assert not report.exists()
 
 
-def test_negative_rate_exits_2_naming_loop_rate_hz(tmp_path):
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("--rate", "-5"), "argument --rate: must be more than 0 Hz (got -5)"),
+        (("--rate", "nan"), "argument --rate: must be a finite number of Hz (got nan)"),
+        (("--rate", "inf"), "argument --rate: must be a finite number of Hz (got inf)"),
+        (("--duration", "nan"), "argument --duration: must be a finite number of seconds (got nan)"),
+        (("--duration", "inf"), "argument --duration: must be a finite number of seconds (got inf)"),
+        (("--duration", "1e300"), "argument --duration: must be at most 1e+09 s (got 1e300)"),
+        (("--duration", "-1"), "argument --duration: must be more than 0 s (got -1)"),
+        (("--duration", "0"), "argument --duration: must be more than 0 s (got 0)"),
+        (("--duration", "ten"), "argument --duration: 'ten' is not a number"),
+        (("--spin-guard-us", "-5"), "argument --spin-guard-us: must be 0 or more µs (got -5)"),
+        (("--spin-guard-us", "nan"), "argument --spin-guard-us: must be a finite number of µs (got nan)"),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, tuple) else "",
+)
+def test_bad_run_option_exits_2_naming_the_option(tmp_path, args, message):
     report = tmp_path / "report.json"
-    proc = run_cli("configs/mock_arm.toml", "--rate", "-5", "--duration", "0.1", "--report-json", report)
+    proc = run_cli("configs/mock_arm.toml", *args, "--report-json", report)
+    assert proc.returncode == 2
+    assert_no_traceback(proc)
+    assert message in proc.stderr.splitlines()[-1], proc.stderr
+    assert proc.stdout == ""
+    assert not report.exists()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (("--rate", "60000"), "--rate (loop.rate_hz): input should be less than or equal to 50000 (got 60000.0)"),
+        (("--rate", "0.01"), "--rate (loop.rate_hz): input should be greater than or equal to 0.1 (got 0.01)"),
+    ],
+)
+def test_run_option_out_of_the_config_range_exits_2_naming_the_option(args, message):
+    proc = run_cli("configs/mock_arm.toml", *args, "--duration", "0.1")
     assert proc.returncode == 2
     assert_no_traceback(proc)
     assert proc.stderr.splitlines()[0] == "configs/mock_arm.toml: invalid configuration (1 error(s)):"
-    (line,) = issue_lines(proc.stderr)
-    assert line.startswith("loop.rate_hz (command line): ")
-    assert "greater than or equal to 0.1" in line
-    assert not report.exists()
+    assert issue_lines(proc.stderr) == [message]
 
 
 def test_schema_prints_valid_json():
@@ -151,7 +184,7 @@ def test_short_virtual_run_writes_a_report(tmp_path):
     proc = run_cli("configs/mock_arm.toml", "--duration", "0.3", "--clock", "virtual", "--report-json", report_path)
     assert proc.returncode == 0, proc.stderr
     assert_no_traceback(proc)
-    assert proc.stdout.startswith("aiohal run report: mock_arm (7 joints, clock virtual, overrun policy skip)")
+    assert proc.stdout.startswith("aiohal run report: mock_arm (7 joints, clock virtual on asyncio, overrun policy skip)")
     assert "ticks        300 in " in proc.stdout
     report = json.loads(report_path.read_text())
     assert REPORT_KEYS <= set(report)
@@ -198,5 +231,210 @@ def test_spin_guard_from_the_command_line(tmp_path):
 
     proc = run_cli("configs/mock_arm.toml", "--duration", "0.2", "--spin-guard-us", "800")
     assert proc.returncode == 2
-    assert "realtime.spin_guard_us (command line)" in proc.stderr
+    assert issue_lines(proc.stderr) == ["--spin-guard-us: realtime.spin_guard_us 800 is more than half the period"]
     assert_no_traceback(proc)
+
+
+# ---------------------------------------------------------------- --report-json never destroys anything
+
+
+def _report_targets(tmp_path: Path) -> dict[str, tuple[Path, str]]:
+    """Paths the report must not replace, each with a word of the reason printed."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    kept = tmp_path / "kept.json"
+    kept.write_text("keep me\n")
+    link = tmp_path / "link.json"
+    link.symlink_to(kept)
+    config = tmp_path / "robot.toml"
+    config.write_text((ROOT / "configs" / "mock_arm.toml").read_text())
+    return {
+        "fifo": (fifo, "not a regular file"),
+        "symlink": (link, "symbolic link"),
+        "directory": (tmp_path, "directory"),
+        "directory-with-slash": (Path(f"{tmp_path}/"), "directory"),
+        "config": (config, "configuration file"),
+        "missing-directory": (tmp_path / "nowhere" / "report.json", "does not exist"),
+        "device": (tmp_path / "null", "not a regular file"),
+    }
+
+
+@pytest.mark.parametrize(
+    "target", ["fifo", "symlink", "directory", "directory-with-slash", "config", "missing-directory", "device"]
+)
+def test_report_json_refuses_what_it_would_destroy_before_starting(tmp_path, target):
+    if target == "device":  # a device of its own: a regression must not replace /dev/null
+        try:
+            os.mknod(tmp_path / "null", 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+        except PermissionError:
+            pytest.skip("making a device node needs root")
+    path, reason = _report_targets(tmp_path)[target]
+    config = tmp_path / "robot.toml"
+    before = {p.name: (p.lstat().st_mode, p.read_text() if p.is_file() else None) for p in tmp_path.iterdir()}
+    proc = run_cli(config, "--duration", "0.1", "--clock", "virtual", "--report-json", path)
+    assert proc.returncode == 2, proc.stderr
+    assert_no_traceback(proc)
+    assert proc.stderr.startswith("error: --report-json: ") and reason in proc.stderr, proc.stderr
+    assert "starting robot" not in proc.stderr and proc.stdout == ""  # nothing started
+    after = {p.name: (p.lstat().st_mode, p.read_text() if p.is_file() else None) for p in tmp_path.iterdir()}
+    assert after == before  # nothing replaced, no temporary file left
+    assert not Path(f"{tmp_path}.tmp").exists()
+
+
+def test_report_json_replaces_a_regular_file_through_its_own_directory(tmp_path):
+    report = tmp_path / "report.json"
+    report.write_text("old\n")
+    proc = run_cli("configs/mock_arm.toml", "--duration", "0.1", "--clock", "virtual", "--quiet",
+                   "--report-json", report)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(report.read_text())["ticks"] == 100
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report.json"]  # no temporary file left
+
+
+def test_report_json_that_became_unwritable_during_the_run_loses_only_the_file(tmp_path):
+    from aiohal.report import write_json
+
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    gone.rmdir()
+    with pytest.raises(ValueError, match="does not exist"):
+        write_json({"ticks": 1}, gone / "report.json")
+
+
+# ---------------------------------------------------------------- configs that are not configs
+
+
+@pytest.mark.parametrize(
+    "make, reason",
+    [
+        (lambda tmp: Path("/dev/zero"), "larger than 1024 KiB"),
+        (lambda tmp: write(tmp, "# padding\n" * 110_000), "larger than 1024 KiB"),
+        (lambda tmp: write(tmp, "x = " + "[" * 50_000 + "]" * 50_000 + "\n"), "nest more than 32 levels"),
+        (lambda tmp: write(tmp, "x = " + "[" * 40 + "]" * 40 + "\n"), "nest more than 32 levels"),
+        (lambda tmp: write(tmp, "x = " + "{a = " * 40 + "1" + "}" * 40 + "\n"), "nest more than 32 levels"),
+    ],
+    ids=["dev-zero", "over-1-MiB", "50000-nested-arrays", "40-nested-arrays", "40-nested-tables"],
+)
+def test_check_refuses_a_file_too_big_or_too_deep(tmp_path, make, reason):
+    path = make(tmp_path)
+    # capped address space: a regression that reads /dev/zero to the end fails, not the machine
+    proc = subprocess.run(
+        [sys.executable, "-c", "import resource, sys, runpy; resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30)); "
+         "sys.argv = ['aiohal', 'check', sys.argv[1]]; runpy.run_module('aiohal', run_name='__main__')", str(path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert_no_traceback(proc)
+    assert issue_lines(proc.stderr) == [issue for issue in issue_lines(proc.stderr) if reason in issue]
+    assert len(issue_lines(proc.stderr)) == 1
+
+
+# ---------------------------------------------------------------- the report reads right
+
+ONE_JOINT = """
+[robot]
+name = "one"
+
+[joints.j0]
+velocity = 2.0
+
+[[driver]]
+type = "mock"
+joints = ["j0"]
+
+[controller]
+type = "sine"
+"""
+
+
+@pytest.mark.parametrize("event_loop", ["asyncio", "uvloop"])
+def test_the_report_reads_as_plain_words_with_units(tmp_path, event_loop):
+    proc = run_cli(write(tmp_path, ONE_JOINT), "--duration", "0.2", "--clock", "virtual", "--loop", event_loop)
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout
+    assert f"(1 joint, clock virtual on {event_loop}," in out
+    assert "deadlines missed 0 (passed while a tick was late), ticks over the period" in out
+    assert "  safety       ran normally; at the end: drivers closed  (stop: duration reached)" in out
+    assert "WARNING" not in out  # nothing is wrong with a chosen virtual clock
+    assert re.search(r"controller   sine: tracking rms \S+ rad or m, tracking max \S+ rad or m$", out, re.M), out
+    assert "[mock] closed, 1 joint," in out
+    for repr_text in ("None", "[]", "{", "True", "False", "_"):  # no Python reprs, no raw keys
+        assert repr_text not in out.split("aiohal run report:")[1].replace("p99.9", ""), (repr_text, out)
+
+
+def test_quiet_prints_nothing_when_nothing_is_wrong(tmp_path):
+    report = tmp_path / "report.json"
+    proc = run_cli(write(tmp_path, ONE_JOINT), "--duration", "0.1", "--clock", "virtual", "--quiet",
+                   "--log-format", "json", "--report-json", report)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "" and proc.stderr == ""
+    assert json.loads(report.read_text())["ticks"] == 100
+
+
+# ---------------------------------------------------------------- the simulators' command lines
+
+
+@pytest.mark.parametrize(
+    "module, args, message",
+    [
+        ("aiohal.drivers.hands.robotiq_sim", ["--port", "70000"], "argument --port: must be from 0 to 65535 (got 70000)"),
+        ("aiohal.drivers.hands.robotiq_sim", ["--port", "-1"], "argument --port: must be from 0 to 65535 (got -1)"),
+        ("aiohal.drivers.hands.robotiq_sim", ["--device-id", "300"], "argument --device-id: must be from 1 to 247"),
+        ("aiohal.drivers.hands.robotiq_sim", ["--object", "nan"], "argument --object: must be from 0 to 1 (got nan)"),
+        ("aiohal.drivers.hands.robotiq_sim", ["--activation-time", "-1"], "argument --activation-time: must be from 0"),
+        ("aiohal.drivers.ethercat.sim", ["--ifname", "an-interface-name-too-long"],
+         "argument --ifname: 'an-interface-name-too-long' is not an interface name"),
+        ("aiohal.drivers.ethercat.sim", ["--ifname", ""], "argument --ifname: '' is not an interface name"),
+    ],
+    ids=lambda v: " ".join(v) if isinstance(v, list) else None,
+)
+def test_simulator_command_lines_refuse_bad_arguments(module, args, message):
+    proc = subprocess.run([sys.executable, "-m", module, *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=TIMEOUT)
+    assert proc.returncode == 2, proc.stderr
+    assert_no_traceback(proc)
+    assert message in proc.stderr.splitlines()[-1], proc.stderr
+
+
+def test_robotiq_sim_on_a_port_in_use_says_so(tmp_path):
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "aiohal.drivers.hands.robotiq_sim", "--port", str(port)],
+                              cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT)
+    assert proc.returncode == 1, proc.stderr
+    assert_no_traceback(proc)
+    assert proc.stderr.splitlines()[-1].startswith(f"error: cannot serve on 127.0.0.1:{port}: "), proc.stderr
+
+
+def test_readme_commands_run_with_the_python_that_has_aiohal():
+    # `python -m aiohal...` needs the Python aiohal is installed in: the README names .venv's
+    readme = (ROOT / "README.md").read_text()
+    commands = re.findall(r"([^\s`]*python3?) -m (aiohal[\w.]*)", readme)
+    assert commands
+    assert {python for python, _ in commands} == {".venv/bin/python"}, commands
+    for module in sorted({module for _, module in commands}):
+        proc = subprocess.run([sys.executable, "-m", module, "--help"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=TIMEOUT)
+        assert proc.returncode == 0, (module, proc.stderr)
+
+
+def test_pyproject_declares_its_license_as_spdx():
+    # a table or a License classifier makes setuptools warn on every install
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "MIT"
+    assert not [c for c in project["classifiers"] if c.startswith("License ::")]
+
+
+def test_make_bench_quick_exists_and_the_readme_says_how_long_bench_takes():
+    makefile = (ROOT / "Makefile").read_text()
+    recipe = re.search(r"^bench-quick:.*\n((?:\t.*\n)+)", makefile, re.M)
+    assert recipe, "no bench-quick target"
+    modules = re.findall(r"-m benchmarks\.(\w+)", recipe.group(1))
+    assert modules and all((ROOT / "benchmarks" / f"{m}.py").exists() for m in modules)
+    readme = (ROOT / "README.md").read_text()
+    assert "`make bench-quick`" in readme
+    assert re.search(r"`make bench` runs .* takes about half an\s+hour \(31 min", readme, re.S)

@@ -15,6 +15,7 @@ from aiohal.config import parse_config
 from aiohal.errors import ConfigError, DriverError
 from aiohal.loop import ControlLoop
 from aiohal.pipe import NrtPeer
+from aiohal.report import format_report
 from aiohal.robot import Fault
 from aiohal.drivers.hands.base import FAULT_BACKEND, HandError
 from aiohal.drivers.hands.messages import HandCommandMsg, HandStateMsg
@@ -365,7 +366,11 @@ async def test_robotiq_gripper_in_the_loop_grasps_then_reports_a_fault_and_a_los
     (grasp,) = report["controller"]["hand_steps"]
     assert grasp["outcome"] == "object" and grasp["position"] == pytest.approx(0.5, abs=0.01)
     errors = [f["error"] for f in report["faults"]]
-    assert any("reports fault code 0x10e" in e for e in errors), errors  # VENDOR_FAULT_BASE + 0xE
+    # VENDOR_FAULT_BASE + 0xE, with what it means
+    assert any("reports fault code 0x10e (Robotiq gFLT 0xE: overcurrent)" in e for e in errors), errors
+    (hand_health,) = [d for d in report["drivers"].values() if d["type"] == "nrt_hand"]
+    assert "faulted: 0x10e (Robotiq gFLT 0xE: overcurrent)" in hand_health["hand"]  # never "ok" after a fault
+    assert "hand ok" not in format_report(report)
     assert any("reports fault code 0x2" in e for e in errors), errors  # FAULT_COMMUNICATION: link lost
     assert final_fault & Fault.HARDWARE
     assert watch.first_ran[Fault.HARDWARE] >= 600  # no fault before the injected one
@@ -405,3 +410,16 @@ def test_shipped_arm_and_hand_config_moves_grasps_and_moves_again(tmp_path):
     (grasp,) = ctrl["hand_steps"]
     assert grasp["outcome"] == "object" and grasp["position"] == pytest.approx(0.6, abs=0.02)
     assert report["faults"] == [] and report["drivers"]["hand"]["hand"] == "ok"
+
+
+def test_hand_for_joint_finds_the_hand_each_joint_carries():
+    from aiohal.robot import JointSpec, Robot
+
+    joints = [JointSpec(name, i, -1.0, 1.0, 1.0, 10.0, 10.0) for i, name in enumerate(("l_wrist", "r_wrist", "neck"))]
+    robot = Robot("two_hands", joints, devices=[("left", "hand", "l_wrist"), ("right", "hand", "r_wrist")])
+    view = robot.controller_view()
+    for finder in (robot.hand_for_joint, view.hand_for_joint):
+        assert finder("l_wrist") is robot.hand["left"]
+        assert finder("r_wrist") is robot.hand["right"]
+        with pytest.raises(KeyError, match="no hand is carried by joint 'neck'"):
+            finder("neck")

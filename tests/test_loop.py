@@ -400,3 +400,14 @@ async def test_gc_default_leaves_the_collector_alone():
         async with virtual_loop(raw) as loop:
             await loop.run(ticks=5)
     assert seen.events == []
+
+
+@pytest.mark.parametrize("duration", [float("nan"), float("inf"), 1e300, 0.0, -1.0])
+@pytest.mark.asyncio
+async def test_run_refuses_a_duration_that_is_not_a_finite_positive_time(duration):
+    loop = virtual_loop(arm_raw(2))
+    async with loop:
+        with pytest.raises(ValueError, match="duration must be a finite number of seconds"):
+            await loop.run(duration)
+        report = await loop.run(ticks=10)  # nothing was broken by the refusal
+    assert report["ticks"] == 10 and report["faults"] == []

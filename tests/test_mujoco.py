@@ -6,6 +6,7 @@ faster than real time.
 
 from __future__ import annotations
 
+import re
 import tomllib
 
 import numpy as np
@@ -311,3 +312,127 @@ async def test_every_device_field_reads_its_own_sensor_when_another_driver_owns_
     extra = robot.device("extra_ft")
     assert list(extra.force) == [1.0, 2.0, 3.0] and list(extra.torque) == [4.0, 5.0, 6.0]
     assert np.linalg.norm(robot.device("l_ankle_ft").force) > 10.0  # a leg's weight: real sensor values
+
+
+@pytest.mark.parametrize("rate", [2000, 1500, 300])
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_any_rate_runs_the_model_in_step_with_the_ticks(rate):
+    # 1 ms model timestep: 0.5, 0.667 and 3.33 ms periods are not whole numbers of it, so the
+    # driver shortens the timestep to fill each period with whole substeps
+    config = load_config(CONFIGS / "kuka_lwr_sim.toml").with_loop(rate_hz=rate)
+    loop = lockstep(config)
+    async with loop:
+        report = await loop.run(ticks=100)
+        sim = loop.slots[0].driver
+        assert sim.model.opt.timestep <= 0.001
+        assert sim.substeps * sim.model.opt.timestep == pytest.approx(loop.period_s, rel=1e-12)
+    assert report["faults"] == []
+    assert report["drivers"]["sim"]["sim_time_s"] == pytest.approx(100 * loop.period_s, abs=2e-6)
+
+
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_a_driver_whose_open_failed_closes_without_a_second_error(tmp_path):
+    from aiohal.drivers.mujoco import MujocoDriver
+
+    config = load_config(CONFIGS / "kuka_lwr_sim.toml")
+    dc = config.drivers[0]
+    driver = MujocoDriver(dc.name, config.build_robot().driver_view(dc.joints), dc.options)
+    driver.estop()
+    await driver.close()  # open() never ran (or failed before its first line)
+    assert driver.health()["sim_steps"] == 0
+
+
+def test_a_missing_robot_model_is_reported_once_at_the_key_that_names_it(tmp_path):
+    raw = tomllib.loads((CONFIGS / "kuka_lwr_sim.toml").read_text())
+    raw["robot"]["model"] = "models/nothere.xml"
+    with pytest.raises(ConfigError) as info:
+        parse_config(raw, base_dir=CONFIGS)
+    assert [str(i) for i in info.value.issues] == [f"robot.model: file not found: {CONFIGS / 'models/nothere.xml'}"]
+
+
+# ---------------------------------------------------------------- the circle says when it cannot do its job
+
+
+def kuka_raw(**params):
+    raw = tomllib.loads((CONFIGS / "kuka_lwr_sim.toml").read_text())
+    raw["controller"]["params"].update(params)
+    return raw
+
+
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_a_circle_out_of_reach_is_an_error_at_start_naming_the_site_and_distance():
+    loop = lockstep(parse_config(kuka_raw(radius=2.0), base_dir=CONFIGS))
+    async with loop:
+        report = await loop.run(ticks=50)
+    [fault] = report["faults"]
+    assert fault["source"] == "controller:circle" and fault["phase"] == "start"
+    assert re.fullmatch(r'ValueError: site "ee": the circle comes \d\.\d{3} m from joint "a1", '
+                        r"farther than the chain reaches \(1\.068 m\)", fault["error"]), fault["error"]
+    assert report["safety_worst"] == "hold"  # the robot held its pose instead
+
+
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_a_singular_start_pose_is_a_warning_naming_the_site():
+    raw = kuka_raw()
+    del raw["driver"][0]["options"]["keyframe"]  # every joint at 0: the arm stands straight up
+    model = mujoco.MjModel.from_xml_path(str(CONFIGS / "models/kuka_lwr.xml"))
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    top = data.site("ee").xpos
+    raw["controller"]["params"]["center"] = [float(top[0]), float(top[1]), float(top[2]) - 0.15]  # within reach
+    loop = lockstep(parse_config(raw, base_dir=CONFIGS))
+    async with loop:
+        warning = loop.controller.start_warning
+    assert warning.startswith('site "ee": the start pose is singular in the yz plane (smallest singular value ')
+    assert "start from another pose (initial_position or keyframe)" in warning
+
+
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_a_tracking_error_over_its_bound_faults_and_holds():
+    loop = lockstep(parse_config(kuka_raw(max_error_m=1e-5), base_dir=CONFIGS))
+    async with loop:
+        report = await loop.run(ticks=2000)  # the 1 s ramp, then the bound applies
+    [fault] = report["faults"]
+    assert fault["phase"] == "update" and fault["tick"] > 1000
+    assert re.fullmatch(r"RuntimeError: tracking error 0\.\d{3} m exceeds max_error_m 1e-05 m", fault["error"])
+    assert report["controller"]["type"] == "hold"
+
+
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_an_absolute_center_draws_the_same_circle_as_its_offset():
+    config = load_config(CONFIGS / "kuka_lwr_sim.toml")
+    loop = lockstep(config)
+    async with loop:
+        start = loop.controller.x_start.copy()
+        by_offset = await loop.run(ticks=3000)
+        centre = loop.controller.center.copy()
+    np.testing.assert_allclose(centre, start + [0.0, -0.1, 0.0])  # the default offset: -radius along y
+    loop = lockstep(parse_config(kuka_raw(center=centre.tolist()), base_dir=CONFIGS))
+    async with loop:
+        by_center = await loop.run(ticks=3000)
+    assert by_center["controller"] == by_offset["controller"]
+
+
+def test_center_and_offset_together_are_refused():
+    with pytest.raises(ConfigError) as info:
+        parse_config(kuka_raw(center=[0.0, 0.0, 1.0], offset=[0.0, 0.1, 0.0]), base_dir=CONFIGS)
+    assert [str(i) for i in info.value.issues] == ["controller.params: give center or offset, not both"]
+
+
+@pytest.mark.asyncio(loop_factories=["asyncio"])
+async def test_a_keyframe_start_is_the_models_pose():
+    config = load_config(CONFIGS / "kuka_lwr_sim.toml")
+    assert config.drivers[0].options.keyframe == "home"
+    loop = lockstep(config)
+    async with loop:
+        np.testing.assert_allclose(loop.robot.state.position, [0, 0.5, 0, -1.2, 0, 0.8, 0])
+    raw = kuka_raw()
+    raw["driver"][0]["options"]["initial_position"] = {"a1": 0.25}  # on top of the keyframe
+    loop = lockstep(parse_config(raw, base_dir=CONFIGS))
+    async with loop:
+        np.testing.assert_allclose(loop.robot.state.position, [0.25, 0.5, 0, -1.2, 0, 0.8, 0])
+    raw["driver"][0]["options"]["keyframe"] = "hom"
+    with pytest.raises(ConfigError) as info:
+        parse_config(raw, base_dir=CONFIGS)
+    assert [str(i) for i in info.value.issues] == [
+        'driver[0].options.keyframe: no keyframe "hom" in the model kuka_lwr.xml (did you mean "home"?)']

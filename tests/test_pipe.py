@@ -40,7 +40,7 @@ from aiohal.pipe import (
     PipeTimeout,
     pipe_pair,
 )
-from conftest import require_root
+from conftest import NOT_HUNG_S, require_root
 
 
 class Grip(Message):
@@ -272,7 +272,7 @@ def test_capacity_full_pipe_and_loss_counted(pair):
     t0 = time.monotonic()
     with pytest.raises(PipeTimeout):
         nrt.send(Beat(), timeout=0.05)
-    assert 0.04 <= time.monotonic() - t0 < 2.5  # (the upper bound: a stall of the host, 1.3 s seen)
+    assert 0.04 <= time.monotonic() - t0 < NOT_HUNG_S
     assert issubclass(PipeTimeout, TimeoutError)
     assert nrt.counters["dropped_full"] == 1
     assert len(fast.receive_all()) == 32
@@ -467,7 +467,7 @@ def test_fast_side_with_a_slow_nrt_thread(peers, short_gil_slices):
     assert peer.fast.counters["dropped_full"] > 0  # the burst, and ~20 sends per 20 ms, into 8 places: sends fail fast
     t0 = time.monotonic()
     peer.stop(timeout=2.0)
-    assert time.monotonic() - t0 < 2.0 and not peer.alive()
+    assert time.monotonic() - t0 < NOT_HUNG_S and not peer.alive()
     assert peer.exitcode == 0 and peer.error is None
 
 
@@ -508,7 +508,7 @@ def test_stalled_nrt_thread_and_bounded_stop(peers, short_gil_slices):
     assert peer.fast.counters["dropped_full"] == 2 * peer.fast.capacity
     t0 = time.monotonic()
     peer.stop(timeout=0.1)  # the target never reads: stop gives up on the join, bounded
-    assert time.monotonic() - t0 < 2.5  # (not 0.1 s: a stall of the host, 1.3 s seen)
+    assert time.monotonic() - t0 < NOT_HUNG_S  # gave up on the join instead of waiting
     assert peer.alive() and peer.exitcode is None
     with pytest.raises(PipeError, match="cannot be killed"):
         peer.kill()
@@ -622,7 +622,7 @@ def test_stopped_subprocess_never_blocks_the_fast_side_and_stop_escalates(peers)
     assert peer.fast.peer_alive  # stalled is not dead
     t0 = time.monotonic()
     peer.stop(timeout=0.3)  # EOF is not read, SIGTERM stays pending on a stopped process: SIGKILL ends it
-    assert time.monotonic() - t0 < 3.0
+    assert time.monotonic() - t0 < NOT_HUNG_S
     assert peer.exitcode == -signal.SIGKILL
 
 

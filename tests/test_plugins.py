@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -47,6 +48,10 @@ class FakeController(Controller):
 
     def metrics(self):
         return {"fake": True}
+
+
+def helper():
+    """Not a plugin: a function registered by mistake."""
 '''
 
 ENTRY_POINTS = """\
@@ -54,9 +59,13 @@ ENTRY_POINTS = """\
 fake = fakehal_plugin:FakeDriver
 broken = fakehal_broken:Driver
 mock = fakehal_plugin:FakeDriver
+a_function = fakehal_plugin:helper
+options_not_driver = fakehal_plugin:FakeOptions
+a_driver_with_a_rather_long_name = fakehal_plugin:FakeDriver
 
 [aiohal.controllers]
 fakectl = fakehal_plugin:FakeController
+driver_as_controller = fakehal_plugin:FakeDriver
 """
 
 FAKE_CONFIG = """\
@@ -301,3 +310,54 @@ def test_load_is_cached(fresh_cache):
     first = plugins.load("controller", "sine")
     assert plugins.load("controller", "sine") is first
     assert plugins.load.cache_info().hits >= 1
+
+
+# ---------------------------------------------------------------- entry points that are not plugins
+
+
+NOT_PLUGINS = {
+    ("driver", "a_function"): "fakehal_plugin:helper is a function, not a subclass of aiohal.Driver",
+    ("driver", "options_not_driver"): "fakehal_plugin:FakeOptions is the class FakeOptions, not a subclass of aiohal.Driver",
+    ("controller", "driver_as_controller"): "fakehal_plugin:FakeDriver is the class FakeDriver, not a subclass of aiohal.Controller",
+}
+
+
+def test_an_entry_point_that_is_not_a_plugin_class_is_listed_unavailable(plugin_dir):
+    proc = run_cli("plugins", pythonpath=plugin_dir)
+    assert proc.returncode == 0, proc.stderr
+    drivers, controllers = proc.stdout.split("controllers:\n")
+    for (kind, name), reason in NOT_PLUGINS.items():
+        row = _row(drivers if kind == "driver" else controllers, name)
+        assert row.endswith(f'unavailable: {kind} "{name}": {reason}'), row
+    assert _row(drivers, "a_driver_with_a_rather_long_name").endswith(" ok")
+    # one table: the source and status columns start at the same place on every row
+    rows = [re.fullmatch(r"  \S+ +(built-in|entry point \(\S+\)) +(ok|unavailable: .*|ignored: .*)", line)
+            for line in proc.stdout.splitlines() if line.startswith("  ")]
+    assert all(rows), proc.stdout
+    assert len({m.start(1) for m in rows}) == 1 and len({m.start(2) for m in rows}) == 1, proc.stdout
+
+
+@pytest.mark.parametrize("kind, name", list(NOT_PLUGINS), ids=[n for _, n in NOT_PLUGINS])
+def test_a_config_using_a_non_plugin_entry_point_is_a_config_error(plugin_dir, tmp_path, kind, name):
+    config = tmp_path / "robot.toml"
+    text = FAKE_CONFIG.replace('type = "fake"', f'type = "{name}"').replace("[driver.options]\ngain = 2.5\n", "") \
+        if kind == "driver" else FAKE_CONFIG.replace('type = "fakectl"', f'type = "{name}"')
+    config.write_text(text)
+    proc = run_cli("check", config, pythonpath=plugin_dir)
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    where = "driver[0].type" if kind == "driver" else "controller.type"
+    assert f'  {where}: {kind} "{name}": {NOT_PLUGINS[kind, name]}' in proc.stderr.splitlines(), proc.stderr
+
+
+def test_schema_works_and_offers_only_loadable_plugins(plugin_dir):
+    proc = run_cli("schema", pythonpath=plugin_dir)
+    assert proc.returncode == 0, proc.stderr
+    schema = json.loads(proc.stdout)
+    driver_types = schema["$defs"]["DriverSection"]["properties"]["type"]["enum"]
+    controller_types = schema["properties"]["controller"]["properties"]["type"]["enum"]
+    assert "fake" in driver_types and "a_driver_with_a_rather_long_name" in driver_types
+    assert "fakectl" in controller_types
+    for kind, name in NOT_PLUGINS:
+        assert name not in driver_types + controller_types
+    assert "broken" not in driver_types  # a missing dependency: not a choice either

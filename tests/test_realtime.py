@@ -81,4 +81,12 @@ async def test_virtual_clock_never_applies_realtime_settings(monkeypatch):
     async with virtual_loop(raw) as loop:
         report = await loop.run(ticks=10)
     assert calls == []  # a flat-out virtual loop under SCHED_FIFO would starve the machine
-    assert report["realtime"]["warnings"] == ["virtual clock: real-time settings not applied"]
+    # chosen, so not a warning: a note of what was not applied
+    assert report["realtime"] == {"not_applied": "priority, lock_memory (virtual clock)", "warnings": []}
+
+
+@pytest.mark.asyncio
+async def test_virtual_clock_warns_nothing_when_nothing_was_asked():
+    async with virtual_loop(arm_raw(2)) as loop:
+        report = await loop.run(ticks=10)
+    assert report["realtime"]["warnings"] == []

@@ -17,7 +17,7 @@ import time
 
 import pytest
 
-from conftest import require_module
+from conftest import NOT_HUNG_S, require_module
 
 require_module("pymodbus")
 
@@ -171,7 +171,7 @@ def test_activation_that_never_completes_times_out(make_hand):
         start = time.monotonic()
         with pytest.raises(HandError) as info:
             hand.open()
-        assert time.monotonic() - start < 0.2 + 2 * TIMEOUT_S
+        assert 0.2 <= time.monotonic() - start < NOT_HUNG_S  # waited its timeout, then gave up
         assert info.value.code == FAULT_NOT_READY
         assert "did not complete within 0.2 s" in info.value.reason
 
@@ -301,7 +301,7 @@ def test_a_lost_connection_raises_then_reconnects(sim, make_hand):
     start = time.monotonic()
     with pytest.raises(HandError) as info:
         hand.read()
-    assert time.monotonic() - start < 2 * TIMEOUT_S
+    assert time.monotonic() - start < NOT_HUNG_S
     assert info.value.code == FAULT_COMMUNICATION
     assert "connection lost" in info.value.reason
     with pytest.raises(HandError) as info:
@@ -331,7 +331,7 @@ def test_a_silent_peer_times_out():
             elapsed = time.monotonic() - start
         finally:
             hand.close()  # the failed request dropped the link: no stop is sent
-    assert 0.15 <= elapsed < 2.5  # bounded: the timeout plus whatever a stall of the host adds (up to ~1 s in CI)
+    assert 0.15 <= elapsed < NOT_HUNG_S  # the 0.2 s timeout (less a coarse clock), then it gave up
     assert info.value.code == FAULT_COMMUNICATION
     assert "no valid response within 0.2 s" in info.value.reason
 

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from conftest import CONFIGS, ROOT
+from conftest import CONFIGS, NOT_HUNG_S, ROOT
 
 
 _STARTED: list[subprocess.Popen] = []
@@ -27,10 +27,11 @@ def _reap_processes():
             proc.wait(timeout=10)
 
 
-def _start(tmp_path, *extra):
+def _start(tmp_path, *extra, config=CONFIGS / "mock_arm.toml"):
+    """The robot of ``config`` running in a process, once it logged that it runs."""
     report = tmp_path / "report.json"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "aiohal", str(CONFIGS / "mock_arm.toml"), "--log-format", "json",
+        [sys.executable, "-m", "aiohal", str(config), "--log-format", "json",
          "--report-json", str(report), *extra],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -72,18 +73,9 @@ def test_second_signal_forces_emergency_stop(tmp_path):
         'dynamics = "first_order"', 'dynamics = "first_order"\nfaults = { close_hangs = true }'
     )
     cfg.write_text(text)
-    report = tmp_path / "report.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "aiohal", str(cfg), "--log-format", "json", "--report-json", str(report)],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    _STARTED.append(proc)
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        line = proc.stderr.readline()
-        if not line or json.loads(line)["event"].startswith("running"):
-            break
+    proc, report, _ = _start(tmp_path, config=cfg)
     proc.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + 30
     while time.monotonic() < deadline:  # the first signal is handled before the second is sent
         line = proc.stderr.readline()
         if not line or "received: stopping" in line:
@@ -94,7 +86,7 @@ def test_second_signal_forces_emergency_stop(tmp_path):
     assert proc.returncode == 1  # the run ended with a fault: not every driver closed
     assert data["drivers"]["arm"]["estops"] >= 1
     assert data["drivers"]["arm"]["status"] in ("open", "abandoned")  # honest: close() never finished
-    assert any("second signal" in f["error"] or "did not return" in f["error"] for f in data["faults"])
+    assert any("SIGINT received twice" in f["error"] for f in data["faults"])
     assert "Traceback" not in err
 
 
@@ -116,3 +108,52 @@ def test_a_close_that_hangs_is_abandoned_after_its_timeout(tmp_path):
     assert data["drivers"]["arm"]["estops"] == 1
     [fault] = data["faults"]
     assert fault["phase"] == "close" and "did not return within 0.3 s" in fault["error"]
+
+
+@pytest.mark.parametrize("close_hangs", [False, "thread"], ids=["closes", "close-hangs-in-a-thread"])
+def test_two_signals_half_a_millisecond_apart_are_an_emergency_stop(tmp_path, close_hangs):
+    cfg = tmp_path / "arm.toml"
+    text = (CONFIGS / "mock_arm.toml").read_text()
+    if close_hangs:  # a close() whose worker thread never returns: the process must not wait for it
+        text = text.replace('dynamics = "first_order"', 'dynamics = "first_order"\nfaults = { close_hangs = "thread" }')
+        text = text.replace("rate_hz = 1000", "rate_hz = 1000\nclose_timeout_ms = 60000")  # longer than the test
+    cfg.write_text(text)
+    proc, report, _ = _start(tmp_path, config=cfg)
+    proc.send_signal(signal.SIGINT)
+    time.sleep(0.0005)
+    proc.send_signal(signal.SIGINT)
+    second = time.monotonic()
+    out, err = proc.communicate(timeout=NOT_HUNG_S + 5)
+    exited_after = time.monotonic() - second
+    assert proc.returncode == 1, err  # an emergency stop is never a success
+    assert "Traceback" not in err
+    data = json.loads(report.read_text())
+    assert data["drivers"]["arm"]["estops"] >= 1
+    assert data["safety_worst"] == "estop"
+    assert any("SIGINT received twice" in f["error"] for f in data["faults"])
+    assert "FAULT        signal" in out and "EMERGENCY-STOPPED" in out
+    # it waits neither for the close (60 s timeout) nor for its thread (never); 28-46 ms here
+    assert exited_after < NOT_HUNG_S
+
+
+@pytest.mark.parametrize("module", ["pydantic", "numpy", "aiohal.loop"])
+def test_ctrl_c_while_starting_exits_130_without_a_traceback(module):
+    # the SIGINT arrives exactly while `module` is being imported, as a Ctrl-C typed during start-up
+    script = f"""
+import os, runpy, signal, sys
+
+class CtrlC:
+    def find_spec(self, name, path=None, target=None):
+        if name == {module!r}:
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+
+sys.meta_path.insert(0, CtrlC())
+sys.argv = ["aiohal", {str(CONFIGS / "mock_arm.toml")!r}, "--duration", "5", "--log-format", "json"]
+runpy.run_module("aiohal", run_name="__main__", alter_sys=True)
+"""
+    proc = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert "aiohal run report" not in proc.stdout  # nothing ran

@@ -14,6 +14,42 @@ FAULT_COMMUNICATION = 2  # the link to the hand failed (timeout, connection lost
 FAULT_BACKEND = 3  # the backend raised something else
 VENDOR_FAULT_BASE = 0x100  # + the hand's own fault code (e.g. Robotiq gFLT)
 
+FAULT_MEANINGS = {
+    FAULT_NONE: "no fault",
+    FAULT_NOT_READY: "not activated, or still activating",
+    FAULT_COMMUNICATION: "the link to the hand failed",
+    FAULT_BACKEND: "the hand's backend failed",
+}
+
+#: Robotiq 2F grippers' gFLT (the fault nibble of the status registers), as its manual lists them
+ROBOTIQ_GFLT = {
+    0x5: "action delayed: the activation must complete first",
+    0x7: "the activation bit must be set first",
+    0x8: "above its maximum operating temperature",
+    0x9: "no communication for at least 1 s",
+    0xA: "below its minimum operating voltage",
+    0xB: "automatic release in progress",
+    0xC: "internal processor fault",
+    0xD: "activation fault: check for interference",
+    0xE: "overcurrent",
+    0xF: "automatic release completed",
+}
+
+
+def describe_fault(code: int, backend: str | None = None) -> str:
+    """A fault code with what it means, e.g. ``0x10e (Robotiq gFLT 0xE: overcurrent)``."""
+    if code in FAULT_MEANINGS:
+        meaning = FAULT_MEANINGS[code]
+    elif code >= VENDOR_FAULT_BASE:
+        vendor = code - VENDOR_FAULT_BASE
+        if backend == "robotiq" and vendor in ROBOTIQ_GFLT:
+            meaning = f"Robotiq gFLT {vendor:#X}: {ROBOTIQ_GFLT[vendor]}".replace("0X", "0x")
+        else:
+            meaning = f"the hand's own fault {vendor:#x}"
+    else:
+        meaning = "unknown code"
+    return f"{code:#x} ({meaning})"
+
 
 class HandError(AiohalError):
     """A hand backend could not do what was asked; ``code`` is one of the FAULT_* values."""

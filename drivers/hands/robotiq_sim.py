@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import multiprocessing
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -450,14 +452,31 @@ def running_in_process(**server_options) -> ProcessSimServer:
     return ProcessSimServer(**server_options)
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="A simulated Robotiq 2F-85 on Modbus TCP.")
+def _in_range(kind: type, lo: float, hi: float):
+    """An argparse type: a finite number of ``kind`` within [lo, hi]."""
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a{'n integer' if kind is int else ' number'}") from None
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise argparse.ArgumentTypeError(f"must be from {lo:g} to {hi:g} (got {text})")
+        return value
+
+    return parse
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m aiohal.drivers.hands.robotiq_sim",
+                                     description="A simulated Robotiq 2F-85 on Modbus TCP.")
     parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=5020, help="0 picks a free port")
-    parser.add_argument("--device-id", type=int, default=9)
+    parser.add_argument("--port", type=_in_range(int, 0, 65535), default=5020, help="0 picks a free port")
+    parser.add_argument("--device-id", type=_in_range(int, 1, 247), default=9, help="Modbus unit id, 1-247")
     parser.add_argument("--framing", choices=sorted(FRAMERS), default="tcp")
-    parser.add_argument("--object", type=float, default=None, help="object position, 0 open .. 1 closed")
-    parser.add_argument("--activation-time", type=float, default=0.3, help="seconds")
+    parser.add_argument("--object", type=_in_range(float, 0.0, 1.0), default=None,
+                        help="object position, 0 open .. 1 closed")
+    parser.add_argument("--activation-time", type=_in_range(float, 0.0, 3600.0), default=0.3, help="seconds")
     args = parser.parse_args(argv)
 
     async def serve() -> None:
@@ -481,7 +500,12 @@ def main(argv: list[str] | None = None) -> None:
         asyncio.run(serve())
     except KeyboardInterrupt:
         pass
+    except (OSError, RuntimeError) as exc:  # the address is taken, or not this machine's
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        print(f"error: cannot serve on {args.host}:{args.port}: {reason}", file=sys.stderr)
+        return 1
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

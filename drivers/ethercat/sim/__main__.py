@@ -25,10 +25,17 @@ from .net import Runner, disable_ipv6, set_up, wait_for_interface
 from .segment import Segment
 
 
+def _ifname(name: str) -> str:
+    # Linux interface names are 1..15 bytes (IFNAMSIZ 16); a longer one would be waited for in vain
+    if not 0 < len(name.encode()) <= 15 or "/" in name or any(c.isspace() for c in name):
+        raise argparse.ArgumentTypeError(f"{name!r} is not an interface name (1-15 characters, no / or space)")
+    return name
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m aiohal.drivers.ethercat.sim",
                                 description="Simulated EtherCAT slave segment on one interface.")
-    p.add_argument("--ifname", help="interface to answer on (only this one is opened)")
+    p.add_argument("--ifname", type=_ifname, help="interface to answer on (only this one is opened)")
     p.add_argument("--slaves", default="drive", help="bus order, e.g. 'drive*7,imu,ft,dio' "
                    "(dioN: I/O terminal with N channels)")
     p.add_argument("--control", metavar="PATH", help="UNIX socket path for JSON control commands")
