@@ -195,10 +195,12 @@ class BoardSimulator:
         if head.kind == Kind.ESTOP:  # obeyed at once, whatever its sequence number
             counters["estops"] += 1
             board.estopped = True
+            self._commanded[rows] = False  # a command not applied yet never will be
             self.model.stop(rows)
         elif head.kind == Kind.RESET:
             counters["resets"] += 1
             board.estopped = board.watchdog = False
+            self._commanded[rows] = False
             self.model.stop(rows)
         else:
             if head.count != rows.stop - rows.start:
