@@ -56,11 +56,10 @@ class ServoModel:
             return
         moving = (self.mode != Mode.NONE) & (self.mode != Mode.EFFORT)
         np.copyto(self._previous, self.position)
-        # the target moves on with the commanded velocity; the error to it decays
+        # the error to the target decays while the target moves on with the commanded velocity
+        error = (self.position - self.target) * np.exp(-dt / self.time_constant)
         self.target += np.where(moving, self.target_velocity, 0.0) * dt
         velocity_mode = self.mode == Mode.VELOCITY
-        decay = np.exp(-dt / self.time_constant)
-        error = (self.position - self.target) * decay
         self.position = np.where(velocity_mode, self.target, np.where(moving, self.target + error, self.position))
         self.target = np.where(moving, self.target, self.position)
         np.subtract(self.position, self._previous, out=self.velocity)

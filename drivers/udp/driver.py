@@ -432,9 +432,9 @@ class UdpDriver(Driver):
         out: dict[str, Any] = {
             "boards": len(self.board_ids),
             **self.counters,
-            "round_trip_us": None if rtt is None else {
-                "p50": round(float(rtt[n // 2]), 1), "p99": round(float(rtt[min(n - 1, int(n * 0.99))]), 1),
-                "max": round(float(rtt[-1]), 1)},
+            "round_trip_us_p50": None if rtt is None else round(float(rtt[n // 2]), 1),
+            "round_trip_us_p99": None if rtt is None else round(float(rtt[min(n - 1, int(n * 0.99))]), 1),
+            "round_trip_us_max": None if rtt is None else round(float(rtt[-1]), 1),
             "authenticated": self.key is not None,
         }
         if self.silent_boards:
