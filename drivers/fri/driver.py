@@ -116,6 +116,7 @@ class FriDriver(Driver):
         self.stiffness = view.per_joint(options.stiffness).astype(np.float32)
         self.damping = view.per_joint(options.damping).astype(np.float32)
         self._default_stiffness, self._default_damping = self.stiffness.copy(), self.damping.copy()
+        self.cmd["jnt_stiffness"], self.cmd["jnt_damping"] = self.stiffness, self.damping  # also while mirroring
         self.commanding = False  # answers carry our command (else the KRC's set point)
         self.estopped = False
         self.running = False  # command mode was reached at open
