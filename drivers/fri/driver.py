@@ -39,6 +39,7 @@ from .protocol import (DEFAULT_PORT, FLAGS, JOINTS, MSR, MSR_ID, MSR_SIZE, STRAT
                        check, new_cmd, seq16_newer)
 
 log = logging.getLogger(__name__)
+STATE_CMD = int(State.CMD)
 
 
 class FriDriverError(AiohalError, OSError):
@@ -102,7 +103,7 @@ class FriDriver(Driver):
     def __init__(self, name, view, options) -> None:
         super().__init__(name, view, options)
         self.control = Control.POSITION if options.control == "position" else Control.JNT_IMP
-        self.min_quality = Quality[options.min_quality.upper()]
+        self.min_quality = int(Quality[options.min_quality.upper()])
         self.msr = np.zeros((), dtype=MSR)  # the newest measurement taken
         self._msr_bytes = memoryview(self.msr).cast("B")
         self.cmd = new_cmd()  # the answer, sent from the callback
@@ -117,6 +118,9 @@ class FriDriver(Driver):
         self.damping = view.per_joint(options.damping).astype(np.float32)
         self._default_stiffness, self._default_damping = self.stiffness.copy(), self.damping.copy()
         self.cmd["jnt_stiffness"], self.cmd["jnt_damping"] = self.stiffness, self.damping  # also while mirroring
+        self._msr_fields = {name: self.msr[name] for name in MSR.names}
+        self._cmd_fields = {name: self.cmd[name] for name in ("jnt_pos", "add_jnt_trq", "jnt_stiffness", "jnt_damping")}
+        self._cmd_head = np.frombuffer(self._cmd_bytes, dtype="<u2", count=2)  # send_seq, refl_seq
         self.commanding = False  # answers carry our command (else the KRC's set point)
         self.estopped = False
         self.running = False  # command mode was reached at open
@@ -166,19 +170,21 @@ class FriDriver(Driver):
         self._answer_ns[counters["received"] & (len(self._answer_ns) - 1)] = time.perf_counter_ns() - t0
 
     def _answer(self, seq: int) -> None:
-        msr, cmd = self.msr, self.cmd
-        cmd["send_seq"] = (int(cmd["send_seq"]) + 1) & 0xFFFF
-        cmd["refl_seq"] = seq
-        ok = (self.commanding and not self.estopped and msr["state"] == State.CMD and msr["power"] != 0
+        # the fields as views made once: a structured array's field lookup costs more than its copy
+        msr, cmd = self._msr_fields, self._cmd_fields
+        head = self._cmd_head
+        head[0] = (int(head[0]) + 1) & 0xFFFF  # send_seq
+        head[1] = seq  # refl_seq
+        ok = (self.commanding and not self.estopped and msr["state"] == STATE_CMD and msr["power"] != 0
               and msr["quality"] >= self.min_quality)
         if ok:
-            cmd["jnt_pos"] = self.target
-            cmd["add_jnt_trq"] = self.torque
-            cmd["jnt_stiffness"] = self.stiffness
-            cmd["jnt_damping"] = self.damping
+            cmd["jnt_pos"][:] = self.target
+            cmd["add_jnt_trq"][:] = self.torque
+            cmd["jnt_stiffness"][:] = self.stiffness
+            cmd["jnt_damping"][:] = self.damping
         else:  # mirror the KRC's set point: nothing moves, nothing jumps when commanding starts
             np.add(msr["cmd_jnt_pos"], msr["cmd_jnt_pos_fri_offset"], out=cmd["jnt_pos"])
-            cmd["add_jnt_trq"] = 0.0
+            cmd["add_jnt_trq"][:] = 0.0
             if self.commanding:
                 self.counters["refused"] += 1
         try:
