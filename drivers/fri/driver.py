@@ -69,7 +69,8 @@ class FriOptions(Options):
     control: Literal["position", "joint_impedance"] = Field("position", description="The KRC's control strategy.")
     stiffness: JointValues = Field(1000.0, ge=0, description="Joint impedance: N·m/rad where the command gives none.")
     damping: JointValues = Field(0.7, ge=0, description="Joint impedance: damping ratio where the command gives none.")
-    min_quality: Literal["bad", "ok", "perfect"] = Field("ok", description="Below it, commands are refused and the robot holds.")
+    min_quality: Literal["bad", "ok", "perfect"] = Field(
+        "bad", description="Below it, commands are refused and the robot holds (FRI: commanding is allowed from BAD up).")
     krl: KrlOptions = Field(default_factory=KrlOptions)
     start: bool = Field(True, description="Request command mode at open (else stay in monitor mode: read only).")
     open_timeout_s: FiniteFloat = Field(10.0, gt=0, description="The KRC must reach command mode within this.")
