@@ -19,7 +19,6 @@ import os
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
 
 import numpy as np
 
@@ -102,7 +101,7 @@ def figure(rows: list[dict], path: str) -> None:
     import matplotlib.pyplot as plt
 
     ran = [r for r in rows if "period_mean_us" in r]
-    names = [f"{r['robot']}\n{r['bus']}" for r in ran]
+    names = [r["robot"].replace("_", "\n") for r in ran]
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
     axes[0].bar(names, [r["period_std_us"] for r in ran])
     axes[0].set_ylabel("control period std (µs)")

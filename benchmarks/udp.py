@@ -10,7 +10,8 @@ replies taken between the ticks (asyncio's callbacks for the bare variant).
   (fill the records, header, CRC, ``sendmsg``) on a timerfd ticker.
 - ``bare``: an asyncio datagram endpoint; each tick puts the sequence number and CRC into
   29 prebuilt command datagrams and sends them; ``datagram_received`` keeps each reply's
-  bytes. Nothing is checked, nothing reaches a robot array.
+  bytes. Nothing is checked, nothing reaches a robot array. With ``--key`` it seals each
+  datagram with the MAC too (the boards take nothing else), but checks no reply's.
 
     python -m benchmarks.udp [--seconds 10] [--block 500] [--key] [--json PATH]
 """
@@ -30,7 +31,7 @@ import numpy as np
 
 from aiohal import realtime
 from aiohal.drivers.udp.driver import UdpDriver, UdpOptions
-from aiohal.drivers.udp.protocol import COMMAND_RECORD, Kind, encode
+from aiohal.drivers.udp.protocol import COMMAND_RECORD, Kind, encode, seal
 from aiohal.robot import JointSpec, Mode, Robot
 from aiohal.ticker import Ticker, TimerfdTickSource
 
@@ -62,7 +63,8 @@ async def _run(ports: list[int], seconds: float, block: int, keyed: bool) -> dic
     robot.command.mode[:] = Mode.POSITION
     transport, bare = await loop.create_datagram_endpoint(_Bare, local_addr=("127.0.0.1", 0))
     addresses = [("127.0.0.1", p) for p in ports]
-    datagrams = [encode(Kind.COMMAND, i + 1, 0, 0, np.zeros(1, dtype=COMMAND_RECORD)) for i in range(BOARDS)]
+    key = bytes.fromhex(KEY) if keyed else None
+    datagrams = [encode(Kind.COMMAND, i + 1, 0, 0, np.zeros(1, dtype=COMMAND_RECORD), key) for i in range(BOARDS)]
     seq_at, crc_at = struct.Struct("<I"), struct.Struct("<I")
 
     ticks = int(seconds * 1000)
@@ -91,7 +93,10 @@ async def _run(ports: list[int], seconds: float, block: int, keyed: bool) -> dic
                 seq = driver._seq = driver._seq + 1
                 for data, addr in zip(datagrams, addresses):
                     seq_at.pack_into(data, 16, seq)
-                    crc_at.pack_into(data, 4, zlib.crc32(memoryview(data)[8:]))
+                    if key is None:
+                        crc_at.pack_into(data, 4, zlib.crc32(memoryview(data)[8:]))
+                    else:  # the boards take only authenticated datagrams: the same MAC as the driver's
+                        seal(data, len(data), key)
                     transport.sendto(data, addr)
     finally:
         ticker.close()
@@ -115,7 +120,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=10.0, help="per variant")
     p.add_argument("--block", type=int, default=500)
-    p.add_argument("--key", action="store_true", help="the driver authenticates (HMAC); the bare variant does not")
+    p.add_argument("--key", action="store_true", help="every datagram carries an HMAC (both variants seal theirs)")
     p.add_argument("--json", default=None)
     args = p.parse_args()
     argv = [sys.executable, "-m", "aiohal.drivers.udp.sim", "--boards", str(BOARDS), "--priority", "70",

@@ -9,9 +9,9 @@ import pytest
 import pytest_asyncio
 
 from aiohal.config import parse_config
-from aiohal.drivers.udp.driver import UdpDriver, UdpError, UdpOptions, board_layout
+from aiohal.drivers.udp.driver import UdpError, UdpOptions, board_layout
 from aiohal.drivers.udp.protocol import COMMAND_RECORD, STATE_RECORD, BoardFault, Kind, encode
-from aiohal.drivers.udp.sim import BoardSimulator, SimFaults
+from aiohal.drivers.udp.sim import BoardSimulator
 from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, Mode
 

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from aiohal.drivers.udp.protocol import (COMMAND_RECORD, HEADER_SIZE, MAGIC, STATE_RECORD, Kind, ProtocolError,
-                                         check, decode, encode, seq_newer)
+                                         decode, encode, seq_newer)
 
 KEY = bytes(range(16))
 
