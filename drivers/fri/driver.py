@@ -21,7 +21,6 @@ is counted and dropped.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import socket
 import sys
@@ -32,6 +31,7 @@ import numpy as np
 from pydantic import Field
 
 from aiohal.errors import AiohalError
+from aiohal.fieldbus import simprocess
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.robot import Fault, Mode
 
@@ -238,15 +238,11 @@ class FriDriver(Driver):
                 "--time-constant", repr(sim.time_constant)]
         if sim.priority is not None:
             args += ["--priority", str(sim.priority)]
-        self.sim_process = await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE,
-                                                                stderr=asyncio.subprocess.PIPE)
         try:
-            line = await asyncio.wait_for(self.sim_process.stdout.readline(), 10.0)
-            return int(json.loads(line)["port"])
-        except (asyncio.TimeoutError, ValueError, KeyError) as exc:
-            self.sim_process.kill()
-            _out, err = await self.sim_process.communicate()
-            raise FriDriverError(f"the KRC simulator did not start: {exc!r}: {err.decode(errors='replace')[-500:]}") from exc
+            self.sim_process, ready = await simprocess.start(args, 10.0)
+            return int(ready["port"])
+        except (simprocess.SimulatorStartError, KeyError, ValueError) as exc:
+            raise FriDriverError(f"the KRC simulator did not start: {exc}") from exc
 
     # ------------------------------------------------------------ the tick
 
@@ -318,16 +314,8 @@ class FriDriver(Driver):
                 while self.msr["state"] == State.CMD and time.monotonic() < deadline:
                     await asyncio.sleep(0.005)
             self.transport.close()
-        if self.sim_process is not None and self.sim_process.returncode is None:
-            self.sim_process.terminate()
-            try:
-                _out, err = await asyncio.wait_for(self.sim_process.communicate(), 2.0)
-                for line in err.decode(errors="replace").splitlines():
-                    if line.startswith('{"counters"'):
-                        self.sim_report = json.loads(line)
-            except asyncio.TimeoutError:
-                self.sim_process.kill()
-                await self.sim_process.wait()
+        if self.sim_process is not None:
+            self.sim_report = await simprocess.stop(self.sim_process, "counters")
 
     def health(self) -> dict[str, Any]:
         msr = self.msr

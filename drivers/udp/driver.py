@@ -24,13 +24,13 @@ import socket
 import struct
 import sys
 import time
-import json
 from typing import Any
 
 import numpy as np
 from pydantic import Field, field_validator
 
 from aiohal.errors import AiohalError
+from aiohal.fieldbus import simprocess
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault, Mode
@@ -220,15 +220,11 @@ class UdpDriver(Driver):
             args += ["--die-board", str(sim.die_board), "--die-after-s", repr(sim.die_after_s)]
         if self.key:
             args += ["--key", self.key.hex()]
-        self.sim_process = await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE,
-                                                                stderr=asyncio.subprocess.PIPE)
         try:
-            line = await asyncio.wait_for(self.sim_process.stdout.readline(), opts.open_timeout_s * 5)
-            ports = json.loads(line)["ports"]
-        except (asyncio.TimeoutError, ValueError, KeyError) as exc:
-            self.sim_process.kill()
-            _out, err = await self.sim_process.communicate()
-            raise UdpError(f"the simulated boards did not start: {exc!r}: {err.decode(errors='replace')[-500:]}") from exc
+            self.sim_process, ready = await simprocess.start(args, opts.open_timeout_s * 5)
+            ports = ready["ports"]
+        except (simprocess.SimulatorStartError, KeyError) as exc:
+            raise UdpError(f"the simulated boards did not start: {exc}") from exc
         if len(ports) != len(self.board_rows):
             raise UdpError(f"the simulated boards reported {len(ports)} ports for {len(self.board_rows)} boards")
         return ports
@@ -415,16 +411,10 @@ class UdpDriver(Driver):
                 self.tx_records["mode"] = Mode.NONE
                 self._send_commands()
             self.sock.close()
-        if self.sim_process is not None and self.sim_process.returncode is None:
-            self.sim_process.terminate()
-            try:
-                _out, err = await asyncio.wait_for(self.sim_process.communicate(), 2.0)
-                for line in err.decode(errors="replace").splitlines():
-                    if line.startswith('{"counters"'):
-                        self.sim_counters = json.loads(line)["counters"]
-            except asyncio.TimeoutError:
-                self.sim_process.kill()
-                await self.sim_process.wait()
+        if self.sim_process is not None:
+            stopped = await simprocess.stop(self.sim_process, "counters")
+            if stopped is not None:
+                self.sim_counters = stopped["counters"]
 
     def health(self) -> dict[str, Any]:
         n = min(self._rtt_count, RTT_RING)
