@@ -41,6 +41,8 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.shm_client --json bench-results/shm_client.json
 	$(PY) -m benchmarks.zenoh_bridge --json bench-results/zenoh_bridge.json
 	$(PY) -m benchmarks.host_gaps --json bench-results/host_gaps.json
+	$(PY) -m benchmarks.udp --json bench-results/udp.json
+	$(PY) -m benchmarks.fig7 --json bench-results/fig7.json
 	$(PY) -m benchmarks.tick_phase $$([ "$$(id -u)" = 0 ] && echo --fifo) --json bench-results/tick_phase.json
 	@if [ "$$(id -u)" = 0 ]; then $(PY) -m benchmarks.ethercat --json bench-results/ethercat.json; else echo "benchmarks.ethercat skipped: needs root"; fi
 

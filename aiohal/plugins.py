@@ -26,6 +26,8 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "mujoco": ("aiohal.drivers.mujoco:MujocoDriver", "sim"),
         "nrt_hand": ("aiohal.drivers.nrt_hand:NrtHandDriver", None),
         "ethercat": ("aiohal.drivers.ethercat.driver:EthercatDriver", "ethercat"),
+        "udp": ("aiohal.drivers.udp.driver:UdpDriver", None),
+        "fri": ("aiohal.drivers.fri.driver:FriDriver", None),
     },
     "controller": {
         "hold": ("aiohal.controllers.hold:HoldController", None),

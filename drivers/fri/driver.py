@@ -1,0 +1,337 @@
+"""``fri``: the KUKA LWR 4+ through FRI 1.x (KRC 2lr), the remote PC's side (docs/fri.md).
+
+The KRC sets the pace: it sends a measurement datagram every cycle (1-100 ms) and expects
+one command back at once. The driver answers in its datagram endpoint's callback, the moment
+the measurement arrives, from the latest command ``write()`` left (or, while the KRC is in
+monitor mode, powered off, below ``min_quality`` or e-stopped, the KRC's own set point:
+``cmdJntPos + cmdJntPosFriOffset``, so that nothing jumps). The loop thus runs at its own rate
+(R-HAL ran it at 200 Hz, not real time) and never waits for the network: ``read()`` takes the
+newest measurement, ``write()`` stores the command.
+
+Bring-up plays the KRL handshake through the user ints: the strategy (position 10, joint
+impedance 30) in ``$FRI_FRM_INT[strategy_int]`` with its command flags while in monitor mode,
+then the start request (10) in ``$FRI_FRM_INT[command_int]``, until the KRC reports command
+mode (``$FRI_TO_INT[status_int]`` = 20, state CMD, drives powered). A drop to monitor mode,
+drives off, drive errors or quality below ``min_quality`` during the run fault the joints and
+hold the robot (commands are refused until then); no measurement for ``silent_ms`` fails the
+driver. Only 916-byte datagrams with id 0x2006 from the KRC's address are taken; anything else
+is counted and dropped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+import sys
+import time
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from aiohal.errors import AiohalError
+from aiohal.fieldbus import simprocess
+from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
+from aiohal.robot import Fault, Mode
+
+from .protocol import (DEFAULT_PORT, FLAGS, JOINTS, MSR, MSR_ID, MSR_SIZE, STRATEGY, Control, FriError, Quality, State,
+                       check, new_cmd, seq16_newer)
+
+log = logging.getLogger(__name__)
+STATE_CMD = int(State.CMD)
+
+
+class FriDriverError(AiohalError, OSError):
+    """The KRC cannot be reached, refused command mode, or went silent."""
+
+
+class KrlOptions(Options):
+    strategy_int: int = Field(15, ge=1, le=16, description="$FRI_FRM_INT index carrying the strategy (10/20/30).")
+    command_int: int = Field(16, ge=1, le=16, description="$FRI_FRM_INT index of the request: 10 start, 20 stop.")
+    status_int: int = Field(16, ge=1, le=16, description="$FRI_TO_INT index of KRL's state: 10 monitor, 20 command.")
+    start: int = 10
+    stop: int = 20
+    started: int = 20
+
+
+class KrcSimulation(Options):
+    cycle_ms: int = Field(5, ge=1, le=100, description="The simulated KRC's FRI cycle (friOpen's argument).")
+    time_constant: FiniteFloat = Field(0.004, gt=0, description="Its joints' servo time constant (s).")
+    drop_answers: FiniteFloat = Field(0.0, ge=0, le=1, description="Probability that an answer is lost (fault injection).")
+    priority: int | None = Field(70, ge=1, le=99, description="SCHED_FIFO priority of the KRC's process, when allowed.")
+
+
+class FriOptions(Options):
+    port: int = Field(DEFAULT_PORT, ge=0, le=0xFFFF, description="Local UDP port (FRISOCK; 0: the OS picks).")
+    bind_address: str = Field("0.0.0.0", description="Local address.")
+    krc_address: str | None = Field(None, description="Take measurements only from this host (default: the first sender's).")
+    control: Literal["position", "joint_impedance"] = Field("position", description="The KRC's control strategy.")
+    stiffness: JointValues = Field(1000.0, ge=0, description="Joint impedance: N·m/rad where the command gives none.")
+    damping: JointValues = Field(0.7, ge=0, description="Joint impedance: damping ratio where the command gives none.")
+    min_quality: Literal["bad", "ok", "perfect"] = Field(
+        "bad", description="Below it, commands are refused and the robot holds (FRI: commanding is allowed from BAD up).")
+    krl: KrlOptions = Field(default_factory=KrlOptions)
+    start: bool = Field(True, description="Request command mode at open (else stay in monitor mode: read only).")
+    open_timeout_s: FiniteFloat = Field(10.0, gt=0, description="The KRC must reach command mode within this.")
+    silent_ms: FiniteFloat = Field(100.0, gt=0, description="No measurement for this long fails the driver.")
+    simulate: bool = Field(False, description="Start `python -m aiohal.drivers.fri.sim` on loopback.")
+    simulation: KrcSimulation = Field(default_factory=KrcSimulation)
+    initial_position: JointValues = Field(0.0, description="With simulate: where the simulated arm starts.")
+
+
+class _Endpoint(asyncio.DatagramProtocol):
+    def __init__(self, driver: FriDriver) -> None:
+        self.on_datagram = driver._on_datagram
+
+    def datagram_received(self, data: bytes, addr) -> None:
+        self.on_datagram(data, addr)
+
+
+class FriDriver(Driver):
+    Options = FriOptions
+    options: FriOptions
+
+    @classmethod
+    def check_config(cls, options, joints, devices, robot):
+        issues = []
+        for key in ("stiffness", "damping", "initial_position"):
+            issues += unknown_joint_issues(f"options.{key}", getattr(options, key), joints)
+        if len(joints) != JOINTS:
+            issues.append(("joints", f"an LWR 4+ has {JOINTS} joints; {len(joints)} given"))
+        return issues
+
+    def __init__(self, name, view, options) -> None:
+        super().__init__(name, view, options)
+        self.control = Control.POSITION if options.control == "position" else Control.JNT_IMP
+        self.min_quality = int(Quality[options.min_quality.upper()])
+        self.msr = np.zeros((), dtype=MSR)  # the newest measurement taken
+        self._msr_bytes = memoryview(self.msr).cast("B")
+        self.cmd = new_cmd()  # the answer, sent from the callback
+        self._cmd_bytes = memoryview(self.cmd).cast("B")
+        self.cmd["cmd_flags"] = FLAGS[self.control]
+        krl = options.krl
+        self.cmd["krl_int"][krl.strategy_int - 1] = STRATEGY[self.control]
+        # the latest command from write(), as FRI's float32 fields
+        self.target = np.zeros(JOINTS, dtype=np.float32)
+        self.torque = np.zeros(JOINTS, dtype=np.float32)
+        self.stiffness = view.per_joint(options.stiffness).astype(np.float32)
+        self.damping = view.per_joint(options.damping).astype(np.float32)
+        self._default_stiffness, self._default_damping = self.stiffness.copy(), self.damping.copy()
+        self.cmd["jnt_stiffness"], self.cmd["jnt_damping"] = self.stiffness, self.damping  # also while mirroring
+        self._msr_fields = {name: self.msr[name] for name in MSR.names}
+        self._cmd_fields = {name: self.cmd[name] for name in ("jnt_pos", "add_jnt_trq", "jnt_stiffness", "jnt_damping")}
+        self._cmd_head = np.frombuffer(self._cmd_bytes, dtype="<u2", count=2)  # send_seq, refl_seq
+        self.commanding = False  # answers carry our command (else the KRC's set point)
+        self.estopped = False
+        self.running = False  # command mode was reached at open
+        self.krc: tuple[str, int] | None = None  # the KRC's address, once known: the only one taken
+        self._krc_host: str | None = None  # options.krc_address, resolved
+        self.transport: asyncio.DatagramTransport | None = None
+        self.sim_process: asyncio.subprocess.Process | None = None
+        self.sim_report: dict | None = None
+        self._new = False  # a measurement arrived since the last read
+        self._last_seq: int | None = None
+        self._last_msr_ns = 0
+        self._previous_position = np.zeros(JOINTS)
+        self._previous_stamp = 0.0
+        self._fault = ""  # the KRC-side fault being held, "" when none
+        self._answer_ns = np.zeros(1 << 12, dtype=np.int64)
+        self.counters = dict.fromkeys(("received", "sent", "lost", "duplicated", "reordered", "malformed",
+                                       "unauthenticated", "refused"), 0)
+
+    # ------------------------------------------------------------ the answer, at once
+
+    def _on_datagram(self, data: bytes, addr) -> None:
+        t0 = time.perf_counter_ns()
+        counters = self.counters
+        if (addr != self.krc) if self.krc is not None else (self._krc_host is not None and addr[0] != self._krc_host):
+            counters["unauthenticated"] += 1
+            return
+        try:
+            check(data, len(data), MSR_SIZE, MSR_ID)
+        except FriError:
+            counters["malformed"] += 1
+            return
+        seq = int.from_bytes(data[0:2], "little")
+        if self._last_seq is not None:
+            newer = seq16_newer(seq, self._last_seq)
+            if newer <= 0:
+                counters["duplicated" if newer == 0 else "reordered"] += 1
+                return
+            counters["lost"] += newer - 1
+        if self.krc is None:
+            self.krc = addr  # the KRC's address: from now on the only one taken
+        self._last_seq = seq
+        self._msr_bytes[:] = data
+        self._new = True
+        self._last_msr_ns = time.monotonic_ns()
+        counters["received"] += 1
+        self._answer(seq)
+        self._answer_ns[counters["received"] & (len(self._answer_ns) - 1)] = time.perf_counter_ns() - t0
+
+    def _answer(self, seq: int) -> None:
+        # the fields as views made once: a structured array's field lookup costs more than its copy
+        msr, cmd = self._msr_fields, self._cmd_fields
+        head = self._cmd_head
+        head[0] = (int(head[0]) + 1) & 0xFFFF  # send_seq
+        head[1] = seq  # refl_seq
+        ok = (self.commanding and not self.estopped and msr["state"] == STATE_CMD and msr["power"] != 0
+              and msr["quality"] >= self.min_quality)
+        if ok:
+            cmd["jnt_pos"][:] = self.target
+            cmd["add_jnt_trq"][:] = self.torque
+            cmd["jnt_stiffness"][:] = self.stiffness
+            cmd["jnt_damping"][:] = self.damping
+        else:  # mirror the KRC's set point: nothing moves, nothing jumps when commanding starts
+            np.add(msr["cmd_jnt_pos"], msr["cmd_jnt_pos_fri_offset"], out=cmd["jnt_pos"])
+            cmd["add_jnt_trq"][:] = 0.0
+            if self.commanding:
+                self.counters["refused"] += 1
+        try:
+            self.transport.sendto(self._cmd_bytes, self.krc)
+            self.counters["sent"] += 1
+        except OSError:
+            pass
+
+    # ------------------------------------------------------------ bring-up
+
+    async def open(self) -> None:
+        opts = self.options
+        loop = asyncio.get_running_loop()
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1" if opts.simulate else opts.bind_address, 0 if opts.simulate else opts.port))
+        self.transport, _ = await loop.create_datagram_endpoint(lambda: _Endpoint(self), sock=sock)
+        if opts.simulate:
+            port = await self._start_simulation(sock.getsockname())
+            self.krc = ("127.0.0.1", port)
+        elif opts.krc_address is not None:
+            self._krc_host = (await loop.getaddrinfo(opts.krc_address, None, family=socket.AF_INET))[0][4][0]
+        await self._wait(lambda: self._new, "no measurement from the KRC")
+        self._take_measurement()
+        if opts.start:
+            await self._wait(lambda: self.msr["state"] == State.MON, "the KRC is not in monitor mode")
+            self.cmd["krl_int"][opts.krl.command_int - 1] = opts.krl.start
+            await self._wait(lambda: (self.msr["state"] == State.CMD and self.msr["power"] != 0
+                                      and self.msr["krl_int"][opts.krl.status_int - 1] == opts.krl.started),
+                             "the KRC did not reach command mode (quality, or the KRL program?)")
+            self.running = True
+            self._take_measurement()
+        np.copyto(self.target, self.view.state.position, casting="same_kind")
+
+    async def _wait(self, condition, what: str) -> None:
+        deadline = time.monotonic() + self.options.open_timeout_s
+        while not condition():
+            if time.monotonic() > deadline:
+                raise FriDriverError(f"{what} within {self.options.open_timeout_s:g} s "
+                                     f"(state {int(self.msr['state'])}, quality {int(self.msr['quality'])})")
+            await asyncio.sleep(0.005)
+
+    async def _start_simulation(self, remote: tuple[str, int]) -> int:
+        sim = self.options.simulation
+        initial = np.clip(self.view.per_joint(self.options.initial_position), self.view.position_min, self.view.position_max)
+        krl = self.options.krl
+        args = [sys.executable, "-m", "aiohal.drivers.fri.sim", "--remote", f"{remote[0]}:{remote[1]}",
+                "--cycle-ms", str(sim.cycle_ms), "--initial=" + ",".join(repr(float(x)) for x in initial),
+                "--strategy-int", str(krl.strategy_int), "--command-int", str(krl.command_int),
+                "--status-int", str(krl.status_int), "--drop-answers", repr(sim.drop_answers),
+                "--time-constant", repr(sim.time_constant)]
+        if sim.priority is not None:
+            args += ["--priority", str(sim.priority)]
+        try:
+            self.sim_process, ready = await simprocess.start(args, 10.0)
+            return int(ready["port"])
+        except (simprocess.SimulatorStartError, KeyError, ValueError) as exc:
+            raise FriDriverError(f"the KRC simulator did not start: {exc}") from exc
+
+    # ------------------------------------------------------------ the tick
+
+    def _take_measurement(self) -> None:
+        """The newest measurement into the state rows (velocity from the KRC's time stamps)."""
+        msr, state = self.msr, self.view.state
+        stamp = float(msr["timestamp"])
+        np.copyto(state.position, msr["msr_jnt_pos"])
+        dt = stamp - self._previous_stamp
+        if 0.0 < dt < 1.0 and self._previous_stamp:
+            np.subtract(state.position, self._previous_position, out=state.velocity)
+            state.velocity /= dt
+        np.copyto(self._previous_position, state.position)
+        self._previous_stamp = stamp
+        np.copyto(state.effort, msr["msr_jnt_trq"])
+        np.copyto(state.temperature, msr["temperature"])
+        self._new = False
+
+    async def read(self) -> None:
+        view = self.view
+        if self._new:
+            self._take_measurement()
+            view.mark_fresh()
+        elif time.monotonic_ns() - self._last_msr_ns > self.options.silent_ms * 1e6:
+            view.state.fault |= np.uint32(Fault.HARDWARE)
+            raise FriDriverError(f"no measurement from the KRC for {self.options.silent_ms:g} ms")
+        if self.running:
+            msr = self.msr
+            if msr["state"] != State.CMD or msr["power"] == 0 or msr["error"] != 0 or msr["quality"] < self.min_quality:
+                self._krc_fault()
+            elif self._fault:
+                self._fault = ""
+                view.state.fault &= np.uint32(~Fault.HARDWARE & 0xFFFFFFFF)
+
+    def _krc_fault(self) -> None:
+        msr = self.msr
+        reason = (f"KRC: state {State(int(msr['state'])).name}, quality {Quality(int(msr['quality'])).name}, "
+                  f"power 0x{int(msr['power']):02x}, error 0x{int(msr['error']):02x}")
+        if reason != self._fault:
+            self._fault = reason
+            self.view.state.fault |= np.uint32(Fault.HARDWARE)
+            self.view.report_fault("read", reason)
+            self.view.request_hold(reason)
+
+    async def write(self) -> None:
+        command = self.view.command
+        np.copyto(self.target, command.position, casting="same_kind")
+        if self.control == Control.JNT_IMP:
+            impedance = command.mode == Mode.IMPEDANCE
+            np.add(command.effort, command.feedforward, out=self.torque, casting="same_kind")
+            np.copyto(self.stiffness, np.where(impedance, command.stiffness, self._default_stiffness), casting="same_kind")
+            np.copyto(self.damping, np.where(impedance, command.damping, self._default_damping), casting="same_kind")
+        self.commanding = self.running
+
+    # ------------------------------------------------------------ stop
+
+    def estop(self) -> None:
+        """Answer with the KRC's own set point from now on and ask KRL to stop."""
+        self.estopped = True
+        self.cmd["krl_int"][self.options.krl.command_int - 1] = self.options.krl.stop
+
+    async def close(self) -> None:
+        krl = self.options.krl
+        if self.transport is not None:
+            self.commanding = False
+            self.cmd["krl_int"][krl.command_int - 1] = krl.stop
+            if self.running:
+                deadline = time.monotonic() + 1.0
+                while self.msr["state"] == State.CMD and time.monotonic() < deadline:
+                    await asyncio.sleep(0.005)
+            self.transport.close()
+        if self.sim_process is not None:
+            self.sim_report = await simprocess.stop(self.sim_process, "counters")
+
+    def health(self) -> dict[str, Any]:
+        msr = self.msr
+        n = min(self.counters["received"], len(self._answer_ns))
+        answer = np.sort(self._answer_ns[:n]) / 1e3 if n else None
+        out: dict[str, Any] = {
+            **self.counters,
+            "answer_us_p50": None if answer is None else round(float(answer[n // 2]), 1),
+            "answer_us_max": None if answer is None else round(float(answer[-1]), 1),
+            "krc_state": State(int(msr["state"])).name if int(msr["state"]) in State._value2member_map_ else int(msr["state"]),
+            "krc_quality": Quality(int(msr["quality"])).name if int(msr["quality"]) <= 3 else int(msr["quality"]),
+            "krc_cycle_ms": round(float(msr["desired_msr_sample_time"]) * 1e3, 3),
+            "krc_answer_rate": round(float(msr["answer_rate"]), 4),
+            "krc_latency_us": round(float(msr["latency"]) * 1e6, 1),
+            "krc_miss_counter": int(msr["miss_counter"]),
+        }
+        if self.sim_report is not None:
+            out["simulated_krc"] = self.sim_report["counters"]
+        return out

@@ -1,0 +1,269 @@
+"""The udp driver against simulated boards (in a thread) and a hand-driven fake board: round
+trips, every class of bad datagram counted and dropped, board faults, e-stop, a silent board
+and forged datagrams. All traffic on 127.0.0.1, ports picked by the OS."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pytest_asyncio
+
+from aiohal.config import parse_config
+from aiohal.drivers.udp.driver import UdpError, UdpOptions, board_layout
+from aiohal.drivers.udp.protocol import COMMAND_RECORD, STATE_RECORD, BoardFault, Kind, encode
+from aiohal.drivers.udp.sim import BoardSimulator
+from aiohal.loop import ControlLoop
+from aiohal.robot import Fault, Mode
+
+from udp_helpers import FakeBoard, driver_for, robot, tick, wait_for
+
+KEY_HEX = "00112233445566778899aabbccddeeff"
+KEY = bytes.fromhex(KEY_HEX)
+
+
+@pytest.fixture
+def sim():
+    started = []
+
+    def make(layout, **kwargs):
+        s = BoardSimulator(layout, **kwargs).start()
+        started.append(s)
+        return s
+
+    yield make
+    for s in started:
+        s.stop()
+
+
+async def exchange(driver, sim_, k):
+    """One tick: write, wait until every board answered, read."""
+    replies = sim_.counters()["replies"]
+    await driver.write()
+    await wait_for(lambda: sim_.counters()["replies"] >= replies + len(sim_.boards))
+    await tick(driver, k)
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("keyed", [False, True])
+async def test_commands_reach_the_boards_and_state_comes_back(sim, keyed):
+    s = sim([2, 2, 1], initial=[0.1, 0.2, 0.3, 0.4, 0.5], key=KEY if keyed else None)
+    rob = robot(5)
+    d = driver_for(rob, s.addresses, 2, **({"key": KEY_HEX} if keyed else {}))
+    # board 3 has one joint: layout from the boards' joint lists
+    await d.open()
+    try:
+        np.testing.assert_allclose(rob.state.position, [0.1, 0.2, 0.3, 0.4, 0.5], atol=1e-6)  # read at open
+        rob.command.mode[:] = Mode.POSITION
+        rob.command.position[:] = [0.5, -0.5, 1.0, 0.0, -1.0]
+        for k in range(1, 40):
+            await exchange(d, s, k)
+        np.testing.assert_allclose(rob.state.position, rob.command.position, atol=2e-3)
+        h = d.health()
+        assert h["sent"] == 3 * 39 + 3 and h["received"] == 3 * 39 + 3
+        assert h["lost"] == h["late"] == h["malformed"] == h["unauthenticated"] == 0
+        assert 0 < h["round_trip_us_p50"] <= h["round_trip_us_max"]
+        assert rob.state.updated_tick.tolist() == [39] * 5 and d.view.fresh_tick == 39
+        assert s.counters()["commands"] == 3 * 39
+    finally:
+        await d.close()
+
+
+@pytest.mark.asyncio
+async def test_estop_datagram_is_obeyed_at_once_and_latched(sim):
+    s = sim([1], initial=[0.0])
+    rob = robot(1)
+    d = driver_for(rob, s.addresses, 1)
+    await d.open()
+    try:
+        rob.command.mode[:] = Mode.POSITION
+        rob.command.position[:] = 1.0
+        await exchange(d, s, 1)
+        d.estop()
+        await wait_for(lambda: s.counters()["estops"] == 1)
+        stopped_at = s.model.position[0]
+        for k in range(2, 12):
+            await exchange(d, s, k)
+        assert s.model.position[0] == pytest.approx(stopped_at)  # commands after the e-stop move nothing
+        assert d.rx_records["fault"][0] & BoardFault.ESTOP
+        assert rob.state.fault[0] & Fault.HARDWARE
+    finally:
+        await d.close()
+
+
+@pytest_asyncio.fixture
+async def fake():
+    board = FakeBoard(1, 2)
+    rob = robot(2)
+    d = driver_for(rob, [board.address], 2)
+    import asyncio
+
+    opening = asyncio.ensure_future(d.open())
+    await wait_for(lambda: board.sock.getsockname() is not None)
+    await asyncio.get_running_loop().run_in_executor(None, board.serve_resets)
+    await opening
+    yield board, rob, d
+    await d.close()
+    board.close()
+
+
+async def _command(board, d, k):
+    """The driver sends tick k's command; the fake board receives it: (its seq, driver address)."""
+    await d.write()
+    data, addr = board.receive()
+    return int.from_bytes(data[16:20], "little"), addr
+
+
+@pytest.mark.asyncio
+async def test_every_class_of_bad_datagram_is_counted_and_dropped(fake):
+    import socket
+
+    board, rob, d = fake
+    seq, addr = await _command(board, d, 1)
+    board.reply(addr, seq, position=0.25)
+    await tick(d, 1)
+    assert rob.state.position.tolist() == [0.25, 0.25] and d.counters["received"] == 2  # open's reply and this one
+    seq, addr = await _command(board, d, 2)
+    good = encode(Kind.STATE, 1, board.seq + 1, seq, board.state(0.5))
+    cases = {
+        "malformed": [b"\x00" * 3, b"AHJB" + bytes(60), bytes(good[:-1]),
+                      bytes(good[:10]) + b"\x07" + bytes(good[11:]),  # count changed: CRC and size
+                      bytes(encode(Kind.COMMAND, 1, 99, seq, np.zeros(2, dtype=COMMAND_RECORD))),  # wrong kind
+                      bytes(encode(Kind.STATE, 1, 99, seq, np.zeros(3, dtype=STATE_RECORD))),  # wrong count
+                      bytes(encode(Kind.STATE, 1, 98, seq + 5, board.state(0.5)))],  # answers a command never sent
+        "unauthenticated": [bytes(encode(Kind.STATE, 1, 97, seq, board.state(0.5), KEY)),  # a MAC nobody asked for
+                            bytes(encode(Kind.STATE, 2, 96, seq, board.state(0.5)))],  # claims another board
+    }
+    for datagrams in cases.values():
+        for data in datagrams:
+            board.sock.sendto(data, addr)
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    stranger.bind(("127.0.0.1", 0))
+    stranger.sendto(good, addr)  # a perfect datagram from an address that is not a board's
+    stranger.close()
+    before = dict(d.counters)
+    await tick(d, 2)
+    assert d.counters["malformed"] - before["malformed"] == len(cases["malformed"])
+    assert d.counters["unauthenticated"] - before["unauthenticated"] == len(cases["unauthenticated"]) + 1
+    assert rob.state.position.tolist() == [0.25, 0.25]  # nothing moved
+    assert d.counters["lost"] == 1 and d.counters["received"] == before["received"]
+    # duplicated, reordered, late: replies that are valid but not new
+    seq3, addr = await _command(board, d, 3)
+    first = board.reply(addr, seq3, position=0.75, seq=50)
+    board.sock.sendto(first, addr)  # the same again
+    board.reply(addr, seq3, position=0.9, seq=49)  # an older board seq, after a newer one
+    await tick(d, 3)
+    assert rob.state.position.tolist() == [0.75, 0.75]
+    assert d.counters["duplicated"] == 1 and d.counters["reordered"] == 1
+    seq4, addr = await _command(board, d, 4)
+    board.reply(addr, seq3, position=0.1, seq=51)  # answers the command before: late
+    await tick(d, 4)
+    assert d.counters["late"] == 1 and rob.state.position.tolist() == [0.75, 0.75]
+    assert rob.state.updated_tick.tolist() == [3, 3]
+
+
+@pytest.mark.asyncio
+async def test_board_fault_bits_fault_the_joints_and_hold_the_robot(fake):
+    board, rob, d = fake
+    reports, holds = [], []
+    d.view.report_fault = lambda phase, reason: reports.append(reason)
+    d.view.request_hold = holds.append
+    seq, addr = await _command(board, d, 1)
+    board.reply(addr, seq, fault=BoardFault.DRIVE)
+    await tick(d, 1)
+    assert (rob.state.fault & Fault.HARDWARE).all()
+    assert len(reports) == len(holds) == 1 and "j0" in reports[0]
+    seq, addr = await _command(board, d, 2)
+    board.reply(addr, seq)
+    await tick(d, 2)
+    assert not (rob.state.fault & Fault.HARDWARE).any()
+
+
+@pytest.mark.asyncio
+async def test_a_silent_board_fails_the_driver_after_its_ticks(fake):
+    board, rob, d = fake
+    limit = d.options.silent_ticks
+    for k in range(1, limit + 1):  # it answered at open (tick 0); silent for 1..limit ticks is tolerated
+        await d.write()
+        await tick(d, k)
+    assert not (rob.state.fault & Fault.HARDWARE).any()
+    with pytest.raises(UdpError, match=r"board\(s\) \[1\] silent"):
+        await d.write()
+        await tick(d, limit + 1)
+    assert (rob.state.fault & Fault.HARDWARE).all()
+
+
+@pytest.mark.asyncio
+async def test_forged_commands_move_no_joint_of_a_board(sim):
+    """At the board: a command from an address that is not the master's, or with a wrong
+    HMAC, is counted and moves nothing."""
+    import socket
+
+    master = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    master.bind(("127.0.0.1", 0))
+    master.settimeout(2.0)
+    s = sim([1], initial=[0.0], key=KEY, master=master.getsockname())
+    target = s.addresses[0]
+    cmd = np.zeros(1, dtype=COMMAND_RECORD)
+    cmd["mode"], cmd["position"] = Mode.POSITION, 1.0
+    forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    forger.bind(("127.0.0.1", 0))
+    try:
+        forger.sendto(bytes(encode(Kind.COMMAND, 1, 1, 0, cmd, KEY)), target)  # right key, wrong address
+        master.sendto(bytes(encode(Kind.COMMAND, 1, 2, 0, cmd, bytes(16))), target)  # right address, wrong key
+        master.sendto(bytes(encode(Kind.COMMAND, 1, 3, 0, cmd)), target)  # no MAC
+        await wait_for(lambda: s.counters()["unauthenticated"] == 3)
+        master.sendto(bytes(encode(Kind.RESET, 1, 4, 0, None, KEY)), target)  # a genuine datagram, to sync on
+        master.recvfrom(4096)
+        assert s.model.position[0] == 0.0 and s.counters()["commands"] == 0
+        master.sendto(bytes(encode(Kind.COMMAND, 1, 5, 0, cmd, KEY)), target)
+        master.recvfrom(4096)
+        assert s.counters()["commands"] == 1
+    finally:
+        forger.close()
+        master.close()
+
+
+def test_boards_must_cover_the_joints_in_order():
+    joints = ["a", "b", "c"]
+    opts = UdpOptions.model_validate({"boards": [{"id": 1, "joints": ["b"], "port": 1}, {"id": 2, "joints": ["a", "c"], "port": 2}]})
+    _, problems = board_layout(opts, joints)
+    assert problems and "board 1" in problems[0]
+    opts = UdpOptions.model_validate({"boards": [{"id": 1, "joints": ["a", "b"], "port": 1}]})
+    assert board_layout(opts, joints)[1] == ["joints ['c'] are on no board"]
+    assert board_layout(UdpOptions(), joints)[1] == ["list the boards (or set simulate = true)"]
+    assert board_layout(UdpOptions(simulate=True, joints_per_board=2), joints)[0] == [(1, 0, 2), (2, 2, 1)]
+    with pytest.raises(ValueError, match="at least 16"):
+        UdpOptions(key="00ff")
+
+
+def _config(n: int, seconds_rate: int = 500, **options) -> dict:
+    return {
+        "robot": {"name": "udp_loop"},
+        "loop": {"rate_hz": seconds_rate, "max_feedback_age": 400},
+        "joints": {f"j{i}": {"position": [-2.0, 2.0], "velocity": 2.0, "acceleration": 20.0, "effort": 50.0} for i in range(n)},
+        "driver": [{"type": "udp", "name": "boards", "joints": ["*"], "options": {"simulate": True, **options}}],
+        "controller": {"type": "sine", "params": {"amplitude": 0.2, "frequency": 1.0}},
+    }
+
+
+@pytest.mark.asyncio
+async def test_a_loop_runs_on_simulated_boards_it_started_itself():
+    loop = ControlLoop(parse_config(_config(4, key=KEY_HEX, silent_ticks=200, simulation={"priority": None})))
+    async with loop:
+        report = await loop.run(duration=0.5)
+    health = loop.report()["drivers"]["boards"]  # after close: with the simulated boards' own counters
+    assert report["faults"] == [] and report["safety_level"] == "run"
+    assert health["received"] > 0.5 * 250 * 4 and health["unauthenticated"] == health["malformed"] == 0
+    assert health["simulated_boards"]["commands"] > 0 and health["simulated_boards"]["unauthenticated"] == 0
+
+
+@pytest.mark.asyncio
+async def test_a_board_that_dies_sends_the_robot_to_its_safe_state():
+    loop = ControlLoop(parse_config(_config(3, silent_ticks=25, simulation={"die_board": 2, "die_after_s": 0.1, "priority": None})))
+    async with loop:
+        report = await loop.run(duration=1.0)
+    health = loop.report()["drivers"]["boards"]
+    assert report["safety_level"] == "estop" and report["stop_reason"] == "no driver left"  # its only driver
+    assert any("board(s) [2] silent" in f["error"] for f in report["faults"]), report["faults"]
+    assert report["drivers"]["boards"]["status"] == "failed"
+    assert health["simulated_boards"]["estops"] >= 3  # every board got the e-stop datagram
