@@ -177,7 +177,6 @@ def test_two_robots_a_monitor_and_commands_refused(tmp_path):
             # processes, which a shared CI machine can do for whole seconds
             assert r["span_s"] >= 9.9 and r["messages"] >= 500, r
             assert 50.0 <= r["rate_hz"] <= 105.0, r
-        assert any(s["level"] == "hold" for s in seen[a_name]["safety"])
     finally:
         if watcher is not None:
             watcher.close()
