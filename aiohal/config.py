@@ -23,6 +23,7 @@ from .errors import ConfigError, ConfigIssue, MissingDependencyError, PluginErro
 from .hal import Options
 from .realtime import RealtimeSection
 from .robot import JointSpec, Robot
+from .safety import SafetySection
 
 
 def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
@@ -144,6 +145,7 @@ SECTIONS: dict[str, Any] = {
     "devices": dict[str, DeviceSection],
     "driver": list[DriverSection],
     "controller": ControllerSection,
+    "safety": SafetySection,
 }
 REQUIRED_SECTIONS = ("joints", "driver")
 
@@ -183,6 +185,7 @@ class Config:
     controller: ControllerConfig
     path: Path | None = None
     base_dir: Path = field(default_factory=Path.cwd)
+    safety: SafetySection = field(default_factory=SafetySection)
 
     @property
     def period_ns(self) -> int:
@@ -335,6 +338,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     robot = _validate(RobotSection, raw.get("robot", {}), "robot", issues, context)
     loop = _validate(LoopSection, raw.get("loop", {}), "loop", issues, context)
     realtime = _validate(RealtimeSection, raw.get("realtime", {}), "realtime", issues, context)
+    safety = _validate(SafetySection, raw.get("safety", {}), "safety", issues, context)
     if loop is not None and realtime is not None:
         period_us = 1e6 / loop.rate_hz
         if realtime.spin_guard_us > period_us / 2:
@@ -466,6 +470,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     if issues:
         raise ConfigError(issues, str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
+    assert safety is not None
     return Config(
         robot=robot,
         loop=loop,
@@ -476,6 +481,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         controller=controller,
         path=path,
         base_dir=base_dir,
+        safety=safety,
     )
 
 
