@@ -125,6 +125,29 @@ def _loop_factory(name: str):
     return asyncio.new_event_loop
 
 
+#: The operator's safety requests as signals (README, "Running a robot"): SIGQUIT (Ctrl-\\ on a
+#: terminal) emergency-stops, SIGUSR1 holds, SIGUSR2 resets the faults and re-arms.
+SAFETY_SIGNALS = {signal.SIGQUIT: "estop", signal.SIGUSR1: "hold", signal.SIGUSR2: "reset_faults+rearm"}
+
+
+def on_safety_signal(control, sig: signal.Signals) -> None:
+    """Run the request between two ticks; a refused one is logged with its reason."""
+    from .safety import SafetyRequestRefused
+
+    request = SAFETY_SIGNALS[sig]
+    log.warning("%s received: %s", sig.name, request)
+    try:
+        if request == "estop":
+            control.estop(f"{sig.name} received")
+        elif request == "hold":
+            control.hold(f"{sig.name} received")
+        else:
+            control.reset_faults()
+            control.rearm()
+    except SafetyRequestRefused as exc:
+        log.error("%s: %s", sig.name, exc)
+
+
 async def _run(config: Config, args: argparse.Namespace) -> int:
     from .loop import ControlLoop
     from .report import format_report, write_json
@@ -145,6 +168,8 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal, sig.name)
+    for sig in SAFETY_SIGNALS:
+        loop.add_signal_handler(sig, on_safety_signal, control, sig)
 
     log.info("starting robot %s: %d joints, %d driver(s), controller %s at %.0f Hz",
              config.robot.name, len(config.joints), len(config.drivers), config.controller.type, config.loop.rate_hz)
@@ -171,7 +196,7 @@ async def _run(config: Config, args: argparse.Namespace) -> int:
     except asyncio.CancelledError:
         control.record_fault("runtime", "close", "forced by a second signal: drivers emergency-stopped, not all closed")
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, *SAFETY_SIGNALS):
             loop.remove_signal_handler(sig)
     report = control.report()
     if not args.quiet:
