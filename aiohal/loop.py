@@ -566,6 +566,7 @@ class ControlLoop:
             watchdog = StallWatchdog(self, self.config.loop.stall_timeout_ms / 1e3)
             if self.watchdog is not None:
                 self.watchdog.arm()
+                log.info("watchdog process %d armed: %g ms", self.watchdog.proc.pid, self.watchdog.watchdog_ms)
             with watchdog:
                 try:
                     await self._tick_loop(ticks)
