@@ -467,6 +467,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
                     issues.append(ConfigIssue(f"controller.{rel}" if rel else "controller", msg))
                 controller = ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
 
+    if safety is not None and safety.workspace and robot is not None:
+        issues += _workspace_issues(robot, safety)
     if issues:
         raise ConfigError(issues, str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
@@ -483,6 +485,20 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         base_dir=base_dir,
         safety=safety,
     )
+
+
+def _workspace_issues(robot: RobotSection, safety: Any) -> list[ConfigIssue]:
+    """Workspace limits need the robot's model, and its sites and frames in it."""
+    if robot.model is None:
+        return [ConfigIssue("safety.workspace", "workspace limits need the robot's model ([robot] model)")]
+    try:
+        from .workspace import WorkspaceMonitor
+
+        return [ConfigIssue(k, m) for k, m in WorkspaceMonitor.name_issues(robot.model, safety.workspace)]
+    except ImportError as exc:
+        return [ConfigIssue("safety.workspace", f"workspace limits need MuJoCo (the 'sim' extra): {exc}")]
+    except ValueError as exc:
+        return [ConfigIssue("robot.model", str(exc))]
 
 
 def load_config(path: str | Path) -> Config:

@@ -103,6 +103,14 @@ class ControlLoop:
         # the tick's heartbeat: two int64 stores per tick; shared with the watchdog process
         # when one runs, else a private page nobody reads
         self._heartbeat = memoryview(bytearray(WORDS * 8)).cast("q")
+        #: workspace limits, only when configured (nothing of it in the tick otherwise)
+        self.workspace = None
+        if config.safety.workspace:
+            from .workspace import WorkspaceMonitor
+
+            self.workspace = WorkspaceMonitor(config.robot.model, list(self.robot.joint_names),
+                                              self.robot.state.position, list(config.safety.workspace))
+        self._outside = False  # a site is outside its workspace (recorded once per excursion)
         self.slots: list[DriverSlot] = []
         self._active: list[DriverSlot] = []
         self._given_controller = controller
@@ -380,6 +388,8 @@ class ControlLoop:
         if faulted.size:
             names = [self.robot.joint_names[i] for i in faulted[:5]]
             reasons.append(f"joint(s) {', '.join(names)}{' ...' if faulted.size > 5 else ''} report a fault")
+        if self.workspace is not None and not self.workspace.check():
+            reasons.append(f"site {self.workspace.entries[self.workspace.outside].site} is outside its workspace")
         if self.level == SafetyLevel.HOLD:
             rate = self.limiter.last_rate(np.empty(self.robot.dof))
             if np.any(rate != 0.0):
@@ -458,11 +468,12 @@ class ControlLoop:
             self.record_fault("controller:hold", "update", hold_exc)
             self.estop("hold failed", source="controller:hold", event=SafetyEvent.FAULT)
 
-    def enter_hold(self, reason: str, *, source: str = "loop", event: SafetyEvent = SafetyEvent.FAULT) -> None:
+    def enter_hold(self, reason: str, *, source: str = "loop", event: SafetyEvent = SafetyEvent.FAULT,
+                   level: SafetyLevel | None = None) -> None:
         """Replace the controller by ``hold``, continuing from the last command sent: a joint
         that was moving brakes to rest within its acceleration limit (no jump, no stall).
         A fault goes to ``[safety] fault_level`` instead when that is ``estop``."""
-        to = self.safety.target(event)
+        to = self.safety.target(event, level)
         if to is None:
             return
         if to < SafetyLevel.HOLD:
@@ -526,6 +537,22 @@ class ControlLoop:
             self._warn.warning("stale", "feedback still stale from %s", ", ".join(s.name for s in stale))
         else:
             self._stale_drivers.clear()
+
+    def _left_workspace(self) -> None:
+        """A site is outside its workspace: its configured level, the site and distance recorded.
+        Not commanding (estop, disabled), there is nothing to stop; rearm() waits for the site."""
+        if self.level < SafetyLevel.HOLD:
+            return
+        workspace = self.workspace
+        entry = workspace.entries[workspace.outside]
+        source = f"workspace:{entry.site}"
+        reason = (f"site {entry.site} is {workspace.distance * 1e3:.2f} mm outside its "
+                  f"{'box' if entry.box is not None else 'sphere'} (at {np.round(workspace.where, 4).tolist()} "
+                  f"in frame {entry.frame})")
+        if not self._outside:
+            self._outside = True
+            self.record_fault(source, "check", reason)
+        self.enter_hold(reason, source=source, level=workspace.levels[workspace.outside])
 
     def _publisher_failed(self, publish: Callable, exc: BaseException) -> None:
         name = getattr(publish, "__qualname__", repr(publish))
@@ -612,6 +639,7 @@ class ControlLoop:
         publishers = self._publishers
         multirate = self.multirate
         heartbeat = self._heartbeat
+        workspace = self.workspace
 
         ticker.start(lead_ns=period_ns)
         self._missed_before = ticker.missed
@@ -658,6 +686,11 @@ class ControlLoop:
             if not self._active:
                 self._no_driver_left()
                 break
+            if workspace is not None:
+                if not workspace.check():
+                    self._left_workspace()
+                elif self._outside:
+                    self._outside = False
             t2 = mono()
 
             if self.level < SafetyLevel.HOLD:  # emergency stop: keep reading, command nothing

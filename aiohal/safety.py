@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass
 from enum import Enum, IntEnum
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from .hal import Options
 
@@ -134,8 +134,44 @@ class SafetyMachine:
         return True
 
 
+Vector3 = tuple[float, float, float]
+
+
+class BoxSection(Options):
+    min: Vector3
+    max: Vector3
+
+    @model_validator(mode="after")
+    def _ordered(self) -> BoxSection:
+        if not all(lo < hi for lo, hi in zip(self.min, self.max)):
+            raise ValueError(f"min must be below max on every axis (got {list(self.min)}, {list(self.max)})")
+        return self
+
+
+class SphereSection(Options):
+    center: Vector3
+    radius: float = Field(gt=0)
+
+
+class WorkspaceSection(Options):
+    """``[[safety.workspace]]``: a site of the robot's model must stay in a box or a sphere,
+    given in the frame of a body of the model (``world``: the model's own)."""
+
+    site: str = Field(min_length=1, description="A site of the [robot] model (e.g. the end effector's).")
+    frame: str = Field("world", min_length=1, description="The body whose frame the box or sphere is given in.")
+    box: BoxSection | None = None
+    sphere: SphereSection | None = None
+    level: Literal["hold", "estop"] = Field("hold", description="Where leaving it takes the robot.")
+
+    @model_validator(mode="after")
+    def _one_shape(self) -> WorkspaceSection:
+        if (self.box is None) == (self.sphere is None):
+            raise ValueError("give exactly one of box or sphere")
+        return self
+
+
 class SafetySection(Options):
-    """``[safety]``: how faults are handled and the watchdog process."""
+    """``[safety]``: how faults are handled, the watchdog process and the workspace."""
 
     fault_level: Literal["hold", "estop"] = Field(
         "hold", description="Where a fault (driver, controller, stale feedback, refused command) takes the robot.")
@@ -144,6 +180,8 @@ class SafetySection(Options):
                           "(and the clock is real): it runs them when the tick's heartbeat stops.")
     watchdog_ms: float = Field(
         20.0, gt=0, le=10_000, description="The heartbeat is stale after this long (ms): the watchdog process acts.")
+    workspace: list[WorkspaceSection] = Field(
+        default_factory=list, description="Sites that must stay inside a box or sphere (needs [robot] model).")
     watchdog_priority: int = Field(
         0, ge=0, le=99, description="SCHED_FIFO priority of the watchdog process (0: normal scheduling); it "
                                     "should be above the loop's.")
