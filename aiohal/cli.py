@@ -125,7 +125,7 @@ def _loop_factory(name: str):
     return asyncio.new_event_loop
 
 
-#: The operator's safety requests as signals (README, "Running a robot"): SIGQUIT (Ctrl-\\ on a
+#: The operator's safety requests as signals (README, "Running a robot"): SIGQUIT (Ctrl-\ on a
 #: terminal) emergency-stops, SIGUSR1 holds, SIGUSR2 resets the faults and re-arms.
 SAFETY_SIGNALS = {signal.SIGQUIT: "estop", signal.SIGUSR1: "hold", signal.SIGUSR2: "reset_faults+rearm"}
 
