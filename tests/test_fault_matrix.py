@@ -22,6 +22,7 @@ import pytest
 from conftest import CONFIGS, ROOT, require_root
 from test_hand import FaultWatch, hand_raw
 from test_safety_paths import Stuck
+from test_ethercat_driver import At, in_thread, raw_config, segment, sim  # noqa: F401  (fixtures)
 from test_watchdog import WATCHDOG_MS, SLACK_MS, Board, board, start_robot  # noqa: F401  (board: fixture)
 
 from aiohal.config import parse_config
@@ -149,30 +150,13 @@ async def test_hand_process_death_faults_the_hand_and_the_arm_runs_on():
 # ---------------------------------------------------------------- EtherCAT (simulated segment, root)
 
 
-@pytest.fixture(scope="module")
-def ecat():
-    from conftest import start_segment
-
-    segment = start_segment("drive*7,imu,ft", watchdog_ms=1000)
-    yield segment
-    segment.stop()
-
-
-@pytest.fixture
-def line(ecat):
-    ecat.control({"cmd": "clear"})
-    ecat.control({"cmd": "power_cycle"})
-    ecat.control({"cmd": "reset_counters"})
-    return ecat
-
-
 @pytest.mark.asyncio
 @pytest.mark.parametrize("fault, command, level", [
     ("working-counter error, fewer than wkc_error_limit cycles", {"cmd": "wkc", "count": 3}, "run"),
     ("slave loss (cable break before drive 5)", {"cmd": "break", "slave": 4}, "estop"),
 ], ids=["wkc error", "slave loss"])
-async def test_ethercat_faults_reach_their_level_within_the_error_limit(line, fault, command, level):
-    from test_ethercat_driver import At, in_thread, raw_config
+async def test_ethercat_faults_reach_their_level_within_the_error_limit(segment, fault, command, level):
+    line = segment
 
     limit = 5
     raw = raw_config(line.ifname, wkc_error_limit=limit)
