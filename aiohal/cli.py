@@ -178,6 +178,29 @@ def _loop_factory(name: str):
     return asyncio.new_event_loop
 
 
+#: The operator's safety requests as signals (README, "Running a robot"): SIGQUIT (Ctrl-\\ on a
+#: terminal) emergency-stops, SIGUSR1 holds, SIGUSR2 resets the faults and re-arms.
+SAFETY_SIGNALS = {signal.SIGQUIT: "estop", signal.SIGUSR1: "hold", signal.SIGUSR2: "reset_faults+rearm"}
+
+
+def on_safety_signal(control, sig: signal.Signals) -> None:
+    """Run the request between two ticks; a refused one is logged with its reason."""
+    from .safety import SafetyRequestRefused
+
+    request = SAFETY_SIGNALS[sig]
+    log.warning("%s received: %s", sig.name, request)
+    try:
+        if request == "estop":
+            control.estop(f"{sig.name} received")
+        elif request == "hold":
+            control.hold(f"{sig.name} received")
+        else:
+            control.reset_faults()
+            control.rearm()
+    except SafetyRequestRefused as exc:
+        log.error("%s: %s", sig.name, exc)
+
+
 class _Outcome:
     """What cmd_run must know of how a run ended: whether to leave at once (an emergency stop
     by a second signal, or a driver abandoned in close(): its thread may never finish)."""
@@ -226,6 +249,8 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
             log.info("interrupted while starting: nothing was started")
             return 128 + (early[0] if early else signal.SIGINT)
         control = ControlLoop(config)
+        for sig in SAFETY_SIGNALS:
+            loop.add_signal_handler(sig, on_safety_signal, control, sig)
         log.info("starting robot %s: %d joints, %d driver(s), controller %s at %.0f Hz",
                  config.robot.name, len(config.joints), len(config.drivers), config.controller.type,
                  config.loop.rate_hz)
@@ -273,7 +298,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         log.info("stopped: %s", control.stop_reason)
         return status
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM, *SAFETY_SIGNALS):
             loop.remove_signal_handler(sig)
 
 

@@ -26,6 +26,7 @@ from .realtime import RealtimeSection
 from .record.options import RecordSection
 from .robot import JointSpec, Robot
 from .shm import ClientSection, segment_name
+from .safety import SafetySection
 
 
 def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
@@ -150,6 +151,7 @@ SECTIONS: dict[str, Any] = {
     "record": RecordSection,
     "client": ClientSection,
     "bridge": BridgeSection,
+    "safety": SafetySection,
 }
 REQUIRED_SECTIONS = ("joints", "driver")
 _GLOB = "*?["  # a driver's joints are names or fnmatch patterns
@@ -193,6 +195,7 @@ class Config:
     record: RecordSection = field(default_factory=RecordSection)
     client: ClientSection = field(default_factory=ClientSection)
     bridge: BridgeSection = field(default_factory=BridgeSection)
+    safety: SafetySection = field(default_factory=SafetySection)
 
     @property
     def period_ns(self) -> int:
@@ -400,6 +403,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     robot = _validate(RobotSection, raw.get("robot", {}), "robot", issues, context)
     loop = _validate(LoopSection, raw.get("loop", {}), "loop", issues, context)
     realtime = _validate(RealtimeSection, raw.get("realtime", {}), "realtime", issues, context)
+    safety = _validate(SafetySection, raw.get("safety", {}), "safety", issues, context)
     if loop is not None and realtime is not None:
         period_us = 1e6 / loop.rate_hz
         if realtime.spin_guard_us > period_us / 2:
@@ -556,9 +560,12 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         issues.append(ConfigIssue("controller.type", "the stream controller reads setpoints from shared memory: "
                                   "set [client] shm = true"))
 
+    if safety is not None and safety.workspace and robot is not None:
+        issues += _workspace_issues(robot, safety)
     if issues:  # each once: a scalar that is wrong for every joint is one mistake
         raise ConfigError(list(dict.fromkeys(issues)), str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
+    assert safety is not None
     return Config(
         robot=robot,
         loop=loop,
@@ -572,7 +579,22 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         record=record,
         client=client,
         bridge=bridge,
+        safety=safety,
     )
+
+
+def _workspace_issues(robot: RobotSection, safety: Any) -> list[ConfigIssue]:
+    """Workspace limits need the robot's model, and its sites and frames in it."""
+    if robot.model is None:
+        return [ConfigIssue("safety.workspace", "workspace limits need the robot's model ([robot] model)")]
+    try:
+        from .workspace import WorkspaceMonitor
+
+        return [ConfigIssue(k, m) for k, m in WorkspaceMonitor.name_issues(robot.model, safety.workspace)]
+    except ImportError as exc:
+        return [ConfigIssue("safety.workspace", f"workspace limits need MuJoCo (the 'sim' extra): {exc}")]
+    except ValueError as exc:
+        return [ConfigIssue("robot.model", str(exc))]
 
 
 #: the largest config file read (the largest shipped config is about 10 KiB); a device or a

@@ -115,6 +115,20 @@ class Driver(abc.ABC):
     def estop(self) -> None:
         """Emergency stop: synchronous, idempotent, never raises on purpose."""
 
+    def reset_faults(self) -> object:
+        """Clear the hardware's latched faults (e.g. a drive's), on the user's request."""
+        return None
+
+    def release_estop(self) -> bool:
+        """Leave the emergency stop, hardware disabled but ready to be commanded again (the
+        loop re-arms it). False: this driver cannot without being opened again."""
+        return False
+
+    def safe_actions(self) -> list:
+        """What the watchdog process does for this driver when the tick stops
+        (:mod:`aiohal.watchdog` actions: plain data, run outside this process)."""
+        return []
+
     def health(self) -> dict[str, Any]:
         """Driver-specific counters for the report (e.g. frames lost)."""
         return {}

@@ -41,9 +41,12 @@ from .robot import Fault, Mode
 from .realtime import RealtimeState, freeze_heap, freeze_young, thaw_heap
 from .realtime import apply as apply_realtime
 from .realtime import restore as restore_realtime
-from .safety import FaultRecord, SafetyLevel
+from .safety import FaultRecord, SafetyEvent, SafetyLevel, SafetyMachine, SafetyRequestRefused
 from .stats import TickStats
 from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
+from .watchdog import STAMP, TICK, WORDS, WatchdogProcess
+
+assert (TICK, STAMP) == (0, 1)  # the tick stores them as heartbeat[0] and heartbeat[1]
 
 log = logging.getLogger(__name__)
 
@@ -93,16 +96,32 @@ class ControlLoop:
         #: a controller slower than the bus (None: it runs on every tick)
         self.multirate = (TargetExtrapolator(self.robot.command, self.period_s, every, config.controller.extrapolate)
                           if every > 1 else None)
+        #: the safety state machine (:mod:`aiohal.safety`); ``level`` mirrors its level for the tick
+        self.safety = SafetyMachine(SafetyLevel[config.safety.fault_level.upper()])
         self.level = SafetyLevel.OFF
         #: the most severe level since activate(): the report's "safety_worst"
         self.worst_level = SafetyLevel.OFF
         self.faults: list[FaultRecord] = []
+        self._faults_reset_at = 0  # faults recorded before this index were cleared by reset_faults()
+        self.watchdog: WatchdogProcess | None = None
+        # the tick's heartbeat: two int64 stores per tick; shared with the watchdog process
+        # when one runs, else a private page nobody reads
+        self._heartbeat = memoryview(bytearray(WORDS * 8)).cast("q")
+        #: workspace limits, only when configured (nothing of it in the tick otherwise)
+        self.workspace = None
+        if config.safety.workspace:
+            from .workspace import WorkspaceMonitor
+
+            self.workspace = WorkspaceMonitor(config.robot.model, list(self.robot.joint_names),
+                                              self.robot.state.position, list(config.safety.workspace))
+        self._outside = False  # a site is outside its workspace (recorded once per excursion)
         self.slots: list[DriverSlot] = []
         self._active: list[DriverSlot] = []
         self._given_controller = controller
         self._given_params = controller_params
         self.controller: Controller | None = None
         self.controller_type = config.controller.type
+        self._configured: tuple[Controller, str] | None = None  # what rearm() restarts
         self._hold: Controller | None = None
         self._publishers: list[Callable[[ControlLoop], None]] = []
         self._stop = False
@@ -151,6 +170,7 @@ class ControlLoop:
         except Exception as exc:
             raise ControllerError(self.controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
         self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.doors)
+        self._configured = (self.controller, self.controller_type)
         self.state = "configured"
 
     async def activate(self) -> None:
@@ -171,8 +191,9 @@ class ControlLoop:
                 await self._bring_up(slot, "open", slot.driver.open)
             for slot in self.slots:
                 await self._bring_up(slot, "read", slot.driver.read)
+            self._start_watchdog()
         except BaseException:
-            self.estop()
+            self.estop("bring-up failed", source="loop")
             await self._close_drivers()
             self.state = "closed"
             raise
@@ -182,7 +203,7 @@ class ControlLoop:
             if not np.isfinite(state.block[:3, rows]).all():
                 reason = "measured position, velocity or effort is not finite after the first read"
                 self.record_fault(f"driver:{slot.name}", "read", reason)
-                self.estop()
+                self.estop(reason, source=f"driver:{slot.name}")
                 await self._close_drivers()
                 self.state = "closed"
                 raise DriverError(slot.name, "read", reason)
@@ -194,7 +215,7 @@ class ControlLoop:
         cmd.feedforward[:] = 0.0
         cmd.mode[cmd.mode == Mode.NONE] = Mode.POSITION
         self.limiter.reset(state.position)
-        self.level = self.worst_level = SafetyLevel.RUN
+        self._event(SafetyEvent.ACTIVATE, "loop", "drivers open, controller started")
         self.state = "active"
         self._k_start = 0  # controller time counts from activation, across run() calls
         self._last_update_k = 0
@@ -231,10 +252,28 @@ class ControlLoop:
         except Exception as exc:
             self.record_fault(f"controller:{self.controller_type}", "stop", exc)
         await self._close_drivers()
-        self.level = SafetyLevel.OFF
+        self._event(SafetyEvent.DEACTIVATE, "loop", "drivers closed")
         self.state = "closed"
 
+    def _start_watchdog(self) -> None:
+        """The watchdog process, when some driver declares a safe action and time is real."""
+        safety = self.config.safety
+        actions = [(f"driver:{slot.name}", action) for slot in self.slots for action in slot.driver.safe_actions()]
+        if not (safety.watchdog and actions) or self.source.kind == "virtual":
+            return
+        watchdog = WatchdogProcess(actions, safety.watchdog_ms, safety.watchdog_priority)
+        watchdog.start()
+        self.watchdog = watchdog
+        self._heartbeat = watchdog.heartbeat
+
+    def _stop_watchdog(self) -> None:
+        watchdog, self.watchdog = self.watchdog, None
+        if watchdog is not None:
+            self._heartbeat = memoryview(bytearray(WORDS * 8)).cast("q")
+            watchdog.stop()
+
     async def _close_drivers(self) -> None:
+        self._stop_watchdog()
         timeout = self.config.loop.close_timeout_ms / 1e3
         for slot in reversed(self.slots):
             if slot.status in ("closed", "abandoned"):
@@ -275,17 +314,132 @@ class ControlLoop:
     def stop_requested(self) -> bool:
         return self._stop
 
-    def estop(self) -> None:
-        """Trigger every driver's emergency stop now (synchronous; safe to call twice)."""
+    # ------------------------------------------------------------ safety events
+
+    def _event(self, event: SafetyEvent, source: str, cause: str, level: SafetyLevel | None = None) -> bool:
+        """Fire ``event`` on the safety machine; the tick reads the level from ``self.level``."""
+        changed = self.safety.fire(event, self.robot.clock.tick, source, cause, level)
+        self.level = self.safety.level
+        if self.level != SafetyLevel.OFF and (self.worst_level == SafetyLevel.OFF or self.level < self.worst_level):
+            self.worst_level = self.level  # the lowest level reached while running, for the exit status
+        return changed
+
+    def estop(self, cause: str = "requested", *, source: str = "user",
+              event: SafetyEvent = SafetyEvent.ESTOP) -> None:
+        """Trigger every driver's emergency stop now (synchronous; safe to call twice, and from
+        another thread or a signal handler). The drivers are still read; nothing is commanded
+        until :meth:`reset_faults` and :meth:`rearm`."""
         for slot in self.slots:
             try:
                 slot.driver.estop()
             except Exception as exc:
                 self.record_fault(f"driver:{slot.name}", "estop", exc)
-        if self.level > SafetyLevel.ESTOP:
-            self.level = SafetyLevel.ESTOP
-        if self.worst_level > SafetyLevel.ESTOP or self.worst_level == SafetyLevel.OFF:
-            self.worst_level = SafetyLevel.ESTOP
+        if self.level > SafetyLevel.OFF:
+            self._event(event, source, cause, SafetyLevel.ESTOP if event is SafetyEvent.FAULT else None)
+
+    def hold(self, cause: str = "requested") -> None:
+        """A user's request: replace the controller by ``hold`` (braking to rest, no jump)."""
+        if self.safety.target(SafetyEvent.HOLD) is None:
+            raise SafetyRequestRefused(f"hold from {self.level.name.lower()}: only from run")
+        self.enter_hold(cause, source="user", event=SafetyEvent.HOLD)
+
+    def reset_faults(self, source: str = "user") -> list[str]:
+        """Clear latched faults: every driver's own (:meth:`Driver.reset_faults`), the joints'
+        fault bits and the loop's record of faults since the last reset. After an emergency
+        stop, every driver must release it (:meth:`Driver.release_estop`): the robot is then
+        ``disabled``, read but not commanded, until :meth:`rearm`. Returns what a driver
+        reported resetting (e.g. EtherCAT drive names). Raises
+        :class:`SafetyRequestRefused` with the reason when it cannot."""
+        if self.state not in ("active", "running"):
+            raise SafetyRequestRefused(f"reset_faults() with the loop {self.state}")
+        if self.safety.target(SafetyEvent.RESET_FAULTS) is None:
+            raise SafetyRequestRefused(f"reset_faults() from {self.level.name.lower()}")
+        reset: list[str] = []
+        for slot in self._active:
+            try:
+                names = slot.driver.reset_faults()
+            except Exception as exc:
+                self.record_fault(f"driver:{slot.name}", "reset_faults", exc)
+                continue
+            if isinstance(names, (list, tuple)):
+                reset += [str(n) for n in names]
+        if self.level == SafetyLevel.ESTOP:
+            kept = []
+            for slot in self._active:
+                try:
+                    if not slot.driver.release_estop():
+                        kept.append(slot.name)
+                except Exception as exc:
+                    self.record_fault(f"driver:{slot.name}", "release_estop", exc)
+                    kept.append(slot.name)
+            if kept:
+                raise SafetyRequestRefused(f"driver(s) {', '.join(kept)} cannot leave the emergency stop "
+                                           "without a restart")
+        for slot in self._active:
+            self.robot.state.fault[slot.driver.view.rows] = 0
+        self._stale_drivers.clear()
+        self._refusing = False
+        cleared = len(self.faults) - self._faults_reset_at
+        self._faults_reset_at = len(self.faults)
+        self._event(SafetyEvent.RESET_FAULTS, source, f"{cleared} fault(s) cleared")
+        return reset
+
+    def active_faults(self) -> list[str]:
+        """Why :meth:`rearm` would be refused now (empty: it would not)."""
+        reasons = []
+        failed = [s.name for s in self.slots if s.status in ("failed", "abandoned")]
+        if failed:
+            reasons.append(f"driver(s) {', '.join(failed)} failed (isolated until the loop is started again)")
+        if len(self.faults) > self._faults_reset_at:
+            reasons.append(f"{len(self.faults) - self._faults_reset_at} fault(s) since the last reset_faults()")
+        k, max_age = self.robot.clock.tick, self.config.loop.max_feedback_age
+        stale = [s.name for s in self._active if k - s.driver.view.fresh_tick > max_age]
+        if stale:
+            reasons.append(f"feedback is stale from {', '.join(stale)}")
+        faulted = np.flatnonzero(self.robot.state.fault)
+        if faulted.size:
+            names = [self.robot.joint_names[i] for i in faulted[:5]]
+            reasons.append(f"joint(s) {', '.join(names)}{' ...' if faulted.size > 5 else ''} report a fault")
+        if self.workspace is not None and not self.workspace.check():
+            reasons.append(f"site {self.workspace.entries[self.workspace.outside].site} is outside its workspace")
+        if self.level == SafetyLevel.HOLD:
+            rate = self.limiter.last_rate(np.empty(self.robot.dof))
+            if np.any(rate != 0.0):
+                reasons.append("hold is still braking")
+        return reasons
+
+    def rearm(self, source: str = "user") -> None:
+        """Return to ``run`` from ``hold`` or ``disabled`` when no fault is active, without a
+        jump: the configured controller starts again (``start``) from the measured state, and
+        the command continues from the last one sent (from ``hold``) or from the measured
+        position (from ``disabled``, where nothing was sent). Raises
+        :class:`SafetyRequestRefused` with the reasons when it cannot."""
+        if self.state not in ("active", "running"):
+            raise SafetyRequestRefused(f"rearm() with the loop {self.state}")
+        if self.safety.target(SafetyEvent.REARM) is None:
+            hint = ": reset_faults() first" if self.level == SafetyLevel.ESTOP else ""
+            raise SafetyRequestRefused(f"rearm() from {self.level.name.lower()}{hint}")
+        reasons = self.active_faults()
+        if reasons:
+            raise SafetyRequestRefused("rearm() refused: " + "; ".join(reasons))
+        cmd, measured = self.robot.command, self.robot.state.position
+        if self.level == SafetyLevel.DISABLED:
+            np.copyto(cmd.position, measured)
+            cmd.velocity[:] = 0.0
+            cmd.effort[:] = 0.0
+            cmd.feedforward[:] = 0.0
+            self.limiter.reset(measured)
+        controller, controller_type = self._configured
+        self.controller, self.controller_type = controller, controller_type
+        self._event(SafetyEvent.REARM, source, f"{controller_type} restarted from the measured state")
+        k = self.robot.clock.tick
+        self._last_update_k = k
+        if self.multirate is not None:
+            self.multirate.force()
+        try:
+            controller.start((k - self._k_start) * self.period_s)
+        except Exception as exc:
+            self._controller_failed("start", exc)
 
     def add_publisher(self, publish: Callable[[ControlLoop], None]) -> None:
         """Call ``publish(loop)`` at the end of every tick; it must not block."""
@@ -310,27 +464,35 @@ class ControlLoop:
             self.record_fault(f"driver:{slot.name}", "estop", estop_exc)
         self.robot.state.fault[slot.driver.view.rows] |= np.uint32(Fault.DRIVER)
         self._active = [s for s in self._active if s is not slot]
-        self.enter_hold(f"driver {slot.name} failed")
+        self.enter_hold(f"driver {slot.name} failed in {phase}", source=f"driver:{slot.name}")
 
     def _controller_failed(self, phase: str, exc: BaseException | str) -> None:
         """The controller raised or wrote a non-finite command: hold, and command this tick."""
-        self.record_fault(f"controller:{self.controller_type}", phase, exc)
-        self.enter_hold(f"controller {self.controller_type} failed")
+        source = f"controller:{self.controller_type}"
+        self.record_fault(source, phase, exc)
+        self.enter_hold(f"controller {self.controller_type} failed in {phase}", source=source)
+        if self.level < SafetyLevel.HOLD:
+            return
         t = (self.robot.clock.tick - self._k_start) * self.period_s
         try:
             self._hold.update(t, self.period_s)
         except Exception as hold_exc:  # hold is simple enough never to get here
             self.record_fault("controller:hold", "update", hold_exc)
-            self.estop()
+            self.estop("hold failed", source="controller:hold", event=SafetyEvent.FAULT)
 
-    def enter_hold(self, reason: str) -> None:
+    def enter_hold(self, reason: str, *, source: str = "loop", event: SafetyEvent = SafetyEvent.FAULT,
+                   level: SafetyLevel | None = None) -> None:
         """Replace the controller by ``hold``, continuing from the last command sent: a joint
-        that was moving brakes to rest within its acceleration limit (no jump, no stall)."""
-        if self.level <= SafetyLevel.HOLD:
+        that was moving brakes to rest within its acceleration limit (no jump, no stall).
+        A fault goes to ``[safety] fault_level`` instead when that is ``estop``."""
+        to = self.safety.target(event, level)
+        if to is None:
+            return
+        if to < SafetyLevel.HOLD:
+            self.estop(reason, source=source, event=event)
             return
         log.warning("robot %s goes to hold: %s", self.robot.name, reason)
-        self.level = SafetyLevel.HOLD
-        self.worst_level = min(self.worst_level, SafetyLevel.HOLD)
+        self._event(event, source, reason)
         old = self.controller
         if old is not None and old is not self._hold:
             try:
@@ -352,7 +514,7 @@ class ControlLoop:
 
     def _hold_for_driver(self, name: str, reason: str) -> None:
         if self.level > SafetyLevel.HOLD:
-            self.enter_hold(f"driver {name}: {reason}")
+            self.enter_hold(f"driver {name}: {reason}", source=f"driver:{name}")
 
     def resync_joints(self, rows: slice, mask: np.ndarray) -> None:
         """Joints ``mask`` of the driver rows ``rows`` were (re-)enabled where they stand: their
@@ -383,10 +545,26 @@ class ControlLoop:
                 self._stale_drivers.add(slot.name)
                 self.record_fault(f"driver:{slot.name}", "check", f"feedback is stale ({k - view.fresh_tick} ticks old)")
         if stale:
-            self.enter_hold("stale feedback from " + ", ".join(s.name for s in stale))
+            self.enter_hold("stale feedback from " + ", ".join(s.name for s in stale), source="feedback")
             self._warn.warning("stale", "feedback still stale from %s", ", ".join(s.name for s in stale))
         else:
             self._stale_drivers.clear()
+
+    def _left_workspace(self) -> None:
+        """A site is outside its workspace: its configured level, the site and distance recorded.
+        Not commanding (estop, disabled), there is nothing to stop; rearm() waits for the site."""
+        if self.level < SafetyLevel.HOLD:
+            return
+        workspace = self.workspace
+        entry = workspace.entries[workspace.outside]
+        source = f"workspace:{entry.site}"
+        reason = (f"site {entry.site} is {workspace.distance * 1e3:.2f} mm outside its "
+                  f"{'box' if entry.box is not None else 'sphere'} (at {np.round(workspace.where, 4).tolist()} "
+                  f"in frame {entry.frame})")
+        if not self._outside:
+            self._outside = True
+            self.record_fault(source, "check", reason)
+        self.enter_hold(reason, source=source, level=workspace.levels[workspace.outside])
 
     def _publisher_failed(self, publish: Callable, exc: BaseException) -> None:
         name = getattr(publish, "__qualname__", repr(publish))
@@ -395,7 +573,7 @@ class ControlLoop:
 
     def _no_driver_left(self) -> None:
         self.record_fault("loop", "check", "every driver has failed: nothing left to command")
-        self.estop()
+        self.estop("every driver has failed", source="loop", event=SafetyEvent.FAULT)
         self.request_stop("no driver left")
 
     # ------------------------------------------------------------ the tick
@@ -432,6 +610,9 @@ class ControlLoop:
             if self._heap_frozen:
                 freeze_young()  # what open() and earlier runs left: young generations only
             watchdog = StallWatchdog(self, self.config.loop.stall_timeout_ms / 1e3)
+            if self.watchdog is not None:
+                self.watchdog.arm()
+                log.info("watchdog process %d armed: %g ms", self.watchdog.proc.pid, self.watchdog.watchdog_ms)
             with watchdog:
                 try:
                     await self._tick_loop(ticks)
@@ -440,6 +621,9 @@ class ControlLoop:
                         raise
                     asyncio.current_task().uncancel()  # the watchdog's cancel ends the run, not the caller
         finally:
+            if self.watchdog is not None:
+                self.watchdog.disarm()
+                self._check_watchdog_process()
             self.stats.end()
             self.ticker.close()
             restore_realtime(self.realtime)
@@ -447,6 +631,14 @@ class ControlLoop:
                 self.state = "active"
             self._run_finished.set()
         return self.report()
+
+    def _check_watchdog_process(self) -> None:
+        """The watchdog process acted on the hardware (the tick had stopped): estop here too."""
+        watchdog = self.watchdog
+        if watchdog is not None and watchdog.fired_ns and self.level > SafetyLevel.ESTOP:
+            self.record_fault("watchdog", "tick", f"the tick stopped for more than {watchdog.watchdog_ms:g} ms: "
+                              "the watchdog process ran the drivers' safe actions")
+            self.estop("the watchdog process acted", source="watchdog", event=SafetyEvent.WATCHDOG)
 
     async def _tick_loop(self, ticks: int | None) -> None:
         self.stats.reset()
@@ -465,6 +657,8 @@ class ControlLoop:
         now_ns = self.source.now_ns
         publishers = self._publishers
         multirate = self.multirate
+        heartbeat = self._heartbeat
+        workspace = self.workspace
 
         ticker.start(lead_ns=period_ns)
         self._missed_before = ticker.missed
@@ -484,6 +678,8 @@ class ControlLoop:
             lateness = woke - ticker.deadline_ns
             clock.tick = k
             clock.now_ns = woke
+            heartbeat[0] = k  # for the watchdog process: two stores, no system call
+            heartbeat[1] = t0
 
             # read and write are spelled out, not factored: a helper call per driver per
             # phase costs more than the lines it would save on this path
@@ -509,6 +705,11 @@ class ControlLoop:
             if not self._active:
                 self._no_driver_left()
                 break
+            if workspace is not None:
+                if not workspace.check():
+                    self._left_workspace()
+                elif self._outside:
+                    self._outside = False
             t2 = mono()
 
             if self.level < SafetyLevel.HOLD:  # emergency stop: keep reading, command nothing
@@ -637,6 +838,7 @@ class ControlLoop:
             **summary,
             "safety_level": self.level.name.lower(),
             "safety_worst": self.worst_level.name.lower(),
+            "safety": [t.as_dict() for t in self.safety.transitions],
             "stop_reason": self.stop_reason,
             "commands_refused": self.limiter.refused,
             "faults": [f.as_dict() for f in self.faults],
@@ -686,14 +888,21 @@ class StallWatchdog:
     def _watch(self) -> None:
         stats = self.control.stats
         last, since = -1, time.monotonic()
+        notified = False
         while not self._stop.wait(self.timeout_s / 4):
             count = stats.count
             now = time.monotonic()
+            process = self.control.watchdog
+            if process is not None and process.fired_ns and not notified:
+                notified = True
+                self._loop.call_soon_threadsafe(self.control._check_watchdog_process)
             if count != last:
                 last, since = count, now
             elif now - since > self.timeout_s:
                 self.fired = True
-                self.control.estop()  # synchronous, from this thread: the loop may be stuck
+                # synchronous, from this thread: the loop may be stuck
+                self.control.estop(f"no tick for {self.timeout_s * 1e3:g} ms", source="watchdog",
+                                   event=SafetyEvent.WATCHDOG)
                 self._loop.call_soon_threadsafe(self._cancel)
                 return
 

@@ -281,7 +281,7 @@ class ShmDoor:
         }
         self.segment = create_segment(
             robot.name, _finite_json(meta), dof=robot.dof, n_imu=len(robot.imu), n_ft=len(robot.force_torque),
-            capacity=capacity, period_ns=control.period_ns, can_rearm=callable(getattr(control, "rearm", None)))
+            capacity=capacity, period_ns=control.period_ns, can_rearm=True)
         self.requests_acted = 0
         self.publish = self._make_publisher()
         _DOORS[robot.name] = self
@@ -330,21 +330,27 @@ class ShmDoor:
     def _act(self, req: memoryview, seen: list[int]) -> None:
         """A client asked for a safety change (rare: off the per-tick path). The snapshot of
         the next tick shows its effect; a client waits for that tick (see the client)."""
+        from .safety import SafetyRequestRefused
+
         control = self.control
         if req[R_ESTOP] != seen[1]:
             seen[1] = req[R_ESTOP]
             log.warning("robot %s: emergency stop requested by a shared-memory client", self.robot_name)
-            control.estop()
+            control.estop("requested by a shared-memory client", source="client")
             req[R_ESTOP_DONE] = seen[1]
         if req[R_HOLD] != seen[0]:
             seen[0] = req[R_HOLD]
-            control.enter_hold("requested by a shared-memory client")
+            try:
+                control.hold("requested by a shared-memory client")
+            except SafetyRequestRefused as exc:  # not running: the level the client reads says so
+                log.warning("robot %s: a shared-memory client's hold refused: %s", self.robot_name, exc)
             req[R_HOLD_DONE] = seen[0]
         if req[R_REARM] != seen[2]:
             seen[2] = req[R_REARM]
-            rearm = getattr(control, "rearm", None)
-            if callable(rearm):
-                rearm()
+            try:
+                control.rearm(source="client")
+            except SafetyRequestRefused as exc:
+                log.warning("robot %s: a shared-memory client's rearm refused: %s", self.robot_name, exc)
             req[R_REARM_DONE] = seen[2]
         self.requests_acted += 1
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import math
+import socket
 import threading
 import time
 from typing import Literal
@@ -21,6 +22,9 @@ from pydantic import Field
 
 from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
+from aiohal.watchdog import SendDatagram
+
+ESTOP_PAYLOAD = b"ESTOP"
 
 
 class MockFaults(Options):
@@ -47,6 +51,10 @@ class MockOptions(Options):
     torque: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Torque read by F/T sensors (N·m).")
     hand_speed: float = Field(2.0, gt=0, description="Hand closing speed at speed=1 (grasp units/s).")
     faults: MockFaults = Field(default_factory=MockFaults)
+    estop_datagram: str | None = Field(
+        None, pattern=r"^[^:]+:\d{1,5}$",
+        description="'host:port': the simulated board's e-stop datagram goes there, from estop() and, when "
+                    "the tick stops, from the watchdog process.")
 
 
 class MockDriver(Driver):
@@ -209,8 +217,23 @@ class MockDriver(Driver):
     def estop(self) -> None:
         self.estops = getattr(self, "estops", 0) + 1
         self.stopped = True  # the simulated joints freeze, as braked drives would
+        for action in self.safe_actions():
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+                sock.sendto(action.payload, (action.host, action.port))
         if self.options.faults.estop_error:
             raise RuntimeError("injected estop error")
+
+    def release_estop(self) -> bool:
+        """The simulated brakes let go; the joints move again when commanded."""
+        self.stopped = False
+        self._last_tick = self.view.clock.tick  # no catching up on the time spent stopped
+        return True
+
+    def safe_actions(self) -> list:
+        if self.options.estop_datagram is None:
+            return []
+        host, port = self.options.estop_datagram.rsplit(":", 1)
+        return [SendDatagram(host, int(port), ESTOP_PAYLOAD + b" " + self.name.encode())]
 
     async def close(self) -> None:
         hangs = self.options.faults.close_hangs

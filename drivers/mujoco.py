@@ -271,6 +271,11 @@ class MujocoDriver(Driver):
         if hasattr(self, "data"):
             self.data.ctrl[self.actuators] = 0.0
 
+    def release_estop(self) -> bool:
+        """Drives on again; the loop re-arms them from where the limp robot came to be."""
+        self._estopped = False
+        return True
+
     async def close(self) -> None:
         if self._pending is not None:
             await self._pending

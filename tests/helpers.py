@@ -45,3 +45,47 @@ def register_driver(monkeypatch, name: str, target: str) -> None:
 
     monkeypatch.setitem(plugins.BUILTIN["driver"], name, (target, None))
     monkeypatch.setattr(plugins, "load", functools.lru_cache(maxsize=None)(plugins.load.__wrapped__))
+
+
+def record(loop):
+    """Per tick run: the tick, the position sent and the measured position; and per update of
+    the loop's controller, what it wrote itself, before the limits."""
+    import numpy as np
+
+    sent, measured, own = [], [], []
+    controller = loop.controller
+    update = controller.update
+
+    def spied(t, dt):
+        update(t, dt)
+        own.append((loop.robot.clock.tick, loop.robot.command.position.copy()))
+
+    controller.update = spied
+    loop.add_publisher(lambda lp: (sent.append((lp.robot.clock.tick, lp.limiter.last_position.copy())),
+                                   measured.append(lp.robot.state.position.copy())))
+    return sent, measured, own
+
+
+def at(tick, action):
+    """A publisher doing ``action(loop)`` at one tick."""
+    return lambda lp: action(lp) if lp.robot.clock.tick == tick else None
+
+
+def assert_bumpless(loop, sent, measured, own, rearm_tick, since=0):
+    """No step of the position sent larger than one tick of the velocity limit per tick run,
+    and the restarted controller's own first command within one such step of the last
+    command sent and of the measured position (it does not start elsewhere and catch up).
+    ``since``: the first tick checked (a joint resynchronised before it may jump, by design)."""
+    import numpy as np
+
+    step = loop.robot.velocity_limit * loop.period_s
+    ticks = np.array([k for k, _ in sent])
+    positions = np.array([q for _, q in sent])
+    gaps = np.diff(ticks)[:, None]
+    bad = (np.abs(np.diff(positions, axis=0)) > gaps * step + 1e-12).any(axis=1) & (ticks[1:] >= since)
+    assert not bad.any(), f"steps larger than the velocity limit at ticks {ticks[1:][bad][:10]}"
+    i = int(np.flatnonzero(ticks == rearm_tick)[0])
+    first = [q for k, q in own if k > rearm_tick]
+    assert first, "the controller did not run after the re-arm"
+    assert (np.abs(first[0] - positions[i]) <= step).all(), (first[0], positions[i])
+    assert (np.abs(first[0] - measured[i]) <= step + 1e-9).all(), (first[0], measured[i])

@@ -196,6 +196,50 @@ async def test_a_drive_fault_holds_the_robot_and_its_reset_re_enables_it_where_i
 
 
 @pytest.mark.asyncio
+async def test_after_a_drive_fault_the_robot_is_re_armed_without_a_jump(segment):
+    from helpers import assert_bumpless, record
+
+    from aiohal.safety import SafetyRequestRefused
+
+    raw = raw_config(segment.ifname)
+    at = At((1500, in_thread(segment.control, {"cmd": "drive_fault", "slave": 2, "code": 0x2310})))
+    until = {"condition": lambda m: m.faulted}
+
+    def settled(loop):
+        tick = loop.robot.clock.tick
+        if "tick" not in until and until["condition"](driver_of(loop).drives.machines[2]):
+            until["tick"] = tick
+        if "tick" in until and tick >= until["tick"] + 300:  # hold has braked to rest
+            loop.request_stop("settled")
+
+    async with ControlLoop(parse_config(raw)) as loop:
+        sent, measured, own = record(loop)
+        loop.add_publisher(at)
+        loop.add_publisher(settled)
+        await loop.run(ticks=8000)
+        assert loop.level.name == "HOLD"
+        with pytest.raises(SafetyRequestRefused, match="since the last reset_faults"):
+            loop.rearm()
+        assert loop.reset_faults() == ["drive3"]  # the drive's own reset, through the loop
+        until.clear()
+        until["condition"] = lambda m: m.enabled
+        await loop.run(ticks=8000)
+        enabled_tick = until["tick"]  # drive3's command resynchronised to where it stands, by design
+        rearm_tick = loop.robot.clock.tick
+        until.clear()
+        until["condition"] = lambda m: False
+        loop.rearm()
+        runs = TicksRun()
+        loop.add_publisher(runs)
+        report = await runs.run(loop, 1500)
+        await asyncio.gather(*at.tasks)
+    assert report["safety_level"] == "run"
+    assert [t["event"] for t in report["safety"]] == ["activate", "fault", "reset_faults", "rearm"]
+    assert_bumpless(loop, sent, measured, own, rearm_tick, since=enabled_tick + 2)
+    assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + 1000])[:, 0]) > 0.05  # the sine again
+
+
+@pytest.mark.asyncio
 async def test_a_drive_lost_mid_run_puts_the_robot_in_its_safe_state(segment):
     raw = raw_config(segment.ifname, wkc_error_limit=5)
     at = At((800, in_thread(segment.control, {"cmd": "break", "slave": 4})))

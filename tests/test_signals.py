@@ -157,3 +157,35 @@ runpy.run_module("aiohal", run_name="__main__", alter_sys=True)
     assert proc.returncode == 130, proc.stderr
     assert "Traceback" not in proc.stderr, proc.stderr
     assert "aiohal run report" not in proc.stdout  # nothing ran
+
+
+def _wait_for(proc, text: str, timeout_s: float = 30) -> str:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:  # bounded: the robot's log, line by line
+        line = proc.stderr.readline()
+        if not line:
+            break
+        if text in line:
+            return line
+    pytest.fail(f"no log line with {text!r}")
+
+
+def test_safety_signals_hold_estop_and_rearm_a_running_robot(tmp_path):
+    # SIGUSR1 holds, SIGUSR2 resets the faults and re-arms, SIGQUIT emergency-stops; SIGUSR2
+    # again: the mock releases its stop, the robot is re-armed from where it stands
+    proc, report_path, _ = _start(tmp_path)
+    for sig, seen in ((signal.SIGUSR1, "goes to hold"), (signal.SIGUSR2, "SIGUSR2 received"),
+                      (signal.SIGQUIT, "SIGQUIT received"), (signal.SIGUSR1, "SIGUSR1: hold from estop"),
+                      (signal.SIGUSR2, "SIGUSR2 received")):
+        proc.send_signal(sig)
+        _wait_for(proc, seen)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 1, err  # a run with an emergency stop is never a success, even re-armed
+    report = json.loads(report_path.read_text())
+    assert report["safety_worst"] == "estop" and report["safety_level"] == "off"
+    steps = [(t["event"], t["source"], t["after"]) for t in report["safety"]]
+    assert steps == [("activate", "loop", "run"), ("hold", "user", "hold"), ("reset_faults", "user", "hold"),
+                     ("rearm", "user", "run"), ("estop", "user", "estop"), ("reset_faults", "user", "disabled"),
+                     ("rearm", "user", "run"), ("deactivate", "loop", "off")]
+    assert report["drivers"]["arm"]["estops"] >= 1

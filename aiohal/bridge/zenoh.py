@@ -298,11 +298,18 @@ class ZenohBridge:
 
     def _safety(self, name: str) -> None:
         control = self.control
-        if name == "rearm" and not callable(getattr(control, "rearm", None)):
-            raise _Refused("no re-arm")
-        action = {"hold": lambda: control.enter_hold("requested over zenoh"),
-                  "estop": control.estop,
-                  "rearm": getattr(control, "rearm", None)}[name]
+        request = {"hold": lambda: control.hold("requested over zenoh"),
+                   "estop": lambda: control.estop("requested over zenoh", source="zenoh"),
+                   "rearm": lambda: control.rearm(source="zenoh")}[name]
+
+        def action() -> None:
+            from ..safety import SafetyRequestRefused
+
+            try:
+                request()
+            except SafetyRequestRefused as exc:  # the safety channel shows the level that stayed
+                log.warning("robot %s: %s over zenoh refused: %s", control.robot.name, name, exc)
+
         log.warning("robot %s: %s requested over zenoh", control.robot.name, name)
         self._aio.call_soon_threadsafe(action)  # acted on between two ticks, in the loop's thread
         with self._lock:

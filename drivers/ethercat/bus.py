@@ -254,6 +254,18 @@ class Bus:
             raise BringUpError(f"slave {position} ({slave.name}) did not take SYNC0 at {cycle_ns} ns (no distributed "
                                f"clock?); options.slaves[{position}].sync0 = false leaves it out")
 
+    def set_pd_watchdog(self, position: int, ms: float) -> None:
+        """The slave's process-data watchdog time (register 0x0420, in units of its divider
+        0x0400), read back to check that the slave took it."""
+        slave = self.slaves[position]
+        divider = struct.unpack("<H", slave._fprd(0x0400, 2))[0]
+        units = max(1, min(0xFFFF, round(ms * 1e6 / ((divider + 2) * 40))))
+        slave._fpwr(0x0420, struct.pack("<H", units))
+        back = struct.unpack("<H", slave._fprd(0x0420, 2))[0]
+        if back != units:
+            raise BringUpError(f"slave {position} ({slave.name}) kept its process-data watchdog at {back} units, "
+                               f"not the {units} written ({ms:g} ms)")
+
     def request_op(self, exchange: Any, timeout_s: float, period_s: float, again_s: float = 0.1) -> None:
         """SAFEOP → OP (:func:`reach_op`), or a :class:`BringUpError` naming the slaves short of it."""
         if not reach_op(self.master, exchange, timeout_s, period_s, again_s):

@@ -182,6 +182,10 @@ class EthercatOptions(Options):
                                                                    "lost in a stall is sent again).")
     op_timeout_s: FiniteFloat = Field(5.0, gt=0)
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
+    sm_watchdog_ms: FiniteFloat | None = Field(
+        None, ge=0.1, le=6000, description="The process-data (SM) watchdog time written to every slave with "
+        "outputs before OP: when no frame reaches it for this long (the whole process frozen), the slave leaves "
+        "OP and its drive goes to its safe state (0x6007) on its own. Default: the slaves' own setting.")
 
     def sync0_slaves(self) -> list[int]:
         """Bus positions of the slaves whose SYNC0 is activated."""
@@ -199,6 +203,10 @@ class EthercatDriver(Driver):
         issues: list[tuple[str, str]] = []
         seen: dict[str, int] = {}
         drives_for: dict[str, int] = {}
+        # the keep-alive cycles the bus within 1.5 x keepalive_after_ms of the last tick
+        if options.sm_watchdog_ms is not None and options.sm_watchdog_ms < 1.5 * options.keepalive_after_ms + 2:
+            issues.append(("options.sm_watchdog_ms", f"{options.sm_watchdog_ms:g} ms would trip between runs: make it "
+                           f"at least 1.5 x keepalive_after_ms + 2 ms ({1.5 * options.keepalive_after_ms + 2:g})"))
         for i, s in enumerate(options.slaves):
             where = f"options.slaves[{i}]"
             key = s.name.strip().lower().replace(" ", "_")
@@ -329,6 +337,10 @@ class EthercatDriver(Driver):
                     "which this driver does not support (pysoem reads and writes whole bytes per slave)")
         bus.map(opts.dc, sync0=opts.sync0_slaves(), cycle_ns=self.view.clock.period_ns,
                 shift_ns=round(opts.sync0_shift_us * 1000), safeop_timeout_s=opts.safeop_timeout_s)
+        if opts.sm_watchdog_ms is not None:
+            for i, slave in enumerate(bus.slaves):
+                if len(slave.output):
+                    bus.set_pd_watchdog(i, opts.sm_watchdog_ms)
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
             self.infos.append(SlaveInfo(i, s.name, slave.name, slave.man, slave.id, slave.rev, layout,
                                         len(slave.output), len(slave.input)))

@@ -164,6 +164,7 @@ class Drive(Device):
         self._qs_ramp = False
         self.saturated = False
         self.faults = 0
+        self.outputs_lost_ns: int | None = None
         self._cw_state = None
         self._params_dirty = True
         self.e_error_code.value = 0
@@ -197,6 +198,7 @@ class Drive(Device):
         option = int(self.e_abort_option.value)
         if self.state not in (READY, SWITCHED_ON, OPERATION_ENABLED, QUICK_STOP):
             return
+        self.outputs_lost_ns = now_ns  # when the drive went to its safe state (0x6007)
         if option == 1:
             self._enter_fault(FAULT_COMMUNICATION)
         elif option == 2:
@@ -234,7 +236,7 @@ class Drive(Device):
     def status(self) -> dict:
         return {"state": self.state, "mode": self.mode, "position": self.pos, "velocity": self.vel,
                 "torque": self.torque, "error_code": int(self.e_error_code.value),
-                "faults": self.faults}
+                "faults": self.faults, "outputs_lost_ns": self.outputs_lost_ns}
 
     # ------------------------------------------------------------------ cycle
     def _refresh_params(self) -> None:

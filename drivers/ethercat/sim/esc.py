@@ -179,6 +179,7 @@ class Esc:
         self.touched = False
         self.wd_ns = 0
         self._wd_enabled = False
+        self.last_trip: dict[str, int] | None = None
         self._watchdog_params()
         self.sii[:] = self.sii_original
         self.device.reset_od()
@@ -546,6 +547,8 @@ class Esc:
             if self.mem[0x0442] < 0xFF:
                 self.mem[0x0442] += 1
             self.stats["wd_trips"] += 1
+            # what the slave measured: its last valid outputs, and when it gave up on them
+            self.last_trip = {"last_output_ns": self.last_output_ns, "tripped_ns": now}
             self.al_fault(AL_SM_WATCHDOG, now)
             return True
         return False
@@ -775,6 +778,8 @@ class Esc:
             "op_pending": self.op_pending,
             "device": self.device.status(),
             "stats": dict(self.stats),
+            "watchdog_ms": self.wd_ns / 1e6,
+            "watchdog_trip": self.last_trip,
             "coe": dict(self.coe.stats) if self.coe is not None else None,
             "dc": self.has_dc,
             "sync0": {"active": self.mem[0x0981] & 0x03 == 0x03, "cycle_ns": U32.unpack_from(self.mem, 0x09A0)[0]},

@@ -163,7 +163,7 @@ class Runner:
         last = seg.clock()
         try:
             while self.running:
-                timeout = POLL_S
+                timeout = max(0.0, min(POLL_S, (seg._next_poll - seg.clock()) / 1e9))
                 if self._delayed:
                     due = (self._delayed[0][0] - seg.clock()) / 1e9
                     timeout = max(0.0, min(timeout, due))

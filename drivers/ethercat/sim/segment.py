@@ -231,10 +231,13 @@ class Segment:
         """Time-driven work (SM watchdogs); called by handle_frame and by the runner's timer."""
         if now is None:
             now = self.clock()
-        self._next_poll = now + POLL_NS
         for esc in self.slaves:
             if esc.al_state == OP and esc.check_watchdog(now):
                 self.counters["watchdog_trips"] += 1
+        # the next poll no later than the first watchdog deadline: a slave trips on time, not
+        # up to a poll period late (the watchdog process's bound is measured against it)
+        deadline = self.next_deadline()
+        self._next_poll = now + POLL_NS if deadline is None else min(now + POLL_NS, deadline + 1)
 
     def note_reply_latency(self, ns: int) -> None:
         """A process-data reply went out ``ns`` after its frame reached this host's socket

@@ -1,0 +1,228 @@
+"""The watchdog process: makes the hardware safe when the whole control process stops.
+
+The stall watchdog of :mod:`aiohal.loop` is a thread: it covers an event loop stuck in an
+``await``, not a process frozen whole (SIGSTOP, the GIL held by a stuck extension, a debugger,
+swapped out). This one is a separate OS process, as in LOLA. The tick stores its index and
+its CLOCK_MONOTONIC time into a shared page (two item stores, no system call); when that time
+is older than ``watchdog_ms`` while the loop is running, the process runs the safe action
+each driver declared (:meth:`aiohal.Driver.safe_actions`), marks the page as fired and waits
+for the next run. It exits when asked, and with its parent: a parent that dies while running
+gets the safe actions first.
+
+Actions are plain data, built before the process starts (sockets are opened then, so that a
+wrong address fails the loop's activation, not the emergency):
+
+* :class:`SendDatagram`: a UDP datagram (a board's e-stop message);
+* :class:`SendFrame`: a raw Ethernet frame on an interface (a fieldbus stop frame; root);
+* :class:`WriteFile`: bytes written to a file (a GPIO's ``value`` for a motor power relay).
+
+Its own oversleeping (a stall of the whole machine, which also stalls the control process)
+is not held against the heartbeat: after waking more than half of ``watchdog_ms`` late it
+measures staleness from its own wake-up. The module imports only the standard library: the
+process runs it as a script (``python -I``), in tens of milliseconds.
+"""
+
+from __future__ import annotations
+
+import json
+import mmap
+import os
+import select
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+
+# the shared page: int64 words
+TICK, STAMP, ARMED, FIRED, COMMAND, ACTED = range(6)
+WORDS = 8
+EXIT = 1
+
+
+@dataclass(frozen=True)
+class SendDatagram:
+    """Send ``payload`` to ``host``:``port`` over UDP."""
+
+    host: str
+    port: int
+    payload: bytes
+
+
+@dataclass(frozen=True)
+class SendFrame:
+    """Send ``frame`` (a whole Ethernet frame) on ``interface``; needs CAP_NET_RAW."""
+
+    interface: str
+    frame: bytes
+
+
+@dataclass(frozen=True)
+class WriteFile:
+    """Write ``data`` to ``path`` (e.g. ``/sys/class/gpio/gpio17/value``, ``b"0"``)."""
+
+    path: str
+    data: bytes
+
+
+def _encode(owner: str, action: object) -> dict:
+    fields = {k: (v.hex() if isinstance(v, bytes) else v) for k, v in vars(action).items()}
+    return {"owner": owner, "kind": type(action).__name__, **fields}
+
+
+class WatchdogProcess:
+    """The parent's handle: the shared page, and the process watching it."""
+
+    def __init__(self, actions: list[tuple[str, object]], watchdog_ms: float, priority: int = 0) -> None:
+        for owner, action in actions:
+            if not isinstance(action, (SendDatagram, SendFrame, WriteFile)):
+                raise TypeError(f"{owner}: {action!r} is not a watchdog action")
+        self.actions = actions
+        self.watchdog_ms = watchdog_ms
+        self.priority = priority
+        self.proc: subprocess.Popen | None = None
+        self._mm: mmap.mmap | None = None
+        self.heartbeat: memoryview | None = None
+
+    def start(self, timeout_s: float = 10.0) -> None:
+        fd = os.memfd_create("aiohal-heartbeat")
+        try:
+            os.ftruncate(fd, WORDS * 8)
+            self._mm = mmap.mmap(fd, WORDS * 8)
+            self.heartbeat = memoryview(self._mm).cast("q")
+            spec = {"parent": os.getpid(), "fd": fd, "watchdog_ns": round(self.watchdog_ms * 1e6),
+                    "priority": self.priority, "actions": [_encode(o, a) for o, a in self.actions]}
+            self.proc = subprocess.Popen([sys.executable, "-I", __file__], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, pass_fds=(fd,), text=True)
+        finally:
+            os.close(fd)
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps(spec) + "\n")
+        self.proc.stdin.close()
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s)
+        line = self.proc.stdout.readline().strip() if ready else "no answer"
+        if line != "ready":
+            self.stop()
+            raise RuntimeError(f"the watchdog process did not start: {line}")
+
+    def arm(self) -> None:
+        """The loop starts ticking: watch the heartbeat from now."""
+        hb = self.heartbeat
+        hb[FIRED] = 0
+        hb[STAMP] = time.monotonic_ns()
+        hb[ARMED] = 1
+
+    def disarm(self) -> None:
+        if self.heartbeat is not None:
+            self.heartbeat[ARMED] = 0
+
+    @property
+    def fired_ns(self) -> int:
+        """CLOCK_MONOTONIC time at which the process acted (0: it has not)."""
+        return self.heartbeat[FIRED] if self.heartbeat is not None else 0
+
+    @property
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self) -> None:
+        proc, self.proc = self.proc, None
+        if proc is not None:
+            if self.heartbeat is not None:
+                self.heartbeat[ARMED] = 0
+                self.heartbeat[COMMAND] = EXIT
+            try:
+                proc.wait(2.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(2.0)
+            if proc.stdout is not None:
+                proc.stdout.close()
+        if self.heartbeat is not None:
+            self.heartbeat.release()
+            self.heartbeat = None
+        if self._mm is not None:
+            self._mm.close()
+            self._mm = None
+
+
+# ---------------------------------------------------------------- the process itself
+
+
+def _prepare(action: dict):
+    """A function that runs the action now (its socket or file opened beforehand)."""
+    kind = action["kind"]
+    if kind == "SendDatagram":
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.connect((action["host"], int(action["port"])))
+        payload = bytes.fromhex(action["payload"])
+        return lambda: sock.send(payload)
+    if kind == "SendFrame":
+        sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW)
+        sock.bind((action["interface"], 0))
+        frame = bytes.fromhex(action["frame"])
+        return lambda: sock.send(frame)
+    if kind == "WriteFile":
+        path, data = action["path"], bytes.fromhex(action["data"])
+        fd = os.open(path, os.O_WRONLY)
+
+        def write() -> None:
+            os.pwrite(fd, data, 0)
+        return write
+    raise ValueError(f"unknown action {kind!r}")
+
+
+def _act(run: list[tuple[str, object]]) -> None:
+    for owner, action in run:
+        try:
+            action()
+        except OSError as exc:
+            print(f"watchdog: the safe action of {owner} failed: {exc}", file=sys.stderr, flush=True)
+
+
+def main() -> int:
+    spec = json.loads(sys.stdin.readline())
+    parent = spec["parent"]
+    mm = mmap.mmap(spec["fd"], WORDS * 8)
+    hb = memoryview(mm).cast("q")
+    os.close(spec["fd"])
+    try:
+        run = [(a["owner"], _prepare(a)) for a in spec["actions"]]
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", flush=True)
+        return 1
+    if spec["priority"]:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(spec["priority"]))
+        except OSError as exc:
+            print(f"watchdog: SCHED_FIFO refused ({exc}); normal scheduling", file=sys.stderr, flush=True)
+    limit = spec["watchdog_ns"]
+    period_ns = max(100_000, min(1_000_000, limit // 4))
+    grace = limit // 2
+    print("ready", flush=True)
+    clock, sleep = time.monotonic_ns, time.sleep
+    woke = clock()
+    since = woke  # staleness is measured from here or the heartbeat, whichever is later
+    while True:
+        sleep(period_ns / 1e9)
+        now = clock()
+        if now - woke > period_ns + grace:
+            since = now  # this process was not run either: a stall of the machine
+        woke = now
+        if hb[COMMAND] == EXIT:
+            return 0
+        armed = hb[ARMED] == 1
+        if os.getppid() != parent:  # the parent is gone: it ticks no more
+            if armed:
+                _act(run)
+                hb[FIRED] = clock()
+            return 0
+        if armed and now - max(hb[STAMP], since) > limit:
+            _act(run)
+            hb[ACTED] = clock()
+            hb[FIRED] = now
+            hb[ARMED] = 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
