@@ -13,7 +13,7 @@ $(PY):
 	$(PY) -m pip install -q --upgrade pip
 
 $(STAMP): $(PY) pyproject.toml
-	$(PY) -m pip install -q -e '.[dev,sim,modbus,ethercat]'
+	$(PY) -m pip install -q -e '.[dev,sim,modbus,ethercat,can]'
 	touch $@
 
 run: $(STAMP)
