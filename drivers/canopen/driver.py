@@ -145,6 +145,7 @@ class CanopenDriver(Driver):
         self._frame_sizes: list[int] = []
         self._heard = np.zeros(len(options.nodes))  # monotonic time of each node's last heartbeat
         self._emcy: list[tuple[int, int, int]] = []  # (node index, code, register) from the notifier thread
+        self._last_emcy = [0] * len(options.nodes)  # each node's last EMCY error code (0: none or reset)
         self._drive_mask = np.zeros(view.dof, dtype=bool)
         self._lock = threading.Lock()  # the tick, bring-up/close cycles and estop on the bus
         self._warn = RateLimitedLogger(log)
@@ -410,13 +411,11 @@ class CanopenDriver(Driver):
         pending, self._emcy = self._emcy, []
         for k, code, register in pending:
             node = self.options.nodes[k]
+            self._last_emcy[k] = code
             if code == 0:
                 log.info("canopen %s: node %d (%s): error reset", self.name, node.node_id, node.label)
                 continue
             self.emergencies += 1
-            machine = self.drives.machines[k]
-            if machine.faulted and not machine.error_code:
-                machine.error_code = code
             self.view.report_fault("read", f"joint {node.joint}: EMCY from node {node.node_id} ({node.label}): "
                                    f"error code 0x{code:04X}, register 0x{register:02X}")
 
@@ -431,7 +430,11 @@ class CanopenDriver(Driver):
         if kind is EventKind.FAULT_ENTERED:
             self.drive_faults += 1
             fault[row] |= Fault.HARDWARE
-            reason = f"joint {spec.joint}: {event}"
+            machine = self.drives.machines[i]
+            if not machine.error_code and self._last_emcy[i]:  # 0x603F unmapped: the code the EMCY gave
+                machine.error_code = self._last_emcy[i]
+            reason = f"joint {spec.joint}: {event}" + (
+                f" (EMCY error code 0x{machine.error_code:04X})" if not event.error_code and machine.error_code else "")
             self.view.report_fault("read", reason)
             self.view.request_hold(reason)
         elif kind is EventKind.LOST_ENABLED and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT) \
