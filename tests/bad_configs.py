@@ -141,7 +141,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "unknown-driver-type",
         _replace('type = "mock"', 'type = "mok"'),
-        ('driver[0].type: unknown driver "mok" (available: ethercat, mock, mujoco, nrt_hand)',),
+        ('driver[0].type: unknown driver "mok" (available: canopen, ethercat, mock, mujoco, nrt_hand)',),
     ),
     BadConfig(
         "unknown-driver-option",

@@ -42,7 +42,7 @@ class DriveSpec:
     position_offset: float = 0.0  # rad added to the drive's position (joint zero ≠ encoder zero)
 
 
-def _check_types(image: ProcessImage, slave: str, names: Sequence[str], types: Sequence[str]) -> None:
+def check_types(image: ProcessImage, slave: str, names: Sequence[str], types: Sequence[str]) -> None:
     for name, want in zip(names, types, strict=True):
         var = image.variable(f"{slave}.{name}")
         if var.type != want or var.shape != ():
@@ -62,8 +62,8 @@ class DriveGroup:
         """On a process image whose slaves map every variable of :data:`DRIVE_INPUTS` and
         :data:`DRIVE_OUTPUTS` with its type (checked here, by name)."""
         for s in specs:
-            _check_types(image, s.slave, DRIVE_INPUTS, DRIVE_INPUT_TYPES)
-            _check_types(image, s.slave, DRIVE_OUTPUTS, DRIVE_OUTPUT_TYPES)
+            check_types(image, s.slave, DRIVE_INPUTS, DRIVE_INPUT_TYPES)
+            check_types(image, s.slave, DRIVE_OUTPUTS, DRIVE_OUTPUT_TYPES)
         offsets = [image.byte_offsets(s.slave, DRIVE_INPUTS) + image.byte_offsets(s.slave, DRIVE_OUTPUTS, writable=True)
                    for s in specs]
         self._setup(image.inputs, image.outputs, offsets, specs, stuck_after, target)
