@@ -23,3 +23,8 @@ def load(frame_sizes: list[int], cycle_hz: float, bitrate: int, *, worst_case: b
     """The fraction of the bus (1.0 = full) that these frames take when sent at ``cycle_hz``."""
     bits = sum(frame_bits(n, worst_case=worst_case) for n in frame_sizes)
     return bits * cycle_hz / bitrate
+
+
+def load_at(frames: list[tuple[int, float]], bitrate: int, *, worst_case: bool = True) -> float:
+    """The same for frames each at its own rate: ``(data bytes, frames per second)`` pairs."""
+    return sum(frame_bits(n, worst_case=worst_case) * hz for n, hz in frames) / bitrate

@@ -41,6 +41,7 @@ from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 
 from . import busload
+from .sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc, sensor_issues
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +90,11 @@ class CanopenOptions(Options):
     bitrate: int = Field(1_000_000, ge=10_000, le=1_000_000, description="Nominal bitrate (bit/s).")
     data_bitrate: int | None = Field(None, ge=10_000, le=8_000_000,
                                      description="CAN FD data bitrate, where the interface has it (enables FD).")
-    nodes: list[NodeOptions] = Field(min_length=1, description="Every CiA 402 drive on this bus.")
+    nodes: list[NodeOptions] = Field(default_factory=list, description="Every CiA 402 drive on this bus.")
+    dbc: ConfigPath | None = Field(None, description="DBC file of the sensors' frames; default: aiohal's simulated "
+                                                     "gateway's.")
+    sensors: list[SensorOptions] = Field(default_factory=list, description="IMU and force/torque sensors whose "
+                                                                           "frames the DBC describes.")
     drive_defaults: DriveUnitOptions = Field(default_factory=DriveUnitOptions)
     heartbeat_ms: int = Field(50, ge=1, le=65535, description="Heartbeat producer time written to every node (0x1017).")
     heartbeat_timeout_ms: FiniteFloat = Field(200.0, gt=0, description="A node silent this long is lost.")
@@ -104,6 +109,7 @@ class CanopenOptions(Options):
 
 class CanopenDriver(Driver):
     Options = CanopenOptions
+    device_kinds = frozenset({"imu", "force_torque"})
     options: CanopenOptions
 
     @classmethod
@@ -128,6 +134,24 @@ class CanopenDriver(Driver):
                 issues.append(("joints", f'joint "{joint}" has no node in options.nodes'))
         if options.simulate and any(n.eds is not None and Path(n.eds) != DRIVE_EDS for n in options.nodes):
             issues.append(("options.simulate", "the simulated drives have aiohal's own EDS: leave nodes[].eds out"))
+        issues += cls._sensor_issues(options, devices)
+        return issues
+
+    @staticmethod
+    def _sensor_issues(options: CanopenOptions, devices: dict[str, str]) -> list[tuple[str, str]]:
+        if not options.sensors:
+            return [("devices", f'device "{name}" has no entry in options.sensors') for name in devices]
+        dbc = options.dbc or SENSORS_DBC
+        try:
+            db = load_dbc(str(dbc))
+        except (OSError, ValueError, Exception) as exc:  # cantools raises its own ParseError
+            return [("options.dbc", f"cannot load {dbc}: {exc}")]
+        issues = []
+        served = set()
+        for i, sensor in enumerate(options.sensors):
+            issues += sensor_issues(f"options.sensors[{i}]", sensor, devices.get(sensor.device), db)
+            served.add(sensor.device)
+        issues += [("devices", f'device "{name}" has no entry in options.sensors') for name in devices if name not in served]
         return issues
 
     def __init__(self, name, view, options) -> None:
@@ -137,6 +161,7 @@ class CanopenDriver(Driver):
         self.network: canopen.Network | None = None
         self.remotes: list[canopen.RemoteNode] = []
         self.drives: DriveGroup | None = None
+        self.gateway: SensorGateway | None = None
         self._inputs = np.zeros(SPARE, dtype=np.uint8)
         self._outputs = np.zeros(SPARE, dtype=np.uint8)
         self._rpdos: list[tuple[can.Message, int, int]] = []
@@ -186,7 +211,9 @@ class CanopenDriver(Driver):
         if opts.simulate:
             from .sim import SimBus
 
-            self.sim = SimBus(opts.interface, opts.channel, [n.node_id for n in opts.nodes], bitrate=opts.bitrate)
+            self.sim = SimBus(opts.interface, opts.channel, [n.node_id for n in opts.nodes], bitrate=opts.bitrate,
+                              sensors={self.view.device_kinds[s.device]: s.period_ms * 1e-3 for s in opts.sensors}
+                              if opts.sensors else None)
             start = self.view.per_joint(opts.initial_position)
             for node, units in zip(opts.nodes, self._units(), strict=True):
                 q = start[self.view.joint_names.index(node.joint)]
@@ -196,6 +223,7 @@ class CanopenDriver(Driver):
         except (can.CanError, OSError, ValueError) as exc:
             raise CanopenError(f"cannot open the CAN bus {opts.interface}:{opts.channel}: {exc}") from exc
         self.network = network = canopen.Network(self.bus)
+        network.NOTIFIER_CYCLE = 0.05  # its thread's receive timeout: how long closing waits for it
         network.connect()
         tpdo_slices: list[tuple[int, int, int]] = []  # (cob id, start, size) in the input buffer
         rpdo_slices: list[tuple[int, int, int]] = []
@@ -223,7 +251,8 @@ class CanopenDriver(Driver):
         self._outputs = np.zeros(out_size + SPARE, dtype=np.uint8)
         resolved = [[in_size if o is None else o for o in inputs] + [out_size if o is None else o for o in outputs]
                     for inputs, outputs in offsets]
-        self._link(resolved)
+        if opts.nodes:
+            self._link(resolved)
         self._rpdos = [(can.Message(arbitration_id=cob, data=bytearray(size), is_extended_id=False), start, start + size)
                        for cob, start, size in rpdo_slices]
         self._tpdos_per_cycle = len(tpdo_slices)
@@ -231,10 +260,17 @@ class CanopenDriver(Driver):
         inputs_view = memoryview(self._inputs.data).cast("B")
         for cob, start, size in tpdo_slices:
             network.subscribe(cob, self._tpdo_callback(inputs_view[start:start + size], size))
+        if opts.sensors:
+            db = load_dbc(str(opts.dbc or SENSORS_DBC))
+            sensors = [DbcSensor(s, self.view.devices[s.device], self.view.device_kinds[s.device], db)
+                       for s in opts.sensors]
+            self.gateway = SensorGateway(sensors, db, self.name)
+            self.gateway.subscribe(network)
         self._heard[:] = time.monotonic()
         for node in self.remotes:
             node.nmt.send_command(0x01)  # OPERATIONAL
-        self._wait_enabled()
+        if self.drives is not None:
+            self._wait_enabled()
         self._started_ns = time.monotonic_ns()
         self._active = True
 
@@ -373,18 +409,24 @@ class CanopenDriver(Driver):
 
     async def read(self) -> None:
         view = self.view
+        clock = view.clock
         now = time.monotonic()
-        if now - self._heard.min() > self.options.heartbeat_timeout_ms * 1e-3:
+        heard = self._heard
+        if heard.size and now - heard.min() > self.options.heartbeat_timeout_ms * 1e-3:
             self._lost(now)
         if self._emcy:
             self._handle_emergencies()
+        if self.gateway is not None:
+            self.gateway.read(clock.tick, clock.now_ns, view.report_fault)
+        drives = self.drives
+        if drives is None:  # a bus of sensors only
+            view.fresh_tick = clock.tick
+            return
         got = self.rx_tpdos - self._seen
         self._seen += got
         if got < self._tpdos_per_cycle:
             self.late_cycles += 1
             return
-        clock = view.clock
-        drives = self.drives
         with self._lock:
             drives.decode(clock.tick, clock.now_ns)
             drives.update_machines(self._on_drive_event)
@@ -394,7 +436,8 @@ class CanopenDriver(Driver):
         with self._lock:
             if self._estopped:
                 return
-            self.drives.write(self.view.command)
+            if self.drives is not None:
+                self.drives.write(self.view.command)
             self._send_cycle()
         self.cycles += 1
 
@@ -550,10 +593,14 @@ class CanopenDriver(Driver):
         }
         if self._frame_sizes:
             rate = 1e9 / self.view.clock.period_ns
-            out["bus_load_configured_pct"] = round(100 * busload.load(self._frame_sizes, rate, opts.bitrate), 1)
+            sensors = self.gateway.frame_sizes() if self.gateway is not None else []
+            out["bus_load_configured_pct"] = round(100 * (busload.load(self._frame_sizes, rate, opts.bitrate)
+                                                          + busload.load_at(sensors, opts.bitrate)), 1)
             elapsed = (time.monotonic_ns() - self._started_ns) * 1e-9
             if self.cycles and elapsed > 0:
                 achieved = busload.load(self._frame_sizes, self.cycles / elapsed, opts.bitrate)
+                if self.gateway is not None:
+                    achieved += self.gateway.bits / elapsed / opts.bitrate
                 out["bus_load_pct"] = round(100 * achieved, 1)
         if self.drives is not None:
             enabled = self._enabled_at_close
@@ -562,4 +609,6 @@ class CanopenDriver(Driver):
             out["drives_enabled"] = f"{enabled}/{len(self.drives)}"
         if self.lost_nodes:
             out["lost"] = self.lost_nodes
+        if self.gateway is not None:
+            out["sensors"] = self.gateway.health()
         return out
