@@ -107,6 +107,40 @@ class CanopenOptions(Options):
                                                            "scalar or per joint.")
 
 
+def configured_frames(options: CanopenOptions) -> tuple[list[int], list[tuple[int, float]]]:
+    """The frames the config implies, as its EDS/DCF files and DBC say: per cycle (every
+    enabled RPDO, SYNC, every enabled TPDO: data bytes), and the sensors' ((bytes, Hz))."""
+    cyclic = [0]  # SYNC
+    for node in options.nodes:
+        od = canopen.import_od(str(node.eds or DRIVE_EDS), node.node_id)
+        for comm, mapping in ((0x1400, 0x1600), (0x1800, 0x1A00)):
+            for k in range(512):
+                if comm + k not in od or mapping + k not in od:
+                    break
+                cob_id = _od_value(od[comm + k][1])
+                count = _od_value(od[mapping + k][0])
+                if cob_id & 0x80000000 or not count:
+                    continue
+                bits = sum(_od_value(od[mapping + k][sub]) & 0xFF for sub in range(1, count + 1))
+                cyclic.append((bits + 7) // 8)
+    sensors = []
+    if options.sensors:
+        db = load_dbc(str(options.dbc or SENSORS_DBC))
+        rates: dict[int, float] = {}
+        for sensor in options.sensors:
+            names = [n for names in sensor.signals.values() for n in names] + ([sensor.status] if sensor.status else [])
+            for name in names:
+                frame = db.get_message_by_name(name.partition(".")[0])
+                rates[frame.frame_id] = max(rates.get(frame.frame_id, 0.0), 1000.0 / sensor.period_ms)
+        sensors = [(db.get_message_by_frame_id(f).length, hz) for f, hz in rates.items()]
+    return cyclic, sensors
+
+
+def _od_value(var) -> int:
+    """An object's value as the EDS/DCF sets it (a DCF's ParameterValue before the default)."""
+    return int(var.value if var.value is not None else var.default)
+
+
 class CanopenDriver(Driver):
     Options = CanopenOptions
     device_kinds = frozenset({"imu", "force_torque"})
@@ -154,6 +188,26 @@ class CanopenDriver(Driver):
         issues += [("devices", f'device "{name}" has no entry in options.sensors') for name in devices if name not in served]
         return issues
 
+    @classmethod
+    def check_rate(cls, options, cycle_hz, every):
+        """Refuse a bus that the configured frames would load above 100 % at the driver's rate."""
+        try:
+            cyclic, sensors = configured_frames(options)
+        except Exception as exc:  # an unreadable EDS or DBC is reported by check_config
+            log.debug("bus load not computed: %s", exc)
+            return []
+        load = busload.load(cyclic, cycle_hz, options.bitrate) + busload.load_at(sensors, options.bitrate)
+        if load <= 1.0:
+            return []
+        sensor_load = busload.load_at(sensors, options.bitrate)
+        per_cycle = sum(busload.frame_bits(n) for n in cyclic)
+        fits = per_cycle / max(1e-9, (1.0 - sensor_load) * options.bitrate)  # seconds per cycle needed
+        needed = max(every + 1, int(np.ceil(fits * cycle_hz * every)))
+        return [("every", f"the CAN bus would be {100 * load:.0f} % loaded: {len(cyclic)} frames of {per_cycle} bits "
+                          f"per cycle (worst-case bit stuffing) at {cycle_hz:g} Hz, and the sensors' frames, on "
+                          f"{options.bitrate} bit/s; run this driver on fewer ticks (every = {needed}), raise the "
+                          "bitrate, map fewer PDOs or slow the sensors")]
+
     def __init__(self, name, view, options) -> None:
         super().__init__(name, view, options)
         self.sim = None
@@ -196,6 +250,10 @@ class CanopenDriver(Driver):
         if quiet.level == logging.NOTSET:  # canopen logs every NMT, SDO and PDO step at info
             quiet.setLevel(logging.WARNING)
         await asyncio.to_thread(self._bring_up)
+
+    def _cycle_ns(self) -> int:
+        """The bus's cycle: the loop's period times the driver's ``every``."""
+        return self.view.clock.period_ns * self.view.every
 
     def _bus_options(self) -> dict[str, Any]:
         opts = self.options
@@ -241,7 +299,7 @@ class CanopenDriver(Driver):
             outputs = self._place(k, node.rpdo.map.values(), OUTPUT_OBJECTS, rpdo_slices, "RPDO")
             offsets.append((inputs, outputs))
             node.sdo[0x6060].raw = MODES[node_opts.mode]
-            node.sdo[0x1006].raw = self.view.clock.period_ns // 1000
+            node.sdo[0x1006].raw = self._cycle_ns() // 1000
             node.sdo[0x1017].raw = opts.heartbeat_ms
             node.nmt.add_heartbeat_callback(self._heartbeat_callback(k))
             node.emcy.add_callback(self._emcy_callback(k))
@@ -333,7 +391,7 @@ class CanopenDriver(Driver):
         for node_opts, units in zip(opts.nodes, self._units(), strict=True):
             specs.append(DriveSpec(node_opts.label, node_opts.joint, view.joint_names.index(node_opts.joint), units,
                                    node_opts.position_offset))
-        stuck = max(1, round(opts.stuck_after_ms * 1e6 / view.clock.period_ns))
+        stuck = max(1, round(opts.stuck_after_ms * 1e6 / self._cycle_ns()))
         self.drives = DriveGroup.on_buffers(self._inputs, self._outputs, offsets, specs, stuck_after=stuck)
         self.drives.bind_state(view.state)
 
@@ -376,7 +434,7 @@ class CanopenDriver(Driver):
         self._send_cycle()
 
     def _wait_enabled(self) -> None:
-        period_s = self.view.clock.period_ns * 1e-9
+        period_s = self._cycle_ns() * 1e-9
         deadline = time.monotonic() + self.options.enable_timeout_s
         while time.monotonic() < deadline:
             with self._lock:
@@ -564,7 +622,7 @@ class CanopenDriver(Driver):
                 self.drives.request(Target.QUICK_STOP if not self._estopped else Target.DISABLED)
                 self._estopped = False
                 deadline = time.monotonic() + budget_s
-                period_s = self.view.clock.period_ns * 1e-9
+                period_s = self._cycle_ns() * 1e-9
                 while time.monotonic() < deadline:
                     with self._lock:
                         self._cycle_holding()
@@ -592,7 +650,7 @@ class CanopenDriver(Driver):
             "drive_faults": self.drive_faults,
         }
         if self._frame_sizes:
-            rate = 1e9 / self.view.clock.period_ns
+            rate = 1e9 / self._cycle_ns()
             sensors = self.gateway.frame_sizes() if self.gateway is not None else []
             out["bus_load_configured_pct"] = round(100 * (busload.load(self._frame_sizes, rate, opts.bitrate)
                                                           + busload.load_at(sensors, opts.bitrate)), 1)
