@@ -38,6 +38,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.isolated --json bench-results/isolated.json
 	$(PY) -m benchmarks.kernel_call --json bench-results/kernel_call.json
 	$(PY) -m benchmarks.pipe --json bench-results/pipe.json
+	$(PY) -m benchmarks.canopen --json bench-results/canopen.json
 	$(PY) -m benchmarks.host_gaps --json bench-results/host_gaps.json
 	$(PY) -m benchmarks.tick_phase $$([ "$$(id -u)" = 0 ] && echo --fifo) --json bench-results/tick_phase.json
 	@if [ "$$(id -u)" = 0 ]; then $(PY) -m benchmarks.ethercat --json bench-results/ethercat.json; else echo "benchmarks.ethercat skipped: needs root"; fi
