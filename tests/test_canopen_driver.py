@@ -166,3 +166,34 @@ def test_check_names_the_node_of_an_unknown_joint_and_a_joint_without_node():
     text = str(err.value)
     assert "options.nodes[1].node_id" in text and "options.nodes[1].joint" in text
     assert 'joint "j1" has no node' in text
+
+
+@pytest.mark.asyncio
+async def test_a_pdo_mapping_from_the_config_is_written_read_back_and_used():
+    remap = {"rx_pdos": {"0x1600": ["0x6040:0:16", "0x607A:0:32"]},
+             "tx_pdos": {"0x1A00": ["0x6041:0:16", "0x6064:0:32"], "0x1A01": ["0x606C:0:32", "0x603F:0:16"]}}
+    nodes = [{"node_id": i + 1, "joint": j, **remap} for i, j in enumerate(JOINTS)]
+    async with ControlLoop(parse_config(raw_config(channel(), SINE, nodes=nodes))) as loop:
+        driver = driver_of(loop)
+        for node in driver.remotes:
+            assert [[(v.index, v.length) for v in m.map] for m in node.tpdo.map.values() if m.enabled] == [
+                [(0x6041, 16), (0x6064, 32)], [(0x606C, 32), (0x603F, 16)]]
+        speeds = []
+        loop.add_publisher(lambda lp: speeds.append(float(abs(lp.robot.state.velocity).max())))
+        report = await loop.run(ticks=300)
+    health = report["drivers"]["bus"]
+    assert report["faults"] == [] and health["drives_enabled"] == "3/3"
+    assert max(speeds) > 0.1  # the velocity now comes from the remapped second TPDO
+    # 3 RPDOs of 6 bytes (115 bits), SYNC (55), 6 TPDOs of 6 bytes (115) at 250 Hz
+    assert health["bus_load_configured_pct"] == pytest.approx(100 * (9 * 115 + 55) * 250 / 1e6, abs=0.1)
+
+
+def test_a_pdo_entry_that_cannot_be_parsed_is_named():
+    from aiohal.errors import ConfigError
+
+    nodes = [{"node_id": i + 1, "joint": j} for i, j in enumerate(JOINTS)]
+    nodes[0]["rx_pdos"] = {"0x1600": ["0x6040:0"], "0x1A00": []}
+    with pytest.raises(ConfigError) as err:
+        parse_config(raw_config(channel(), nodes=nodes))
+    text = str(err.value)
+    assert "options.nodes[0].rx_pdos.0x1600[0]" in text and "options.nodes[0].rx_pdos.0x1A00: not a PDO mapping" in text

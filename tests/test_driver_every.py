@@ -64,3 +64,11 @@ def test_check_refuses_six_drives_at_1khz_on_classic_can_and_says_what_to_change
 def test_the_same_bus_at_every_2_passes():
     config = parse_config(six_drives(1000, every=2))
     assert config.drivers[0].every == 2
+
+
+def test_the_load_counts_the_pdos_the_config_maps():
+    raw = six_drives(1000)
+    for node in raw["driver"][0]["options"]["nodes"]:  # 2-byte RPDO and 6-byte TPDO: 75 + 115 bits, and SYNC (55)
+        node.update(rx_pdos={"0x1600": ["0x6040:0:16"]}, tx_pdos={"0x1A00": ["0x6041:0:16", "0x6064:0:32"]})
+    with pytest.raises(ConfigError, match=r"would be 120 % loaded: 13 frames of 1195 bits"):
+        parse_config(raw)

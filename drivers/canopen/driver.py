@@ -36,6 +36,8 @@ from aiohal.config import ConfigPath
 from aiohal.errors import AiohalError
 from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.fieldbus.drives import DRIVE_INPUTS, DRIVE_OUTPUTS, DRIVE_SIZES, DriveGroup, DriveSpec
+from aiohal.fieldbus.busvar import decode_mapping
+from aiohal.fieldbus.pdo_options import parse_number, parse_pdo_entry, pdo_issues
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
@@ -78,10 +80,25 @@ class NodeOptions(Options):
     gear_ratio: FiniteFloat | None = Field(None, gt=0)
     rated_torque: FiniteFloat | None = Field(None, gt=0)
     position_offset: FiniteFloat = Field(0.0, description="rad added to the drive's position.")
+    rx_pdos: dict[str, list[str]] | None = Field(
+        None, description="Remap the RPDOs: per mapping object (0x1600..), its entries 'index:subindex:bits' "
+                          "(e.g. '0x607A:0:32'); written by SDO in PRE-OPERATIONAL and read back. RPDOs not "
+                          "listed are disabled. Leave out to use the node's own mapping.")
+    tx_pdos: dict[str, list[str]] | None = Field(None, description="Remap the TPDOs (0x1A00..), as rx_pdos.")
 
     @property
     def label(self) -> str:
         return self.name or f"node{self.node_id}"
+
+    def remaps(self) -> list[tuple[str, dict[int, list[tuple[int, int, int]]]]]:
+        """("rpdo" or "tpdo", {PDO number (1-based): [(index, subindex, bits)]}) for each direction
+        the config remaps; checked by check_config."""
+        out = []
+        for kind, pdos, base in (("rpdo", self.rx_pdos, 0x1600), ("tpdo", self.tx_pdos, 0x1A00)):
+            if pdos is not None:
+                out.append((kind, {parse_number(m) - base + 1: [decode_mapping(parse_pdo_entry(e)) for e in entries]
+                                   for m, entries in pdos.items()}))
+        return out
 
 
 class CanopenOptions(Options):
@@ -113,7 +130,11 @@ def configured_frames(options: CanopenOptions) -> tuple[list[int], list[tuple[in
     cyclic = [0]  # SYNC
     for node in options.nodes:
         od = canopen.import_od(str(node.eds or DRIVE_EDS), node.node_id)
-        for comm, mapping in ((0x1400, 0x1600), (0x1800, 0x1A00)):
+        remapped = dict(node.remaps())
+        for kind, comm, mapping in (("rpdo", 0x1400, 0x1600), ("tpdo", 0x1800, 0x1A00)):
+            if kind in remapped:
+                cyclic += [(sum(bits for *_, bits in entries) + 7) // 8 for entries in remapped[kind].values()]
+                continue
             for k in range(512):
                 if comm + k not in od or mapping + k not in od:
                     break
@@ -163,6 +184,8 @@ class CanopenDriver(Driver):
             moved.setdefault(node.joint, i)
             if node.eds is not None and not Path(node.eds).is_file():
                 issues.append((f"{where}.eds", f"file not found: {node.eds}"))
+            issues += pdo_issues(f"{where}.rx_pdos", node.rx_pdos, 0x1600, 0x17FF)
+            issues += pdo_issues(f"{where}.tx_pdos", node.tx_pdos, 0x1A00, 0x1BFF)
         for joint in joints:
             if joint not in moved:
                 issues.append(("joints", f'joint "{joint}" has no node in options.nodes'))
@@ -295,6 +318,8 @@ class CanopenDriver(Driver):
             self._check_identity(k, node)
             node.tpdo.read()
             node.rpdo.read()
+            for kind, pdos in node_opts.remaps():
+                self._remap(k, node, kind, pdos)
             inputs = self._place(k, node.tpdo.map.values(), INPUT_OBJECTS, tpdo_slices, "TPDO")
             outputs = self._place(k, node.rpdo.map.values(), OUTPUT_OBJECTS, rpdo_slices, "RPDO")
             offsets.append((inputs, outputs))
@@ -346,6 +371,38 @@ class CanopenDriver(Driver):
             if expected is not None and got != expected:
                 raise CanopenError(f"node {want.node_id} ({want.label}): {what} 0x{got:08X}, the config says "
                                    f"0x{expected:08X}")
+
+    def _remap(self, k: int, node: canopen.RemoteNode, kind: str, pdos: dict[int, list[tuple[int, int, int]]]) -> None:
+        """Write the configured mapping (the others disabled), then read it back: a node that
+        accepts the writes but keeps its own mapping is refused, not believed."""
+        want = self.options.nodes[k]
+        maps = node.rpdo if kind == "rpdo" else node.tpdo
+        for number, pdo in maps.map.items():
+            entries = pdos.get(number)
+            if entries is None:
+                if pdo.enabled:
+                    pdo.enabled = False
+                    pdo.save()
+                continue
+            pdo.clear()
+            try:
+                for index, subindex, bits in entries:
+                    pdo.add_variable(index, subindex, bits)
+            except KeyError as exc:
+                raise CanopenError(f"node {want.node_id} ({want.label}): {kind.upper()}{number}: {exc.args[0]} is not "
+                                   "in the node's EDS") from None
+            pdo.enabled = True
+            pdo.trans_type = 1
+            pdo.save()
+        missing = sorted(set(pdos) - set(maps.map))
+        if missing:
+            raise CanopenError(f"node {want.node_id} ({want.label}): no {kind.upper()} {missing} in its EDS")
+        maps.read()
+        for number, entries in pdos.items():
+            got = [(v.index, v.subindex, v.length) for v in maps.map[number].map]
+            if got != entries or not maps.map[number].enabled:
+                raise CanopenError(f"node {want.node_id} ({want.label}): {kind.upper()}{number} reads back as {got} "
+                                   f"after writing {entries}: the node kept its own mapping")
 
     def _place(self, k: int, maps, objects, slices: list, kind: str) -> list[int | None]:
         """Lay this node's enabled synchronous PDOs end to end in its direction's buffer; the
