@@ -197,3 +197,44 @@ def test_a_pdo_entry_that_cannot_be_parsed_is_named():
         parse_config(raw_config(channel(), nodes=nodes))
     text = str(err.value)
     assert "options.nodes[0].rx_pdos.0x1600[0]" in text and "options.nodes[0].rx_pdos.0x1A00: not a PDO mapping" in text
+
+
+@pytest.mark.asyncio
+async def test_bus_off_puts_the_robot_in_its_safe_state():
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver_of(loop).sim.bus_off()
+        report = await loop.run(ticks=1000)
+    assert report["ticks"] + report["missed_ticks"] < 1000
+    fault, *_ = [f for f in report["faults"] if f["source"] == "driver:bus"]
+    assert "bus-off" in fault["error"] and report["safety_level"] == "estop"
+
+
+@pytest.mark.asyncio
+async def test_frames_that_cannot_be_sent_fail_the_driver_after_the_limit():
+    import can
+
+    async with ControlLoop(parse_config(raw_config(channel(), SINE, tx_error_limit=5))) as loop:
+        driver = driver_of(loop)
+        await loop.run(ticks=10)
+
+        def refuse(msg, timeout=None):
+            raise can.CanOperationError("Transmit buffer full")
+
+        driver.bus.send = refuse
+        report = await loop.run(ticks=500)
+    fault, *_ = [f for f in report["faults"] if f["source"] == "driver:bus"]
+    assert "5 cycles in a row could not send their frames" in fault["error"]
+    assert report["safety_level"] == "estop" and report["drivers"]["bus"]["tx_errors"] >= 5 * 4
+
+
+@pytest.mark.asyncio
+async def test_dropped_tpdos_leave_the_joints_unrefreshed_and_the_run_goes_on():
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver = driver_of(loop)
+        await loop.run(ticks=20)
+        late = driver.late_cycles
+        driver.sim.drives[1].drop_tpdos = 10  # ten cycles without node 1's TPDO: under max_feedback_age (50)
+        loop.add_publisher(stop_when(lambda lp: driver.sim.drives[1].drop_tpdos == 0, 20))
+        report = await loop.run(ticks=1000)
+    assert driver.late_cycles - late >= 10
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "3/3"

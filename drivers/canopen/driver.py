@@ -56,6 +56,7 @@ OUTPUT_OBJECTS = ((0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0,
 REQUIRED = {0x6041, 0x6064, 0x6040, 0x607A}
 SPARE = 8  # zero bytes past each buffer's data, where unmapped variables point
 SYNC_COB_ID = 0x80
+CAN_ERR_BUSOFF = 0x40  # error class of a socketcan error frame (linux/can/error.h)
 
 
 class CanopenError(AiohalError, RuntimeError):
@@ -118,10 +119,25 @@ class CanopenOptions(Options):
     sdo_timeout_s: FiniteFloat = Field(0.5, gt=0, description="SDO response timeout at bring-up.")
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
+    tx_error_limit: int = Field(10, ge=1, le=10_000, description="Cycles in a row whose frames could not all be "
+                                                                 "sent (bus-off, no ACK) before the driver fails.")
     simulate: bool = Field(False, description="Start aiohal's simulated drives on this bus in this process "
                                               "(interface virtual: a demo with one command).")
     initial_position: JointValues = Field(0.0, description="simulate: where the simulated joints start (rad), "
                                                            "scalar or per joint.")
+
+
+class _ErrorFrames(can.Listener):
+    """Counts error frames and notes bus-off (the notifier's thread)."""
+
+    def __init__(self, driver: CanopenDriver) -> None:
+        self.driver = driver
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.driver.error_frames += 1
+            if msg.arbitration_id & CAN_ERR_BUSOFF:
+                self.driver.bus_off = True
 
 
 def configured_frames(options: CanopenOptions) -> tuple[list[int], list[tuple[int, float]]]:
@@ -254,6 +270,9 @@ class CanopenDriver(Driver):
         self._active = False
         self._estopped = False
         self._seen = 0
+        self._failed_cycles = 0  # cycles in a row with a frame not sent
+        self.bus_off = False  # an error frame said bus-off (socketcan error class 0x40)
+        self.error_frames = 0
         self.cycles = 0
         self.tx_frames = 0
         self.tx_errors = 0
@@ -305,6 +324,7 @@ class CanopenDriver(Driver):
             raise CanopenError(f"cannot open the CAN bus {opts.interface}:{opts.channel}: {exc}") from exc
         self.network = network = canopen.Network(self.bus)
         network.NOTIFIER_CYCLE = 0.05  # its thread's receive timeout: how long closing waits for it
+        network.listeners.append(_ErrorFrames(self))  # canopen drops error frames; bus-off is in them
         network.connect()
         tpdo_slices: list[tuple[int, int, int]] = []  # (cob id, start, size) in the input buffer
         rpdo_slices: list[tuple[int, int, int]] = []
@@ -505,6 +525,7 @@ class CanopenDriver(Driver):
     def _send_cycle(self) -> None:
         out = memoryview(self._outputs.data).cast("B")
         send = self.bus.send
+        errors = self.tx_errors
         for msg, start, end in self._rpdos:
             msg.data[:] = out[start:end]
             try:
@@ -519,6 +540,7 @@ class CanopenDriver(Driver):
         except can.CanError as exc:
             self.tx_errors += 1
             self._warn.warning("tx", "canopen %s: sending SYNC failed: %s", self.name, exc)
+        self._failed_cycles = self._failed_cycles + 1 if self.tx_errors != errors else 0
 
     # ------------------------------------------------------------ the tick
 
@@ -531,6 +553,8 @@ class CanopenDriver(Driver):
             self._lost(now)
         if self._emcy:
             self._handle_emergencies()
+        if self.bus_off or self._failed_cycles >= self.options.tx_error_limit:
+            self._bus_failed()
         if self.gateway is not None:
             self.gateway.read(clock.tick, clock.now_ns, view.report_fault)
         drives = self.drives
@@ -555,6 +579,14 @@ class CanopenDriver(Driver):
                 self.drives.write(self.view.command)
             self._send_cycle()
         self.cycles += 1
+
+    def _bus_failed(self) -> None:
+        opts = self.options
+        if self.bus_off:
+            raise CanopenError(f"{opts.interface}:{opts.channel} is bus-off (an error frame said so): no frame "
+                               "reaches the drives")
+        raise CanopenError(f"{opts.interface}:{opts.channel}: {self._failed_cycles} cycles in a row could not send "
+                           f"their frames ({self.tx_errors} frames in all): bus-off, no ACK or the interface down")
 
     def _lost(self, now: float) -> None:
         silent = [self.options.nodes[k] for k in np.flatnonzero(now - self._heard > self.options.heartbeat_timeout_ms * 1e-3)]
@@ -703,7 +735,7 @@ class CanopenDriver(Driver):
         out: dict[str, Any] = {
             "bus": f"{opts.interface}:{opts.channel}", "nodes": len(opts.nodes), "cycles": self.cycles,
             "tx_frames": self.tx_frames, "tx_errors": self.tx_errors, "rx_tpdos": self.rx_tpdos,
-            "malformed": self.malformed, "late_cycles": self.late_cycles, "emergencies": self.emergencies,
+            "malformed": self.malformed, "late_cycles": self.late_cycles, "error_frames": self.error_frames, "emergencies": self.emergencies,
             "drive_faults": self.drive_faults,
         }
         if self._frame_sizes:

@@ -29,6 +29,10 @@ class SimBus:
             self.sensors = SimSensorGateway(self.network, imu_period_s=sensors.get("imu", 0.002),
                                             ft_period_s=sensors.get("force_torque", 0.002))
 
+    def bus_off(self) -> None:
+        """What a controller that went bus-off reports: a socketcan error frame of class 0x40."""
+        self.bus.send(can.Message(arbitration_id=0x40, is_error_frame=True, data=bytes(8), is_extended_id=False))
+
     def close(self) -> None:
         for drive in self.drives.values():
             drive.close()
