@@ -10,6 +10,7 @@ steadily enabled.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -17,11 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from aiohal import kernel_call
-from aiohal.robot import JOINT_COMMAND_FIELDS, JointCommand, JointState
+from aiohal.robot import JOINT_COMMAND_FIELDS, DriverView, Fault, JointCommand, JointState
 
 from . import drive_kernels as kernels
 from .busvar import ProcessImage, VariableTypeError
-from .cia402 import Cia402Drive, DriveEvent, DriveUnits, Target
+from .cia402 import Cia402Drive, DriveEvent, DriveUnits, EventKind, State, Target
+
+log = logging.getLogger(__name__)
 
 DRIVE_INPUTS = ("Statusword", "Position actual value", "Velocity actual value", "Torque actual value", "Error code")
 DRIVE_INPUT_TYPES = ("u16", "i32", "i32", "i16", "u16")
@@ -232,5 +235,57 @@ class DriveGroup:
         self.invalidate()
         return reset
 
+    def reset_and_enable(self) -> list[str]:
+        """Grant one fault reset to every drive in fault and enable again those that left
+        Operation enabled unasked (parked by :func:`respond_to_event`); their names."""
+        names = self.reset_faults()
+        for machine in self.machines:
+            if machine.target is Target.DISABLED:
+                machine.target = Target.ENABLED
+                names.append(machine.name)
+        self.invalidate()
+        return sorted(set(names))
+
     def all_enabled(self) -> bool:
         return all(m.enabled and not m.hold_target for m in self.machines)
+
+
+def respond_to_event(drives: DriveGroup, i: int, event: DriveEvent, view: DriverView, mask: np.ndarray,
+                     who: str, detail: str = "") -> None:
+    """What the HAL does on a drive's event, for every bus: a fault, a drive that left
+    Operation enabled unasked (parked: enabling it again is the application's decision) or a
+    stall faults its joint, is reported and holds the robot; a drive enabled again clears its
+    joint's fault and its command continues from where it stands (``view.resync``).
+    ``mask`` is the driver's scratch of one bool per joint; ``detail`` is added to a fault's
+    reason (e.g. an EMCY's code); ``who`` starts the log lines ("ethercat arm")."""
+    spec = drives.specs[i]
+    row = spec.row
+    fault = view.state.fault
+    kind = event.kind
+    machine = drives.machines[i]
+    if kind is EventKind.FAULT_ENTERED:
+        fault[row] |= Fault.HARDWARE
+        reason = f"joint {spec.joint}: {event}{detail}"
+        view.report_fault("read", reason)
+        view.request_hold(reason)
+    elif kind is EventKind.LOST_ENABLED and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT) \
+            and machine.target is Target.ENABLED:
+        machine.target = Target.DISABLED
+        drives.invalidate()
+        fault[row] |= Fault.HARDWARE
+        reason = (f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label}); "
+                  "reset_faults() enables it again")
+        view.report_fault("read", reason)
+        view.request_hold(reason)
+    elif kind is EventKind.STUCK:
+        fault[row] |= Fault.HARDWARE
+        view.report_fault("read", f"joint {spec.joint}: {event}")
+        view.request_hold(str(event))
+    elif kind is EventKind.BECAME_ENABLED:
+        fault[row] &= ~np.uint32(Fault.HARDWARE)
+        mask[:] = False
+        mask[row] = True
+        view.resync(mask)  # its command continues from where it stands
+        log.warning("%s: joint %s enabled where it stands", who, spec.joint)
+    else:
+        log.info("%s: %s", who, event)

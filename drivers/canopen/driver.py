@@ -35,7 +35,7 @@ from pydantic import Field
 from aiohal.config import ConfigPath
 from aiohal.errors import AiohalError
 from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
-from aiohal.fieldbus.drives import DRIVE_INPUTS, DRIVE_OUTPUTS, DRIVE_SIZES, DriveGroup, DriveSpec
+from aiohal.fieldbus.drives import DriveGroup, DriveSpec, respond_to_event
 from aiohal.fieldbus.busvar import decode_mapping
 from aiohal.fieldbus.pdo_options import parse_number, parse_pdo_entry, pdo_issues
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
@@ -613,41 +613,14 @@ class CanopenDriver(Driver):
         if not self._active:
             log.info("canopen %s: %s", self.name, event)
             return
-        spec = self.drives.specs[i]
-        row = spec.row
-        fault = self.view.state.fault
-        kind = event.kind
-        if kind is EventKind.FAULT_ENTERED:
+        detail = ""
+        if event.kind is EventKind.FAULT_ENTERED:
             self.drive_faults += 1
-            fault[row] |= Fault.HARDWARE
             machine = self.drives.machines[i]
             if not machine.error_code and self._last_emcy[i]:  # 0x603F unmapped: the code the EMCY gave
                 machine.error_code = self._last_emcy[i]
-            reason = f"joint {spec.joint}: {event}" + (
-                f" (EMCY error code 0x{machine.error_code:04X})" if not event.error_code and machine.error_code else "")
-            self.view.report_fault("read", reason)
-            self.view.request_hold(reason)
-        elif kind is EventKind.LOST_ENABLED and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT) \
-                and self.drives.machines[i].target is Target.ENABLED:
-            self.drives.machines[i].target = Target.DISABLED
-            self.drives.invalidate()
-            fault[row] |= Fault.HARDWARE
-            reason = f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label})"
-            self.view.report_fault("read", reason)
-            self.view.request_hold(reason)
-        elif kind is EventKind.STUCK:
-            fault[row] |= Fault.HARDWARE
-            self.view.report_fault("read", f"joint {spec.joint}: {event}")
-            self.view.request_hold(str(event))
-        elif kind is EventKind.BECAME_ENABLED:
-            fault[row] &= ~np.uint32(Fault.HARDWARE)
-            mask = self._drive_mask
-            mask[:] = False
-            mask[row] = True
-            self.view.resync(mask)
-            log.warning("canopen %s: joint %s enabled where it stands", self.name, spec.joint)
-        else:
-            log.info("canopen %s: %s", self.name, event)
+                detail = f" (EMCY error code 0x{machine.error_code:04X})"
+        respond_to_event(self.drives, i, event, self.view, self._drive_mask, f"canopen {self.name}", detail)
 
     # ------------------------------------------------------------ application API
 
@@ -657,13 +630,7 @@ class CanopenDriver(Driver):
         if self.drives is None or self._estopped:
             return []
         with self._lock:
-            names = self.drives.reset_faults()
-            for machine in self.drives.machines:
-                if machine.target is Target.DISABLED:
-                    machine.target = Target.ENABLED
-                    names.append(machine.name)
-            self.drives.invalidate()
-        return sorted(set(names))
+            return self.drives.reset_and_enable()
 
     def _remote(self, node: int | str) -> canopen.RemoteNode:
         for k, n in enumerate(self.options.nodes):

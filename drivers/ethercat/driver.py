@@ -50,6 +50,8 @@ from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 
 from .bus import OP, SAFEOP, BringUpError, Bus, EthercatError, SlaveInfo, check_identity, expected_wkc, state_name
+from aiohal.fieldbus.drives import respond_to_event
+
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 
 log = logging.getLogger(__name__)
@@ -563,41 +565,11 @@ class EthercatDriver(Driver):
         if threading.get_ident() != self._loop_thread:  # the keep-alive thread: the loop's next read handles it
             self._pending.append((i, event))
             return
-        drives = self.drives
-        spec = drives.specs[i]
-        row = spec.row
-        fault = self.view.state.fault
-        kind = event.kind
-        machine = drives.machines[i]
-        if kind is EventKind.FAULT_ENTERED:
+        if event.kind is EventKind.FAULT_ENTERED:
             self.drive_faults += 1
-            fault[row] |= Fault.HARDWARE
-            reason = f"joint {spec.joint}: {event}"
-            self.view.report_fault("read", reason)
-            self.view.request_hold(reason)
-        elif kind is EventKind.LOST_ENABLED and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT) \
-                and machine.target is Target.ENABLED:
-            machine.target = Target.DISABLED  # parked: enabling it again is the application's decision
-            drives.invalidate()
+        elif event.kind is EventKind.LOST_ENABLED:
             self._check_states = True  # its slave may have left OP (SM watchdog): that fails the driver
-            fault[row] |= Fault.HARDWARE
-            reason = (f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label}); "
-                      "reset_faults() enables it again")
-            self.view.report_fault("read", reason)
-            self.view.request_hold(reason)
-        elif kind is EventKind.STUCK:
-            fault[row] |= Fault.HARDWARE
-            self.view.report_fault("read", f"joint {spec.joint}: {event}")
-            self.view.request_hold(str(event))
-        elif kind is EventKind.BECAME_ENABLED:
-            fault[row] &= ~np.uint32(Fault.HARDWARE)
-            mask = self._drive_mask
-            mask[:] = False
-            mask[row] = True
-            self.view.resync(mask)  # its command continues from where it stands
-            log.warning("ethercat %s: joint %s enabled where it stands", self.name, spec.joint)
-        else:
-            log.info("ethercat %s: %s", self.name, event)
+        respond_to_event(self.drives, i, event, self.view, self._drive_mask, f"ethercat {self.name}")
 
     def _handle_pending(self) -> None:
         pending, self._pending = self._pending, []
@@ -674,13 +646,7 @@ class EthercatDriver(Driver):
         if self.drives is None or self._estop_requested:
             return []
         with self._lock:
-            names = self.drives.reset_faults()
-            for machine in self.drives.machines:
-                if machine.target is Target.DISABLED:
-                    machine.target = Target.ENABLED
-                    names.append(machine.name)
-            self.drives.invalidate()
-        return sorted(set(names))
+            return self.drives.reset_and_enable()
 
     def enable_drives(self) -> None:
         """Enable every drive (with ``enable_on_open = false``); each starts where it stands."""
