@@ -110,6 +110,25 @@ def enable_bare(bare: Bare, sim: SimBus) -> None:
         time.sleep(0.01)
 
 
+async def one_cycle(write, read, received, last_tpdo, deadline_s: float = 0.02) -> tuple[int, float, bool]:
+    """One master's cycle: its write, the six TPDOs awaited (outside the figure), its read.
+    (thread CPU ns of write + read, SYNC to last TPDO in s, whether a TPDO was missing)."""
+    cpu_now = time.thread_time_ns
+    seen = received()
+    c0 = cpu_now()
+    await write()
+    c1 = cpu_now()
+    sent = time.perf_counter()
+    until = sent + deadline_s
+    while received() - seen < 6 and time.perf_counter() < until:
+        time.sleep(50e-6)
+    missing = received() - seen < 6
+    latency = last_tpdo() - sent
+    c2 = cpu_now()
+    await read()
+    return (cpu_now() - c2) + (c1 - c0), latency, missing
+
+
 async def run(cycles: int) -> dict:
     pid = os.getpid()
     ch_driver, ch_bare = f"bench-canopen-driver-{pid}", f"bench-canopen-bare-{pid}"
@@ -129,40 +148,28 @@ async def run(cycles: int) -> dict:
     cpu = np.zeros((2, cycles), dtype=np.int64)  # driver, bare: write + read, thread CPU ns
     latency = np.zeros((2, cycles))
     clock = robot.clock
-    cpu_now = time.thread_time_ns
-    deadline_s = 0.02
     late = [0, 0]
+
+    async def driver_write() -> None:
+        await driver.write()
+
+    async def driver_read() -> None:
+        await driver.read()
+
+    async def bare_write() -> None:
+        bare.write()
+
+    async def bare_read() -> None:
+        bare.read()
+
+    sides = ((driver_write, driver_read, lambda: driver.rx_tpdos, lambda: tpdo_times[-1] if tpdo_times else np.nan),
+             (bare_write, bare_read, lambda: bare.tpdos, lambda: bare.last_tpdo_s))
     try:
         for k in range(cycles):
-            # the driver's cycle
             clock.tick, clock.now_ns = k, time.monotonic_ns()
-            seen = driver.rx_tpdos
-            c0 = cpu_now()
-            await driver.write()
-            c1 = cpu_now()
-            sent = time.perf_counter()
-            until = sent + deadline_s
-            while driver.rx_tpdos - seen < 6 and time.perf_counter() < until:
-                time.sleep(50e-6)
-            late[0] += driver.rx_tpdos - seen < 6
-            latency[0, k] = (tpdo_times[-1] - sent) if tpdo_times else np.nan
-            c2 = cpu_now()
-            await driver.read()
-            cpu[0, k] = (cpu_now() - c2) + (c1 - c0)
-            # bare python-can's cycle
-            seen = bare.tpdos
-            c0 = cpu_now()
-            bare.write()
-            c1 = cpu_now()
-            sent = time.perf_counter()
-            until = sent + deadline_s
-            while bare.tpdos - seen < 6 and time.perf_counter() < until:
-                time.sleep(50e-6)
-            late[1] += bare.tpdos - seen < 6
-            latency[1, k] = bare.last_tpdo_s - sent
-            c2 = cpu_now()
-            bare.read()
-            cpu[1, k] = (cpu_now() - c2) + (c1 - c0)
+            for i, (write, read, received, last_tpdo) in enumerate(sides):  # the driver, then bare python-can
+                cpu[i, k], latency[i, k], missing = await one_cycle(write, read, received, last_tpdo)
+                late[i] += missing
     finally:
         health = driver.health()
         await driver.close()

@@ -257,11 +257,14 @@ class CanopenDriver(Driver):
         self.gateway: SensorGateway | None = None
         self._inputs = np.zeros(SPARE, dtype=np.uint8)
         self._outputs = np.zeros(SPARE, dtype=np.uint8)
+        self._out_view = memoryview(self._outputs.data).cast("B")  # the RPDOs' bytes, sliced per frame
         self._rpdos: list[tuple[can.Message, int, int]] = []
         self._sync = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
         self._tpdos_per_cycle = 0
         self._frame_sizes: list[int] = []
         self._heard = np.zeros(len(options.nodes))  # monotonic time of each node's last heartbeat
+        self._next_heartbeat_check = 0.0
+        self._heartbeat_check_s = options.heartbeat_timeout_ms * 1e-4
         self._emcy: list[tuple[int, int, int]] = []  # (node index, code, register) from the notifier thread
         self._last_emcy = [0] * len(options.nodes)  # each node's last EMCY error code (0: none or reset)
         self._drive_mask = np.zeros(view.dof, dtype=bool)
@@ -352,6 +355,7 @@ class CanopenDriver(Driver):
         out_size = sum(size for _, _, size in rpdo_slices)
         self._inputs = np.zeros(in_size + SPARE, dtype=np.uint8)
         self._outputs = np.zeros(out_size + SPARE, dtype=np.uint8)
+        self._out_view = memoryview(self._outputs.data).cast("B")
         resolved = [[in_size if o is None else o for o in inputs] + [out_size if o is None else o for o in outputs]
                     for inputs, outputs in offsets]
         if opts.nodes:
@@ -523,7 +527,7 @@ class CanopenDriver(Driver):
         raise CanopenError(f"drives not enabled within {self.options.enable_timeout_s:g} s: {states}")
 
     def _send_cycle(self) -> None:
-        out = memoryview(self._outputs.data).cast("B")
+        out = self._out_view
         send = self.bus.send
         errors = self.tx_errors
         for msg, start, end in self._rpdos:
@@ -548,9 +552,11 @@ class CanopenDriver(Driver):
         view = self.view
         clock = view.clock
         now = time.monotonic()
-        heard = self._heard
-        if heard.size and now - heard.min() > self.options.heartbeat_timeout_ms * 1e-3:
-            self._lost(now)
+        if now >= self._next_heartbeat_check:  # every tenth of the timeout: a numpy call, not per tick
+            self._next_heartbeat_check = now + self._heartbeat_check_s
+            heard = self._heard
+            if heard.size and now - heard.min() > self.options.heartbeat_timeout_ms * 1e-3:
+                self._lost(now)
         if self._emcy:
             self._handle_emergencies()
         if self.bus_off or self._failed_cycles >= self.options.tx_error_limit:
