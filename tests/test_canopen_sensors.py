@@ -20,11 +20,11 @@ from aiohal.robot import Fault, Robot
 
 _channels = itertools.count()
 
-IMU = {"device": "imu", "period_ms": 4.0, "status": "IMU_Gyro.Status", "signals": {
+IMU = {"device": "imu", "period_ms": 4.0, "stale_periods": 25, "status": "IMU_Gyro.Status", "signals": {
     "quaternion": ["IMU_Orientation.W", "IMU_Orientation.X", "IMU_Orientation.Y", "IMU_Orientation.Z"],
     "angular_velocity": ["IMU_Gyro.X", "IMU_Gyro.Y", "IMU_Gyro.Z"],
     "linear_acceleration": ["IMU_Accel.X", "IMU_Accel.Y", "IMU_Accel.Z"]}}
-FT = {"device": "ft", "period_ms": 4.0, "stale_periods": 10, "status": "FT_Force.Status", "signals": {
+FT = {"device": "ft", "period_ms": 4.0, "stale_periods": 25, "status": "FT_Force.Status", "signals": {
     "force": ["FT_Force.X", "FT_Force.Y", "FT_Force.Z"], "torque": ["FT_Torque.X", "FT_Torque.Y", "FT_Torque.Z"]}}
 
 
@@ -64,7 +64,7 @@ async def test_sensor_frames_fill_the_imu_and_ft_records():
 
 @pytest.mark.asyncio
 async def test_a_sensor_whose_frames_stop_is_stale_and_comes_back():
-    async with ControlLoop(parse_config(raw_config([IMU, FT]))) as loop:
+    async with ControlLoop(parse_config(raw_config([{**IMU, "stale_periods": 3}, FT]))) as loop:
         driver = driver_of(loop)
         await loop.run(ticks=20)
         gateway = driver.sim.sensors
