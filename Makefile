@@ -13,7 +13,7 @@ $(PY):
 	$(PY) -m pip install -q --upgrade pip
 
 $(STAMP): $(PY) pyproject.toml
-	$(PY) -m pip install -q -e '.[dev,sim,modbus,ethercat,record,plot,foxglove,zenoh]'
+	$(PY) -m pip install -q -e '.[dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh]'
 	touch $@
 
 run: $(STAMP)
@@ -40,6 +40,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.pipe --json bench-results/pipe.json
 	$(PY) -m benchmarks.shm_client --json bench-results/shm_client.json
 	$(PY) -m benchmarks.zenoh_bridge --json bench-results/zenoh_bridge.json
+	$(PY) -m benchmarks.canopen --json bench-results/canopen.json
 	$(PY) -m benchmarks.host_gaps --json bench-results/host_gaps.json
 	$(PY) -m benchmarks.udp --json bench-results/udp.json
 	$(PY) -m benchmarks.fig7 --json bench-results/fig7.json

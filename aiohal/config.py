@@ -115,6 +115,11 @@ class DriverSection(Options):
     joints: list[str] = Field(default_factory=list, description="Joint names or glob patterns.")
     devices: list[str] = Field(default_factory=list)
     options: dict[str, Any] = Field(default_factory=dict, description="The driver's own options.")
+    every: int = Field(
+        1, ge=1, le=1000,
+        description="Exchange data with this driver on every n-th tick only (a bus slower than the loop, "
+        "e.g. classic CAN); its feedback's age is judged at its own rate.",
+    )
 
 
 class ControllerSection(Options):
@@ -168,6 +173,7 @@ class DriverConfig:
     joints: tuple[str, ...]
     devices: tuple[str, ...]
     options: Options
+    every: int = 1
 
 
 @dataclass(frozen=True)
@@ -383,6 +389,15 @@ def _plugin_path(where: str, rel: str) -> str:
     if rel.startswith("/"):
         return rel[1:]
     return f"{where}.{rel}" if rel else where
+def _plugin_checks_rate(cls: type, options: Options, cycle_hz: float, every: int) -> list[tuple[str, str]]:
+    """A driver's checks at the rate it is cycled at; a check that crashes is reported, not raised."""
+    check = getattr(cls, "check_rate", None)
+    if check is None:
+        return []
+    try:
+        return list(check(options, cycle_hz, every))
+    except Exception as exc:
+        return [("", f"{cls.__name__}.check_rate failed: {type(exc).__name__}: {exc}")]
 
 
 def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Path | None = None) -> Config:
@@ -522,7 +537,12 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
             continue
         for rel, msg in _plugin_checks(cls, where, options, joints, dev_kinds, robot or RobotSection()):
             issues.append(ConfigIssue(_plugin_path(where, rel), msg))
-        drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options))
+        # checks that depend on the rate the driver is cycled at (e.g. a CAN bus's load)
+        if loop is not None:
+            for rel, msg in _plugin_checks_rate(cls, options, loop.rate_hz / section.every, section.every):
+                issues.append(ConfigIssue(_plugin_path(where, rel), msg))
+        drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options,
+                                    section.every))
 
     if isinstance(raw.get("driver"), list) and not drivers_incomplete:  # raw_drivers is [] after a malformed section
         for j in joint_names:

@@ -98,6 +98,13 @@ class Driver(abc.ABC):
         """
         return []
 
+    @classmethod
+    def check_rate(cls, options: Options, cycle_hz: float, every: int) -> list[tuple[str, str]]:
+        """Checks at the rate this driver will be cycled at: the loop's rate divided by the
+        ``[[driver]] every`` given (e.g. whether a bus carries the frames). Same pairs as
+        :meth:`check_config`."""
+        return []
+
     async def open(self) -> None:
         """Bring the hardware up; may take long, runs before the first tick."""
 

@@ -54,10 +54,13 @@ log = logging.getLogger(__name__)
 class DriverSlot:
     """A driver with its status and timing counters."""
 
-    __slots__ = ("driver", "name", "type", "status", "read_ns", "write_ns", "max_read_ns", "max_write_ns")
+    __slots__ = ("driver", "name", "type", "status", "read_ns", "write_ns", "max_read_ns", "max_write_ns",
+                 "every", "max_age")
 
-    def __init__(self, driver: Driver, type_name: str) -> None:
+    def __init__(self, driver: Driver, type_name: str, every: int = 1, max_age: int = 0) -> None:
         self.driver = driver
+        self.every = every  # read and written on every n-th tick ([[driver]] every)
+        self.max_age = max_age  # feedback older than this (ticks) is stale: max_feedback_age at its rate
         self.name = driver.name
         self.type = type_name
         self.status = "created"  # created -> open -> failed | closed
@@ -149,11 +152,12 @@ class ControlLoop:
             view.report_fault = functools.partial(self.record_fault, f"driver:{dc.name}")
             view.request_hold = functools.partial(self._hold_for_driver, dc.name)
             view.resync = functools.partial(self.resync_joints, view.rows)
+            view.every = dc.every
             try:
                 driver = dc.cls(dc.name, view, dc.options)
             except Exception as exc:
                 raise DriverError(dc.name, "configure", f"{type(exc).__name__}: {exc}") from exc
-            self.slots.append(DriverSlot(driver, dc.type))
+            self.slots.append(DriverSlot(driver, dc.type, dc.every, self.config.loop.max_feedback_age * dc.every))
         view = self.robot.controller_view()
         hold_cls = plugins.load("controller", "hold")
         self._hold = hold_cls()
@@ -535,9 +539,9 @@ class ControlLoop:
         if self.controller is self._hold and self.state in ("active", "running"):
             self._hold.start((self.robot.clock.tick - self._k_start) * self.period_s)
 
-    def _check_feedback(self, k: int, max_age: int) -> None:
-        """Some driver's feedback is older than ``max_age`` ticks: flag it, hold, report once."""
-        stale = [s for s in self._active if k - s.driver.view.fresh_tick > max_age]
+    def _check_feedback(self, k: int) -> None:
+        """Some driver's feedback is older than its ``max_age`` ticks: flag it, hold, report once."""
+        stale = [s for s in self._active if k - s.driver.view.fresh_tick > s.max_age]
         for slot in stale:
             view = slot.driver.view
             self.robot.state.fault[view.rows] |= np.uint32(Fault.STALE)
@@ -644,7 +648,6 @@ class ControlLoop:
         self.stats.reset()
         robot, stats, ticker, limiter = self.robot, self.stats, self.ticker, self.limiter
         clock = robot.clock
-        max_age = self.config.loop.max_feedback_age
         period_s, period_ns = self.period_s, self.period_ns
         mask = stats.mask
         # the tick stores its figures through memoryviews of the stats arrays: an item store
@@ -684,6 +687,8 @@ class ControlLoop:
             # read and write are spelled out, not factored: a helper call per driver per
             # phase costs more than the lines it would save on this path
             for slot in self._active:
+                if k % slot.every:  # a driver slower than the loop ([[driver]] every)
+                    continue
                 a = mono()
                 try:
                     await slot.driver.read()
@@ -696,8 +701,8 @@ class ControlLoop:
             t1 = mono()
 
             for slot in self._active:
-                if k - slot.driver.view.fresh_tick > max_age:
-                    self._check_feedback(k, max_age)
+                if k - slot.driver.view.fresh_tick > slot.max_age:
+                    self._check_feedback(k)
                     break
             else:
                 if self._stale_drivers:
@@ -738,6 +743,8 @@ class ControlLoop:
                 t4 = mono()
 
                 for slot in self._active:
+                    if k % slot.every:
+                        continue
                     a = mono()
                     try:
                         await slot.driver.write()

@@ -26,6 +26,7 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "mujoco": ("aiohal.drivers.mujoco:MujocoDriver", "sim"),
         "nrt_hand": ("aiohal.drivers.nrt_hand:NrtHandDriver", None),
         "ethercat": ("aiohal.drivers.ethercat.driver:EthercatDriver", "ethercat"),
+        "canopen": ("aiohal.drivers.canopen.driver:CanopenDriver", "can"),
         "udp": ("aiohal.drivers.udp.driver:UdpDriver", None),
         "fri": ("aiohal.drivers.fri.driver:FriDriver", None),
     },

@@ -415,6 +415,8 @@ class DriverView:
         self.devices = {name: robot.device(name) for name in devices}
         self.device_kinds = {name: robot.device_kind(name) for name in devices}
         self.fresh_tick = -1  # the last tick this driver's joints were all measured
+        #: the driver is read and written on every ``every``-th tick only ([[driver]] every)
+        self.every = 1
         #: ``report_fault(phase, reason)``: a fault the driver survives (e.g. one device lost);
         #: the loop installs its recorder so it reaches the run report.
         self.report_fault: Callable[[str, str], object] = _log_fault

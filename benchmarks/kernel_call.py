@@ -35,7 +35,7 @@ def _decode_case(drives: int):
     from aiohal.fieldbus.busvar import PdoLayout, ProcessImage, encode_mapping
     from aiohal.fieldbus.cia402 import DriveUnits
     from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec
-    from aiohal.drivers.ethercat import kernels
+    from aiohal.fieldbus import drive_kernels as kernels
     from aiohal.robot import JointState
 
     rx = [(0x6040, 16), (0x607A, 32), (0x60FF, 32), (0x6071, 16), (0x6060, 8)]

@@ -160,8 +160,8 @@ def test_plugins_without_entry_points_lists_only_builtins(tmp_path):
     proc = run_cli("plugins", pythonpath=tmp_path)
     assert proc.returncode == 0
     names = [line.split()[0] for line in proc.stdout.splitlines() if line.startswith("  ")]
-    assert names == ["ethercat", "fri", "mock", "mujoco", "nrt_hand", "udp", "circle", "hold", "homing", "sequence", "sine",
-                     "stream"]
+    assert names == ["canopen", "ethercat", "fri", "mock", "mujoco", "nrt_hand", "udp", "circle", "hold", "homing", "sequence",
+                     "sine", "stream"]
 
 
 def test_entry_point_driver_and_controller_work_from_a_config(plugin_dir, tmp_path):

@@ -40,13 +40,18 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 from pydantic import Field
 
-from aiohal.fieldbus.busvar import LayoutError, PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError, encode_mapping
+from aiohal.fieldbus.busvar import LayoutError, PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError
+from aiohal.fieldbus.pdo_options import parse_number as _number
+from aiohal.fieldbus.pdo_options import parse_pdo_entry
+from aiohal.fieldbus.pdo_options import pdo_issues as _pdo_issues
 from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 
 from .bus import OP, SAFEOP, BringUpError, Bus, EthercatError, SlaveInfo, check_identity, expected_wkc, state_name
+from aiohal.fieldbus.drives import respond_to_event
+
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 
 log = logging.getLogger(__name__)
@@ -79,55 +84,6 @@ def shares_a_byte(layout: PdoLayout) -> bool:
 
 
 RX_PDOS, TX_PDOS = (0x1600, 0x17FF), (0x1A00, 0x1BFF)  # where CiA 301 puts the PDO mapping objects
-
-
-def parse_pdo_entry(text: str) -> int:
-    """``'0x607A:0:32'`` → the mapping entry 0x607A0020 (index, subindex, bits; 0x0000 pads)."""
-    parts = text.split(":")
-    if len(parts) != 3:
-        raise ValueError(f"{text!r}: expected 'index:subindex:bits', e.g. '0x607A:0:32'")
-    try:
-        index, subindex, bits = (_number(part) for part in parts)
-    except ValueError:
-        raise ValueError(f"{text!r}: index, subindex and bits must be integers (hex with 0x)") from None
-    if not (0 <= index <= 0xFFFF and 0 <= subindex <= 0xFF and 1 <= bits <= 64):
-        raise ValueError(f"{text!r}: index 0..0xFFFF, subindex 0..0xFF, bits 1..64")
-    return encode_mapping(index, subindex, bits)
-
-
-def _number(text: str) -> int:
-    """``'0x1A01'``, ``'01'`` or ``'16'``: hex with 0x, else decimal (leading zeros allowed)."""
-    text = text.strip()
-    return int(text[2:], 16) if text.lower().startswith("0x") else int(text, 10)
-
-
-def _pdo_issues(where: str, pdos: dict[str, list[str]] | None, low: int, high: int) -> list[tuple[str, str]]:
-    if pdos is None:
-        return []
-    issues = []
-    if not pdos:
-        issues.append((where, "no PDO: this would unassign them all (leave the key out to keep the slave's own)"))
-    if len(pdos) > 254:
-        issues.append((where, "at most 254 PDOs"))
-    seen: dict[int, str] = {}
-    for pdo, entries in pdos.items():
-        try:
-            index = _number(pdo)
-        except ValueError:
-            index = -1
-        if not low <= index <= high:
-            issues.append((f"{where}.{pdo}", f"not a PDO mapping index 0x{low:04X}..0x{high:04X}"))
-        elif index in seen:
-            issues.append((f"{where}.{pdo}", f"the same PDO as {seen[index]!r}"))
-        seen.setdefault(index, pdo)
-        if len(entries) > 254:
-            issues.append((f"{where}.{pdo}", "at most 254 entries"))
-        for k, entry in enumerate(entries):
-            try:
-                parse_pdo_entry(entry)
-            except ValueError as exc:
-                issues.append((f"{where}.{pdo}[{k}]", str(exc)))
-    return issues
 
 
 class SlaveOptions(Options):
@@ -621,41 +577,11 @@ class EthercatDriver(Driver):
         if threading.get_ident() != self._loop_thread:  # the keep-alive thread: the loop's next read handles it
             self._pending.append((i, event))
             return
-        drives = self.drives
-        spec = drives.specs[i]
-        row = spec.row
-        fault = self.view.state.fault
-        kind = event.kind
-        machine = drives.machines[i]
-        if kind is EventKind.FAULT_ENTERED:
+        if event.kind is EventKind.FAULT_ENTERED:
             self.drive_faults += 1
-            fault[row] |= Fault.HARDWARE
-            reason = f"joint {spec.joint}: {event}"
-            self.view.report_fault("read", reason)
-            self.view.request_hold(reason)
-        elif kind is EventKind.LOST_ENABLED and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT) \
-                and machine.target is Target.ENABLED:
-            machine.target = Target.DISABLED  # parked: enabling it again is the application's decision
-            drives.invalidate()
+        elif event.kind is EventKind.LOST_ENABLED:
             self._check_states = True  # its slave may have left OP (SM watchdog): that fails the driver
-            fault[row] |= Fault.HARDWARE
-            reason = (f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label}); "
-                      "reset_faults() enables it again")
-            self.view.report_fault("read", reason)
-            self.view.request_hold(reason)
-        elif kind is EventKind.STUCK:
-            fault[row] |= Fault.HARDWARE
-            self.view.report_fault("read", f"joint {spec.joint}: {event}")
-            self.view.request_hold(str(event))
-        elif kind is EventKind.BECAME_ENABLED:
-            fault[row] &= ~np.uint32(Fault.HARDWARE)
-            mask = self._drive_mask
-            mask[:] = False
-            mask[row] = True
-            self.view.resync(mask)  # its command continues from where it stands
-            log.warning("ethercat %s: joint %s enabled where it stands", self.name, spec.joint)
-        else:
-            log.info("ethercat %s: %s", self.name, event)
+        respond_to_event(self.drives, i, event, self.view, self._drive_mask, f"ethercat {self.name}")
 
     def _handle_pending(self) -> None:
         pending, self._pending = self._pending, []
@@ -732,13 +658,7 @@ class EthercatDriver(Driver):
         if self.drives is None or self._estop_requested:
             return []
         with self._lock:
-            names = self.drives.reset_faults()
-            for machine in self.drives.machines:
-                if machine.target is Target.DISABLED:
-                    machine.target = Target.ENABLED
-                    names.append(machine.name)
-            self.drives.invalidate()
-        return sorted(set(names))
+            return self.drives.reset_and_enable()
 
     def enable_drives(self) -> None:
         """Enable every drive (with ``enable_on_open = false``); each starts where it stands."""

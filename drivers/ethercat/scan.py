@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from aiohal.fieldbus.busvar import BusVarError, PdoLayout, ProcessImage
+from aiohal.fieldbus.drives import check_types
 
 from .bus import Bus, EthercatError, state_name
 from .devices import (
@@ -43,7 +44,6 @@ from .devices import (
     ForceTorqueDevice,
     ImuDevice,
     _check_group,
-    _check_types,
 )
 from .driver import FT_VARIABLES, IMU_VARIABLES, shares_a_byte
 from .sii import has_coe
@@ -88,8 +88,8 @@ def why_not(layout: PdoLayout, kind: str) -> str:
     image = ProcessImage([("slave", layout)])
     try:
         if kind == "cia402":
-            _check_types(image, "slave", DRIVE_INPUTS, DRIVE_INPUT_TYPES)
-            _check_types(image, "slave", DRIVE_OUTPUTS, DRIVE_OUTPUT_TYPES)
+            check_types(image, "slave", DRIVE_INPUTS, DRIVE_INPUT_TYPES)
+            check_types(image, "slave", DRIVE_OUTPUTS, DRIVE_OUTPUT_TYPES)
         elif kind == "imu":
             for key, n in ImuDevice.GROUPS:
                 _check_group(image, "slave", IMU_VARIABLES[key], n)

@@ -10,8 +10,8 @@ on disk after the first compilation.
 
 Arguments are few on purpose: numba's call costs about 0.3 µs per argument on this kind of
 machine, so each drive's byte offsets and row are one row of ``layout`` (int64: the input
-variables' offsets in :data:`~.devices.DRIVE_INPUTS` order, the outputs' in
-:data:`~.devices.DRIVE_OUTPUTS` order, then the joint's row), its unit constants one row of
+variables' offsets in :data:`~.drives.DRIVE_INPUTS` order, the outputs' in
+:data:`~.drives.DRIVE_OUTPUTS` order, then the joint's row), its unit constants one row of
 ``constants`` (float64, columns below) and its integer state one row of ``ints`` (int64,
 columns below). Values are little-endian, as on the bus.
 
@@ -48,7 +48,7 @@ if (JOINT_STATE_FIELDS[:4] != ("position", "velocity", "effort", "motor_position
         or (CSP, CSV, CST) != (int(_CSP), int(_CSV), int(_CST))
         or [int(m) for m in (Mode.NONE, Mode.POSITION, Mode.VELOCITY, Mode.EFFORT, Mode.IMPEDANCE)] != [0, 1, 2, 3, 4]
         or len(Mode) != len(MODE_OF_OPERATION)):
-    raise ImportError("drivers/ethercat/kernels.py: its literal rows or modes no longer match aiohal.robot / aiohal.fieldbus.cia402")
+    raise ImportError("aiohal/fieldbus/drive_kernels.py: its literal rows or modes no longer match aiohal.robot / aiohal.fieldbus.cia402")
 
 
 @njit(cache=True, nogil=True, inline="always")

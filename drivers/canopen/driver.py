@@ -1,0 +1,734 @@
+"""``canopen``: CiA 402 drives on CANopen, over any python-can interface.
+
+Bring-up runs off the tick (``asyncio.to_thread``): per node, NMT PRE-OPERATIONAL, identity
+(0x1018) and device type (0x1000) checked against the config, the PDO mapping read from the
+node with canopen, the mode of operation, communication cycle period and heartbeat producer
+time written by SDO, NMT OPERATIONAL; then the drives are cycled until they are enabled
+where they stand (bumpless, the CiA 402 logic of :mod:`aiohal.fieldbus.drives`).
+
+Each tick, ``write`` sends every RPDO and then SYNC; the drives answer with their TPDOs,
+which canopen's notifier thread copies into one input buffer (a slice per TPDO, a frame of
+the wrong length is counted and dropped), and the next ``read`` decodes. Nothing in the tick
+waits: frames are sent without blocking and a TPDO that has not arrived leaves the joints
+unrefreshed (the loop's stale-feedback check then holds the robot).
+
+Heartbeat consumer: a node silent for ``heartbeat_timeout_ms`` fails the driver (the loop
+sends the robot to its safe state). EMCY frames are decoded by canopen; each is reported
+with its code, and a drive fault holds the robot until :meth:`CanopenDriver.reset_faults`.
+SDO access (:meth:`sdo_read`, :meth:`sdo_write`) runs in a worker thread, never on the tick.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import can  # the `can` extra; a missing one is reported by the plugin loader
+import canopen
+import numpy as np
+from pydantic import Field
+
+from aiohal.config import ConfigPath
+from aiohal.errors import AiohalError
+from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
+from aiohal.fieldbus.drives import DriveGroup, DriveSpec, respond_to_event
+from aiohal.fieldbus.busvar import decode_mapping
+from aiohal.fieldbus.pdo_options import parse_number, parse_pdo_entry, pdo_issues
+from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
+from aiohal.logutil import RateLimitedLogger
+from aiohal.robot import Fault
+
+from . import busload
+from .sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc, sensor_issues
+
+log = logging.getLogger(__name__)
+
+DATA = Path(__file__).resolve().parent / "data"
+DRIVE_EDS = DATA / "aiohal_drive.eds"
+MODES = {"csp": 8, "csv": 9, "cst": 10}
+# (index, subindex, bits) of each drive variable, in DRIVE_INPUTS / DRIVE_OUTPUTS order
+INPUT_OBJECTS = ((0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16), (0x603F, 0, 16))
+OUTPUT_OBJECTS = ((0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8))
+REQUIRED = {0x6041, 0x6064, 0x6040, 0x607A}
+SPARE = 8  # zero bytes past each buffer's data, where unmapped variables point
+SYNC_COB_ID = 0x80
+CAN_ERR_BUSOFF = 0x40  # error class of a socketcan error frame (linux/can/error.h)
+
+
+class CanopenError(AiohalError, RuntimeError):
+    """A CANopen bus or node that cannot be used (bring-up) or was lost (heartbeat)."""
+
+
+class DriveUnitOptions(Options):
+    counts_per_rev: FiniteFloat = Field(131072, gt=0, description="Encoder increments per motor revolution (0x608F).")
+    gear_ratio: FiniteFloat = Field(1.0, gt=0, description="Motor revolutions per joint revolution.")
+    rated_torque: FiniteFloat = Field(1.0, gt=0, description="Motor rated torque in N·m (0x6076 / 1000).")
+
+
+class NodeOptions(Options):
+    node_id: int = Field(ge=1, le=127, description="CANopen node id.")
+    name: str | None = Field(None, description="Shown in reports; default node<id>.")
+    joint: str = Field(description="The joint this CiA 402 drive moves.")
+    eds: ConfigPath | None = Field(None, description="EDS/DCF of the node; default: aiohal's simulated drive.")
+    vendor_id: int | None = Field(None, ge=0, description="0x1018:1, checked at bring-up when given.")
+    product_code: int | None = Field(None, ge=0, description="0x1018:2, checked at bring-up when given.")
+    mode: Literal["csp", "csv", "cst"] = Field("csp", description="Mode of operation written at bring-up (0x6060).")
+    counts_per_rev: FiniteFloat | None = Field(None, gt=0)
+    gear_ratio: FiniteFloat | None = Field(None, gt=0)
+    rated_torque: FiniteFloat | None = Field(None, gt=0)
+    position_offset: FiniteFloat = Field(0.0, description="rad added to the drive's position.")
+    rx_pdos: dict[str, list[str]] | None = Field(
+        None, description="Remap the RPDOs: per mapping object (0x1600..), its entries 'index:subindex:bits' "
+                          "(e.g. '0x607A:0:32'); written by SDO in PRE-OPERATIONAL and read back. RPDOs not "
+                          "listed are disabled. Leave out to use the node's own mapping.")
+    tx_pdos: dict[str, list[str]] | None = Field(None, description="Remap the TPDOs (0x1A00..), as rx_pdos.")
+
+    @property
+    def label(self) -> str:
+        return self.name or f"node{self.node_id}"
+
+    def remaps(self) -> list[tuple[str, dict[int, list[tuple[int, int, int]]]]]:
+        """("rpdo" or "tpdo", {PDO number (1-based): [(index, subindex, bits)]}) for each direction
+        the config remaps; checked by check_config."""
+        out = []
+        for kind, pdos, base in (("rpdo", self.rx_pdos, 0x1600), ("tpdo", self.tx_pdos, 0x1A00)):
+            if pdos is not None:
+                out.append((kind, {parse_number(m) - base + 1: [decode_mapping(parse_pdo_entry(e)) for e in entries]
+                                   for m, entries in pdos.items()}))
+        return out
+
+
+class CanopenOptions(Options):
+    interface: str = Field(min_length=1, description="python-can interface: socketcan, pcan, kvaser, virtual, ...")
+    channel: str = Field(min_length=1, description="python-can channel, e.g. can0.")
+    bitrate: int = Field(1_000_000, ge=10_000, le=1_000_000, description="Nominal bitrate (bit/s).")
+    data_bitrate: int | None = Field(None, ge=10_000, le=8_000_000,
+                                     description="CAN FD data bitrate, where the interface has it (enables FD).")
+    nodes: list[NodeOptions] = Field(default_factory=list, description="Every CiA 402 drive on this bus.")
+    dbc: ConfigPath | None = Field(None, description="DBC file of the sensors' frames; default: aiohal's simulated "
+                                                     "gateway's.")
+    sensors: list[SensorOptions] = Field(default_factory=list, description="IMU and force/torque sensors whose "
+                                                                           "frames the DBC describes.")
+    drive_defaults: DriveUnitOptions = Field(default_factory=DriveUnitOptions)
+    heartbeat_ms: int = Field(50, ge=1, le=65535, description="Heartbeat producer time written to every node (0x1017).")
+    heartbeat_timeout_ms: FiniteFloat = Field(200.0, gt=0, description="A node silent this long is lost.")
+    sdo_timeout_s: FiniteFloat = Field(0.5, gt=0, description="SDO response timeout at bring-up.")
+    enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
+    stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
+    tx_error_limit: int = Field(10, ge=1, le=10_000, description="Cycles in a row whose frames could not all be "
+                                                                 "sent (bus-off, no ACK) before the driver fails.")
+    simulate: bool = Field(False, description="Start aiohal's simulated drives on this bus in this process "
+                                              "(interface virtual: a demo with one command).")
+    initial_position: JointValues = Field(0.0, description="simulate: where the simulated joints start (rad), "
+                                                           "scalar or per joint.")
+
+
+class _ErrorFrames(can.Listener):
+    """Counts error frames and notes bus-off (the notifier's thread)."""
+
+    def __init__(self, driver: CanopenDriver) -> None:
+        self.driver = driver
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.driver.error_frames += 1
+            if msg.arbitration_id & CAN_ERR_BUSOFF:
+                self.driver.bus_off = True
+
+
+def configured_frames(options: CanopenOptions) -> tuple[list[int], list[tuple[int, float]]]:
+    """The frames the config implies, as its EDS/DCF files and DBC say: per cycle (every
+    enabled RPDO, SYNC, every enabled TPDO: data bytes), and the sensors' ((bytes, Hz))."""
+    cyclic = [0]  # SYNC
+    for node in options.nodes:
+        od = canopen.import_od(str(node.eds or DRIVE_EDS), node.node_id)
+        remapped = dict(node.remaps())
+        for kind, comm, mapping in (("rpdo", 0x1400, 0x1600), ("tpdo", 0x1800, 0x1A00)):
+            if kind in remapped:
+                cyclic += [(sum(bits for *_, bits in entries) + 7) // 8 for entries in remapped[kind].values()]
+                continue
+            for k in range(512):
+                if comm + k not in od or mapping + k not in od:
+                    break
+                cob_id = _od_value(od[comm + k][1])
+                count = _od_value(od[mapping + k][0])
+                if cob_id & 0x80000000 or not count:
+                    continue
+                bits = sum(_od_value(od[mapping + k][sub]) & 0xFF for sub in range(1, count + 1))
+                cyclic.append((bits + 7) // 8)
+    sensors = []
+    if options.sensors:
+        db = load_dbc(str(options.dbc or SENSORS_DBC))
+        rates: dict[int, float] = {}
+        for sensor in options.sensors:
+            names = [n for names in sensor.signals.values() for n in names] + ([sensor.status] if sensor.status else [])
+            for name in names:
+                frame = db.get_message_by_name(name.partition(".")[0])
+                rates[frame.frame_id] = max(rates.get(frame.frame_id, 0.0), 1000.0 / sensor.period_ms)
+        sensors = [(db.get_message_by_frame_id(f).length, hz) for f, hz in rates.items()]
+    return cyclic, sensors
+
+
+def _od_value(var) -> int:
+    """An object's value as the EDS/DCF sets it (a DCF's ParameterValue before the default)."""
+    return int(var.value if var.value is not None else var.default)
+
+
+class CanopenDriver(Driver):
+    Options = CanopenOptions
+    device_kinds = frozenset({"imu", "force_torque"})
+    options: CanopenOptions
+
+    @classmethod
+    def check_config(cls, options, joints, devices, robot):
+        issues = unknown_joint_issues("options.initial_position", options.initial_position, joints)
+        ids: dict[int, int] = {}
+        moved: dict[str, int] = {}
+        for i, node in enumerate(options.nodes):
+            where = f"options.nodes[{i}]"
+            if node.node_id in ids:
+                issues.append((f"{where}.node_id", f"{node.node_id} is also the id of nodes[{ids[node.node_id]}]"))
+            ids.setdefault(node.node_id, i)
+            if node.joint not in joints:
+                issues.append((f"{where}.joint", f'"{node.joint}" is not one of this driver\'s joints {joints}'))
+            elif node.joint in moved:
+                issues.append((f"{where}.joint", f'"{node.joint}" is already moved by nodes[{moved[node.joint]}]'))
+            moved.setdefault(node.joint, i)
+            if node.eds is not None and not Path(node.eds).is_file():
+                issues.append((f"{where}.eds", f"file not found: {node.eds}"))
+            issues += pdo_issues(f"{where}.rx_pdos", node.rx_pdos, 0x1600, 0x17FF)
+            issues += pdo_issues(f"{where}.tx_pdos", node.tx_pdos, 0x1A00, 0x1BFF)
+        for joint in joints:
+            if joint not in moved:
+                issues.append(("joints", f'joint "{joint}" has no node in options.nodes'))
+        if options.simulate and any(n.eds is not None and Path(n.eds) != DRIVE_EDS for n in options.nodes):
+            issues.append(("options.simulate", "the simulated drives have aiohal's own EDS: leave nodes[].eds out"))
+        issues += cls._sensor_issues(options, devices)
+        return issues
+
+    @staticmethod
+    def _sensor_issues(options: CanopenOptions, devices: dict[str, str]) -> list[tuple[str, str]]:
+        if not options.sensors:
+            return [("devices", f'device "{name}" has no entry in options.sensors') for name in devices]
+        dbc = options.dbc or SENSORS_DBC
+        try:
+            db = load_dbc(str(dbc))
+        except Exception as exc:  # an unreadable file: OSError, or cantools's own parse errors
+            return [("options.dbc", f"cannot load {dbc}: {exc}")]
+        issues = []
+        served = set()
+        for i, sensor in enumerate(options.sensors):
+            issues += sensor_issues(f"options.sensors[{i}]", sensor, devices.get(sensor.device), db)
+            served.add(sensor.device)
+        issues += [("devices", f'device "{name}" has no entry in options.sensors') for name in devices if name not in served]
+        return issues
+
+    @classmethod
+    def check_rate(cls, options, cycle_hz, every):
+        """Refuse a bus that the configured frames would load above 100 % at the driver's rate."""
+        try:
+            cyclic, sensors = configured_frames(options)
+        except Exception as exc:  # an unreadable EDS or DBC is reported by check_config
+            log.debug("bus load not computed: %s", exc)
+            return []
+        load = busload.load(cyclic, cycle_hz, options.bitrate) + busload.load_at(sensors, options.bitrate)
+        if load <= 1.0:
+            return []
+        sensor_load = busload.load_at(sensors, options.bitrate)
+        per_cycle = sum(busload.frame_bits(n) for n in cyclic)
+        fits = per_cycle / max(1e-9, (1.0 - sensor_load) * options.bitrate)  # seconds per cycle needed
+        needed = max(every + 1, int(np.ceil(fits * cycle_hz * every)))
+        return [("every", f"the CAN bus would be {100 * load:.0f} % loaded: {len(cyclic)} frames of {per_cycle} bits "
+                          f"per cycle (worst-case bit stuffing) at {cycle_hz:g} Hz, and the sensors' frames, on "
+                          f"{options.bitrate} bit/s; run this driver on fewer ticks (every = {needed}), raise the "
+                          "bitrate, map fewer PDOs or slow the sensors")]
+
+    def __init__(self, name, view, options) -> None:
+        super().__init__(name, view, options)
+        self.sim = None
+        self.bus: can.BusABC | None = None
+        self.network: canopen.Network | None = None
+        self.remotes: list[canopen.RemoteNode] = []
+        self.drives: DriveGroup | None = None
+        self.gateway: SensorGateway | None = None
+        self._inputs = np.zeros(SPARE, dtype=np.uint8)
+        self._outputs = np.zeros(SPARE, dtype=np.uint8)
+        self._out_view = memoryview(self._outputs.data).cast("B")  # the RPDOs' bytes, sliced per frame
+        self._rpdos: list[tuple[can.Message, int, int]] = []
+        self._sync = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
+        self._tpdos_per_cycle = 0
+        self._frame_sizes: list[int] = []
+        self._heard = np.zeros(len(options.nodes))  # monotonic time of each node's last heartbeat
+        self._next_heartbeat_check = 0.0
+        self._heartbeat_check_s = options.heartbeat_timeout_ms * 1e-4
+        self._emcy: list[tuple[int, int, int]] = []  # (node index, code, register) from the notifier thread
+        self._last_emcy = [0] * len(options.nodes)  # each node's last EMCY error code (0: none or reset)
+        self._drive_mask = np.zeros(view.dof, dtype=bool)
+        self._lock = threading.Lock()  # the tick, bring-up/close cycles and estop on the bus
+        self._warn = RateLimitedLogger(log)
+        self._active = False
+        self._estopped = False
+        self._seen = 0
+        self._failed_cycles = 0  # cycles in a row with a frame not sent
+        self.bus_off = False  # an error frame said bus-off (socketcan error class 0x40)
+        self.error_frames = 0
+        self.cycles = 0
+        self.tx_frames = 0
+        self.tx_errors = 0
+        self.rx_tpdos = 0
+        self.malformed = 0
+        self.late_cycles = 0
+        self.emergencies = 0
+        self.drive_faults = 0
+        self.lost_nodes: list[str] = []
+        self._started_ns = 0
+        self._enabled_at_close: int | None = None
+
+    # ------------------------------------------------------------ lifecycle
+
+    async def open(self) -> None:
+        quiet = logging.getLogger("canopen")
+        if quiet.level == logging.NOTSET:  # canopen logs every NMT, SDO and PDO step at info
+            quiet.setLevel(logging.WARNING)
+        await asyncio.to_thread(self._bring_up)
+
+    def _cycle_ns(self) -> int:
+        """The bus's cycle: the loop's period times the driver's ``every``."""
+        return self.view.clock.period_ns * self.view.every
+
+    def _bus_options(self) -> dict[str, Any]:
+        opts = self.options
+        kwargs: dict[str, Any] = {"interface": opts.interface, "channel": opts.channel, "bitrate": opts.bitrate}
+        if opts.data_bitrate is not None:
+            kwargs.update(fd=True, data_bitrate=opts.data_bitrate)
+        if opts.interface == "virtual":
+            kwargs["receive_own_messages"] = False
+        return kwargs
+
+    def _bring_up(self) -> None:
+        opts = self.options
+        if opts.simulate:
+            from .sim import SimBus
+
+            self.sim = SimBus(opts.interface, opts.channel, [n.node_id for n in opts.nodes], bitrate=opts.bitrate,
+                              sensors={self.view.device_kinds[s.device]: s.period_ms * 1e-3 for s in opts.sensors}
+                              if opts.sensors else None)
+            start = self.view.per_joint(opts.initial_position)
+            for node, units in zip(opts.nodes, self._units(), strict=True):
+                q = start[self.view.joint_names.index(node.joint)]
+                self.sim.drives[node.node_id].model.configure(position=(q - node.position_offset) * units.counts_per_rad)
+        try:
+            self.bus = can.Bus(**self._bus_options())
+        except (can.CanError, OSError, ValueError) as exc:
+            raise CanopenError(f"cannot open the CAN bus {opts.interface}:{opts.channel}: {exc}") from exc
+        self.network = network = canopen.Network(self.bus)
+        network.NOTIFIER_CYCLE = 0.05  # its thread's receive timeout: how long closing waits for it
+        network.listeners.append(_ErrorFrames(self))  # canopen drops error frames; bus-off is in them
+        network.connect()
+        tpdo_slices: list[tuple[int, int, int]] = []  # (cob id, start, size) in the input buffer
+        rpdo_slices: list[tuple[int, int, int]] = []
+        offsets = []
+        for k, node_opts in enumerate(opts.nodes):
+            node = canopen.RemoteNode(node_opts.node_id, str(node_opts.eds or DRIVE_EDS))
+            node.sdo.RESPONSE_TIMEOUT = opts.sdo_timeout_s
+            network.add_node(node)
+            self.remotes.append(node)
+            node.nmt.send_command(0x80)  # PRE-OPERATIONAL: PDO mapping and parameters may change
+            self._check_identity(k, node)
+            node.tpdo.read()
+            node.rpdo.read()
+            for kind, pdos in node_opts.remaps():
+                self._remap(k, node, kind, pdos)
+            inputs = self._place(k, node.tpdo.map.values(), INPUT_OBJECTS, tpdo_slices, "TPDO")
+            outputs = self._place(k, node.rpdo.map.values(), OUTPUT_OBJECTS, rpdo_slices, "RPDO")
+            offsets.append((inputs, outputs))
+            node.sdo[0x6060].raw = MODES[node_opts.mode]
+            node.sdo[0x1006].raw = self._cycle_ns() // 1000
+            node.sdo[0x1017].raw = opts.heartbeat_ms
+            node.nmt.add_heartbeat_callback(self._heartbeat_callback(k))
+            node.emcy.add_callback(self._emcy_callback(k))
+        in_size = sum(size for _, _, size in tpdo_slices)
+        out_size = sum(size for _, _, size in rpdo_slices)
+        self._inputs = np.zeros(in_size + SPARE, dtype=np.uint8)
+        self._outputs = np.zeros(out_size + SPARE, dtype=np.uint8)
+        self._out_view = memoryview(self._outputs.data).cast("B")
+        resolved = [[in_size if o is None else o for o in inputs] + [out_size if o is None else o for o in outputs]
+                    for inputs, outputs in offsets]
+        if opts.nodes:
+            self._link(resolved)
+        self._rpdos = [(can.Message(arbitration_id=cob, data=bytearray(size), is_extended_id=False), start, start + size)
+                       for cob, start, size in rpdo_slices]
+        self._tpdos_per_cycle = len(tpdo_slices)
+        self._frame_sizes = [size for _, _, size in rpdo_slices] + [0] + [size for _, _, size in tpdo_slices]
+        inputs_view = memoryview(self._inputs.data).cast("B")
+        for cob, start, size in tpdo_slices:
+            network.subscribe(cob, self._tpdo_callback(inputs_view[start:start + size], size))
+        if opts.sensors:
+            db = load_dbc(str(opts.dbc or SENSORS_DBC))
+            sensors = [DbcSensor(s, self.view.devices[s.device], self.view.device_kinds[s.device], db)
+                       for s in opts.sensors]
+            self.gateway = SensorGateway(sensors, db, self.name)
+            self.gateway.subscribe(network)
+        self._heard[:] = time.monotonic()
+        for node in self.remotes:
+            node.nmt.send_command(0x01)  # OPERATIONAL
+        if self.drives is not None:
+            self._wait_enabled()
+        self._started_ns = time.monotonic_ns()
+        self._active = True
+
+    def _check_identity(self, k: int, node: canopen.RemoteNode) -> None:
+        want = self.options.nodes[k]
+        try:
+            device_type = node.sdo[0x1000].raw
+            vendor, product = node.sdo[0x1018][1].raw, node.sdo[0x1018][2].raw
+        except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as exc:
+            raise CanopenError(f"node {want.node_id} ({want.label}) does not answer its SDOs: {exc}") from exc
+        if device_type & 0xFFFF != 402:
+            raise CanopenError(f"node {want.node_id} ({want.label}): device type 0x{device_type:08X} is not a "
+                               "CiA 402 drive (profile 402 in 0x1000)")
+        for what, got, expected in (("vendor id", vendor, want.vendor_id), ("product code", product, want.product_code)):
+            if expected is not None and got != expected:
+                raise CanopenError(f"node {want.node_id} ({want.label}): {what} 0x{got:08X}, the config says "
+                                   f"0x{expected:08X}")
+
+    def _remap(self, k: int, node: canopen.RemoteNode, kind: str, pdos: dict[int, list[tuple[int, int, int]]]) -> None:
+        """Write the configured mapping (the others disabled), then read it back: a node that
+        accepts the writes but keeps its own mapping is refused, not believed."""
+        want = self.options.nodes[k]
+        maps = node.rpdo if kind == "rpdo" else node.tpdo
+        for number, pdo in maps.map.items():
+            entries = pdos.get(number)
+            if entries is None:
+                if pdo.enabled:
+                    pdo.enabled = False
+                    pdo.save()
+                continue
+            pdo.clear()
+            try:
+                for index, subindex, bits in entries:
+                    pdo.add_variable(index, subindex, bits)
+            except KeyError as exc:
+                raise CanopenError(f"node {want.node_id} ({want.label}): {kind.upper()}{number}: {exc.args[0]} is not "
+                                   "in the node's EDS") from None
+            pdo.enabled = True
+            pdo.trans_type = 1
+            pdo.save()
+        missing = sorted(set(pdos) - set(maps.map))
+        if missing:
+            raise CanopenError(f"node {want.node_id} ({want.label}): no {kind.upper()} {missing} in its EDS")
+        maps.read()
+        for number, entries in pdos.items():
+            got = [(v.index, v.subindex, v.length) for v in maps.map[number].map]
+            if got != entries or not maps.map[number].enabled:
+                raise CanopenError(f"node {want.node_id} ({want.label}): {kind.upper()}{number} reads back as {got} "
+                                   f"after writing {entries}: the node kept its own mapping")
+
+    def _place(self, k: int, maps, objects, slices: list, kind: str) -> list[int | None]:
+        """Lay this node's enabled synchronous PDOs end to end in its direction's buffer; the
+        offset of each drive variable in them (None: not mapped)."""
+        want = self.options.nodes[k]
+        found: dict[tuple[int, int], tuple[int, int]] = {}
+        for pdo in maps:
+            if not pdo.enabled or not pdo.map:
+                continue
+            if pdo.trans_type is not None and pdo.trans_type > 240:
+                raise CanopenError(f"node {want.node_id} ({want.label}): {kind} 0x{pdo.cob_id:03X} has transmission "
+                                   f"type {pdo.trans_type}; this driver needs synchronous PDOs (1..240)")
+            start = sum(size for _, _, size in slices)
+            bit = 0
+            for var in pdo.map:
+                if bit % 8 == 0:
+                    found[(var.index, var.subindex)] = (start + bit // 8, var.length)
+                bit += var.length
+            size = (bit + 7) // 8
+            slices.append((pdo.cob_id, start, size))
+            if pdo.on_message in self.network.subscribers.get(pdo.cob_id, []):
+                self.network.unsubscribe(pdo.cob_id, pdo.on_message)  # canopen's own decoding: not needed
+        offsets: list[int | None] = []
+        for index, subindex, bits in objects:
+            place = found.get((index, subindex))
+            if place is not None and place[1] != bits:
+                raise CanopenError(f"node {want.node_id} ({want.label}): 0x{index:04X} is mapped with {place[1]} bits "
+                                   f"in a {kind}, a CiA 402 drive has {bits}")
+            if place is None and index in REQUIRED:
+                raise CanopenError(f"node {want.node_id} ({want.label}): 0x{index:04X} is in no {kind}: "
+                                   f"a CiA 402 drive must map it")
+            offsets.append(None if place is None else place[0])
+        return offsets
+
+    def _units(self) -> list[DriveUnits]:
+        defaults = self.options.drive_defaults
+        return [DriveUnits(n.counts_per_rev or defaults.counts_per_rev, n.gear_ratio or defaults.gear_ratio,
+                           n.rated_torque or defaults.rated_torque) for n in self.options.nodes]
+
+    def _link(self, offsets: list[list[int]]) -> None:
+        opts, view = self.options, self.view
+        specs = []
+        for node_opts, units in zip(opts.nodes, self._units(), strict=True):
+            specs.append(DriveSpec(node_opts.label, node_opts.joint, view.joint_names.index(node_opts.joint), units,
+                                   node_opts.position_offset))
+        stuck = max(1, round(opts.stuck_after_ms * 1e6 / self._cycle_ns()))
+        self.drives = DriveGroup.on_buffers(self._inputs, self._outputs, offsets, specs, stuck_after=stuck)
+        self.drives.bind_state(view.state)
+
+    # ------------------------------------------------------------ the notifier thread's callbacks
+
+    def _tpdo_callback(self, target: memoryview, size: int):
+        def on_tpdo(can_id: int, data: bytearray, timestamp: float) -> None:
+            if len(data) != size:
+                self.malformed += 1
+                self._warn.warning(f"dlc{can_id}", "canopen %s: TPDO 0x%03X of %d bytes, %d expected: dropped",
+                                   self.name, can_id, len(data), size)
+                return
+            target[:] = data
+            self.rx_tpdos += 1
+
+        return on_tpdo
+
+    def _heartbeat_callback(self, k: int):
+        heard = self._heard
+
+        def on_heartbeat(state: int) -> None:
+            heard[k] = time.monotonic()
+
+        return on_heartbeat
+
+    def _emcy_callback(self, k: int):
+        def on_emcy(error) -> None:
+            self._emcy.append((k, error.code, error.register))
+
+        return on_emcy
+
+    # ------------------------------------------------------------ cycles off the tick
+
+    def _cycle_holding(self) -> None:
+        """One cycle with every drive held where it stands (bring-up, close); lock held."""
+        drives = self.drives
+        drives.decode(0, 0, into_state=False)
+        drives.update_machines(self._on_drive_event)
+        drives.write_holding()
+        self._send_cycle()
+
+    def _wait_enabled(self) -> None:
+        period_s = self._cycle_ns() * 1e-9
+        deadline = time.monotonic() + self.options.enable_timeout_s
+        while time.monotonic() < deadline:
+            with self._lock:
+                self._cycle_holding()
+            if self.drives.all_enabled():
+                return
+            time.sleep(period_s)
+        states = ", ".join(f"{m.name} {m.state.label}" for m in self.drives.machines if not m.enabled)
+        raise CanopenError(f"drives not enabled within {self.options.enable_timeout_s:g} s: {states}")
+
+    def _send_cycle(self) -> None:
+        out = self._out_view
+        send = self.bus.send
+        errors = self.tx_errors
+        for msg, start, end in self._rpdos:
+            msg.data[:] = out[start:end]
+            try:
+                send(msg, 0)
+                self.tx_frames += 1
+            except can.CanError as exc:
+                self.tx_errors += 1
+                self._warn.warning("tx", "canopen %s: sending 0x%03X failed: %s", self.name, msg.arbitration_id, exc)
+        try:
+            send(self._sync, 0)
+            self.tx_frames += 1
+        except can.CanError as exc:
+            self.tx_errors += 1
+            self._warn.warning("tx", "canopen %s: sending SYNC failed: %s", self.name, exc)
+        self._failed_cycles = self._failed_cycles + 1 if self.tx_errors != errors else 0
+
+    # ------------------------------------------------------------ the tick
+
+    async def read(self) -> None:
+        view = self.view
+        clock = view.clock
+        now = time.monotonic()
+        if now >= self._next_heartbeat_check:  # every tenth of the timeout: a numpy call, not per tick
+            self._next_heartbeat_check = now + self._heartbeat_check_s
+            heard = self._heard
+            if heard.size and now - heard.min() > self.options.heartbeat_timeout_ms * 1e-3:
+                self._lost(now)
+        if self._emcy:
+            self._handle_emergencies()
+        if self.bus_off or self._failed_cycles >= self.options.tx_error_limit:
+            self._bus_failed()
+        if self.gateway is not None:
+            self.gateway.read(clock.tick, clock.now_ns, view.report_fault)
+        drives = self.drives
+        if drives is None:  # a bus of sensors only
+            view.fresh_tick = clock.tick
+            return
+        got = self.rx_tpdos - self._seen
+        self._seen += got
+        if got < self._tpdos_per_cycle:
+            self.late_cycles += 1
+            return
+        with self._lock:
+            drives.decode(clock.tick, clock.now_ns)
+            drives.update_machines(self._on_drive_event)
+        view.fresh_tick = clock.tick
+
+    async def write(self) -> None:
+        with self._lock:
+            if self._estopped:
+                return
+            if self.drives is not None:
+                self.drives.write(self.view.command)
+            self._send_cycle()
+        self.cycles += 1
+
+    def _bus_failed(self) -> None:
+        opts = self.options
+        if self.bus_off:
+            raise CanopenError(f"{opts.interface}:{opts.channel} is bus-off (an error frame said so): no frame "
+                               "reaches the drives")
+        raise CanopenError(f"{opts.interface}:{opts.channel}: {self._failed_cycles} cycles in a row could not send "
+                           f"their frames ({self.tx_errors} frames in all): bus-off, no ACK or the interface down")
+
+    def _lost(self, now: float) -> None:
+        silent = [self.options.nodes[k] for k in np.flatnonzero(now - self._heard > self.options.heartbeat_timeout_ms * 1e-3)]
+        self.lost_nodes = [n.label for n in silent]
+        for node in silent:
+            self.view.state.fault[self.view.joint_names.index(node.joint)] |= Fault.HARDWARE
+        raise CanopenError("heartbeat lost: " + ", ".join(
+            f"node {n.node_id} ({n.label}, joint {n.joint}) silent for more than {self.options.heartbeat_timeout_ms:g} ms"
+            for n in silent))
+
+    def _handle_emergencies(self) -> None:
+        pending, self._emcy = self._emcy, []
+        for k, code, register in pending:
+            node = self.options.nodes[k]
+            self._last_emcy[k] = code
+            if code == 0:
+                log.info("canopen %s: node %d (%s): error reset", self.name, node.node_id, node.label)
+                continue
+            self.emergencies += 1
+            self.view.report_fault("read", f"joint {node.joint}: EMCY from node {node.node_id} ({node.label}): "
+                                   f"error code 0x{code:04X}, register 0x{register:02X}")
+
+    def _on_drive_event(self, i: int, event: DriveEvent) -> None:
+        if not self._active:
+            log.info("canopen %s: %s", self.name, event)
+            return
+        detail = ""
+        if event.kind is EventKind.FAULT_ENTERED:
+            self.drive_faults += 1
+            machine = self.drives.machines[i]
+            if not machine.error_code and self._last_emcy[i]:  # 0x603F unmapped: the code the EMCY gave
+                machine.error_code = self._last_emcy[i]
+                detail = f" (EMCY error code 0x{machine.error_code:04X})"
+        respond_to_event(self.drives, i, event, self.view, self._drive_mask, f"canopen {self.name}", detail)
+
+    # ------------------------------------------------------------ application API
+
+    def reset_faults(self) -> list[str]:
+        """Grant one fault reset to every faulted drive and enable again those that left
+        Operation enabled unasked; each is enabled where it stands. Their names."""
+        if self.drives is None or self._estopped:
+            return []
+        with self._lock:
+            return self.drives.reset_and_enable()
+
+    def _remote(self, node: int | str) -> canopen.RemoteNode:
+        for k, n in enumerate(self.options.nodes):
+            if node in (n.node_id, n.label, n.joint):
+                return self.remotes[k]
+        raise CanopenError(f"no node {node!r} on this bus")
+
+    async def sdo_read(self, node: int | str, index: int, subindex: int = 0) -> bytes:
+        """Upload an object by SDO, in a worker thread (never on the tick)."""
+        remote = self._remote(node)
+        return await asyncio.to_thread(remote.sdo.upload, index, subindex)
+
+    async def sdo_write(self, node: int | str, index: int, subindex: int, data: bytes) -> None:
+        """Download an object by SDO, in a worker thread (never on the tick)."""
+        remote = self._remote(node)
+        await asyncio.to_thread(remote.sdo.download, index, subindex, bytes(data))
+
+    # ------------------------------------------------------------ safety and shutdown
+
+    def estop(self) -> None:
+        """Quick stop every drive: one cycle of controlwords 0x02 sent now, without blocking."""
+        if self.drives is None or self.bus is None or self._estopped:
+            return
+        self._estopped = True
+        self.drives.request(Target.QUICK_STOP)
+        if not self._lock.acquire(timeout=0.002):
+            return
+        try:
+            self.drives.controlwords[:] = 0x02
+            self.drives.write_holding()
+            self._send_cycle()
+        except Exception as exc:  # never raise from estop
+            log.error("canopen %s: sending the quick stop failed: %s", self.name, exc)
+        finally:
+            self._lock.release()
+
+    async def close(self) -> None:
+        if self.drives is not None:
+            self._enabled_at_close = sum(m.enabled for m in self.drives.machines)
+        await asyncio.to_thread(self._shutdown)
+
+    def _shutdown(self, budget_s: float = 0.5) -> None:
+        try:
+            if self.drives is not None and self.bus is not None:
+                self.drives.request(Target.QUICK_STOP if not self._estopped else Target.DISABLED)
+                self._estopped = False
+                deadline = time.monotonic() + budget_s
+                period_s = self._cycle_ns() * 1e-9
+                while time.monotonic() < deadline:
+                    with self._lock:
+                        self._cycle_holding()
+                    if not any(m.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+                               for m in self.drives.machines):
+                        break
+                    time.sleep(period_s)
+                for node in self.remotes:
+                    node.nmt.send_command(0x80)
+        except Exception as exc:
+            log.warning("canopen %s: stopping the drives failed: %s", self.name, exc)
+        finally:
+            self._estopped = True
+            if self.network is not None:
+                self.network.disconnect()
+            if self.sim is not None:
+                self.sim.close()
+
+    def health(self) -> dict[str, Any]:
+        opts = self.options
+        out: dict[str, Any] = {
+            "bus": f"{opts.interface}:{opts.channel}", "nodes": len(opts.nodes), "cycles": self.cycles,
+            "tx_frames": self.tx_frames, "tx_errors": self.tx_errors, "rx_tpdos": self.rx_tpdos,
+            "malformed": self.malformed, "late_cycles": self.late_cycles, "error_frames": self.error_frames, "emergencies": self.emergencies,
+            "drive_faults": self.drive_faults,
+        }
+        if self._frame_sizes:
+            rate = 1e9 / self._cycle_ns()
+            sensors = self.gateway.frame_sizes() if self.gateway is not None else []
+            out["bus_load_configured_pct"] = round(100 * (busload.load(self._frame_sizes, rate, opts.bitrate)
+                                                          + busload.load_at(sensors, opts.bitrate)), 1)
+            elapsed = (time.monotonic_ns() - self._started_ns) * 1e-9
+            if self.cycles and elapsed > 0:
+                achieved = busload.load(self._frame_sizes, self.cycles / elapsed, opts.bitrate)
+                if self.gateway is not None:
+                    achieved += self.gateway.bits / elapsed / opts.bitrate
+                out["bus_load_pct"] = round(100 * achieved, 1)
+        if self.drives is not None:
+            enabled = self._enabled_at_close
+            if enabled is None:
+                enabled = sum(m.enabled for m in self.drives.machines)
+            out["drives_enabled"] = f"{enabled}/{len(self.drives)}"
+        if self.lost_nodes:
+            out["lost"] = self.lost_nodes
+        if self.gateway is not None:
+            out["sensors"] = self.gateway.health()
+        return out

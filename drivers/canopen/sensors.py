@@ -1,0 +1,207 @@
+"""CAN sensors whose frames a DBC file describes (LOLA's sensor gateway), decoded with cantools.
+
+Each sensor fills one IMU or force/torque record from named signals ("Message.Signal"), in
+the order of the record's fields. canopen's notifier thread decodes each frame as it
+arrives into the sensor's buffer (a frame of the wrong length, or one cantools cannot
+decode, is counted and dropped; a status signal whose bit 0 is clear marks the values
+invalid and they are not taken); the tick copies a sensor's buffer into its record when a
+frame came since the last tick, and marks it STALE when none came for ``stale_periods`` of its
+period while the driver was reading, until frames come again.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from functools import lru_cache
+from pathlib import Path
+
+import cantools
+import numpy as np
+from pydantic import Field
+
+from aiohal.hal import FiniteFloat, Options
+from aiohal.logutil import RateLimitedLogger
+from aiohal.robot import DeviceRecord, Fault
+
+from .busload import frame_bits
+
+log = logging.getLogger(__name__)
+
+DATA = Path(__file__).resolve().parent / "data"
+SENSORS_DBC = DATA / "aiohal_sensors.dbc"
+FIELDS = {
+    "imu": {"quaternion": 4, "angular_velocity": 3, "linear_acceleration": 3},
+    "force_torque": {"force": 3, "torque": 3},
+}
+
+
+class SensorOptions(Options):
+    device: str = Field(description="The robot's imu or force_torque device this sensor fills.")
+    period_ms: FiniteFloat = Field(gt=0, description="The sensor's own period (ms).")
+    stale_periods: FiniteFloat = Field(3.0, ge=1, description="Stale after this many periods without a frame.")
+    signals: dict[str, list[str]] = Field(description="Per field of the record (e.g. quaternion), its signals "
+                                                      "'Message.Signal' in order.")
+    status: str | None = Field(None, description="'Message.Signal' whose bit 0 says the values are valid.")
+
+
+@lru_cache(maxsize=8)
+def load_dbc(path: str) -> cantools.database.can.Database:
+    return cantools.database.load_file(path, database_format="dbc")
+
+
+def _signal(db, name: str):
+    """(message, signal name) of ``'Message.Signal'``; KeyError with a reason otherwise."""
+    message_name, _, signal = name.partition(".")
+    try:
+        message = db.get_message_by_name(message_name)
+    except KeyError:
+        raise KeyError(f'no message "{message_name}" in the DBC') from None
+    if signal not in [s.name for s in message.signals]:
+        raise KeyError(f'message "{message_name}" has no signal "{signal}"')
+    return message, signal
+
+
+def sensor_issues(where: str, sensor: SensorOptions, kind: str | None, db) -> list[tuple[str, str]]:
+    if kind not in FIELDS:
+        return [(f"{where}.device", f'"{sensor.device}" is not an imu or force_torque device of this driver')]
+    issues = []
+    fields = FIELDS[kind]
+    for field, names in sensor.signals.items():
+        if field not in fields:
+            issues.append((f"{where}.signals.{field}", f"not a field of an {kind} record ({', '.join(fields)})"))
+            continue
+        if len(names) != fields[field]:
+            issues.append((f"{where}.signals.{field}", f"{fields[field]} signals expected, got {len(names)}"))
+        for k, name in enumerate(names):
+            try:
+                _signal(db, name)
+            except KeyError as exc:
+                issues.append((f"{where}.signals.{field}[{k}]", exc.args[0]))
+    for field in fields:
+        if field not in sensor.signals:
+            issues.append((f"{where}.signals", f'no signals for "{field}"'))
+    if sensor.status is not None:
+        try:
+            _signal(db, sensor.status)
+        except KeyError as exc:
+            issues.append((f"{where}.status", exc.args[0]))
+    return issues
+
+
+class DbcSensor:
+    """One sensor: its signals → columns of its record's row, a buffer the notifier fills."""
+
+    def __init__(self, options: SensorOptions, record: DeviceRecord, kind: str, db) -> None:
+        self.options = options
+        self.record = record
+        self.row = record.group.values[record.index]  # every field of the record, in column order
+        self.buffer = self.row.copy()
+        self.columns: dict[int, list[tuple[str, int]]] = {}  # frame id -> [(signal, column)]
+        columns = record.group.columns
+        for field, names in options.signals.items():
+            start = columns[field].start
+            for k, name in enumerate(names):
+                message, signal = _signal(db, name)
+                self.columns.setdefault(message.frame_id, []).append((signal, start + k))
+        self.status = _signal(db, options.status) if options.status else None
+        self.stale_s = options.period_ms * options.stale_periods * 1e-3
+        self.frames = 0
+        self.invalid = 0
+        self.seen = 0
+        self.last_s = time.monotonic()
+        self.stale = False
+        self.stale_events = 0
+
+    def take(self, frame_id: int, values: dict) -> None:
+        """A decoded frame (the notifier's thread)."""
+        if self.status is not None and self.status[0].frame_id == frame_id and not int(values[self.status[1]]) & 1:
+            self.invalid += 1
+            return
+        buffer = self.buffer
+        for signal, column in self.columns[frame_id]:
+            buffer[column] = values[signal]
+        self.frames += 1
+        self.last_s = time.monotonic()
+
+
+class SensorGateway:
+    """Every DBC sensor of one bus."""
+
+    def __init__(self, sensors: list[DbcSensor], db, name: str) -> None:
+        self.sensors = sensors
+        self.name = name
+        self.malformed = 0
+        self.bits = 0  # bits of the frames received whole, worst-case stuffing (the load achieved)
+        self._warn = RateLimitedLogger(log)
+        self._last_read_s = 0.0
+        self._watch_gap_s = min((s.stale_s for s in sensors), default=1.0) / 2
+        self.messages = {}
+        for sensor in sensors:
+            for frame_id in sensor.columns:
+                self.messages[frame_id] = db.get_message_by_frame_id(frame_id)
+            if sensor.status is not None:
+                self.messages[sensor.status[0].frame_id] = sensor.status[0]
+        self._bits = {frame_id: frame_bits(m.length) for frame_id, m in self.messages.items()}
+        self.takers = {frame_id: [s for s in sensors if frame_id in s.columns
+                                  or (s.status is not None and s.status[0].frame_id == frame_id)]
+                       for frame_id in self.messages}
+
+    def subscribe(self, network) -> None:
+        for frame_id in self.messages:
+            network.subscribe(frame_id, self.on_frame)
+
+    def frame_sizes(self) -> list[tuple[int, float]]:
+        """(data bytes, frames per second) of every frame the sensors send."""
+        out = []
+        for frame_id, message in self.messages.items():
+            hz = max(1000.0 / s.options.period_ms for s in self.takers[frame_id])
+            out.append((message.length, hz))
+        return out
+
+    def on_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        message = self.messages[can_id]
+        if len(data) != message.length:
+            self.malformed += 1
+            self._warn.warning(f"dlc{can_id}", "canopen %s: %s of %d bytes, %d expected: dropped", self.name,
+                               message.name, len(data), message.length)
+            return
+        try:
+            values = message.decode(bytes(data), decode_choices=False)
+        except Exception as exc:  # cantools raises its own DecodeError and others on bad data
+            self.malformed += 1
+            self._warn.warning(f"bad{can_id}", "canopen %s: %s not decoded (%s): dropped", self.name, message.name, exc)
+            return
+        self.bits += self._bits[can_id]
+        for sensor in self.takers[can_id]:
+            sensor.take(can_id, values)
+
+    def read(self, tick: int, now_ns: int, report_fault) -> None:
+        """Each sensor's new values into its record, or its staleness judged (the tick)."""
+        now_s = time.monotonic()
+        if now_s - self._last_read_s > self._watch_gap_s:
+            # the master was not listening (before the first tick, a stall of this host): silence
+            # counts only from now, not from the last frame seen before the gap
+            for sensor in self.sensors:
+                sensor.last_s = max(sensor.last_s, now_s)
+        self._last_read_s = now_s
+        for sensor in self.sensors:
+            record = sensor.record
+            if sensor.frames != sensor.seen:
+                sensor.seen = sensor.frames
+                np.copyto(sensor.row, sensor.buffer)
+                record.mark_fresh(tick, now_ns)
+                if sensor.stale:
+                    sensor.stale = False
+                    record.set_fault(0)
+                    log.warning("canopen %s: sensor %s is back", self.name, record.name)
+            elif not sensor.stale and now_s - sensor.last_s > sensor.stale_s:
+                sensor.stale = True
+                sensor.stale_events += 1
+                record.set_fault(Fault.STALE)
+                report_fault("read", f"sensor {record.name}: no frame for {sensor.stale_s * 1e3:g} ms "
+                                     f"({sensor.options.stale_periods:g} periods): stale")
+
+    def health(self) -> dict:
+        return {s.record.name: {"frames": s.frames, "invalid": s.invalid, "stale_events": s.stale_events,
+                                "stale": s.stale} for s in self.sensors} | {"malformed": self.malformed}

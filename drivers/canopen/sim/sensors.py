@@ -1,0 +1,58 @@
+"""A simulated CAN sensor gateway: an IMU and a force/torque sensor, their frames encoded with
+cantools from aiohal's DBC (``drivers/canopen/data/aiohal_sensors.dbc``), each sensor at its
+own period (checked on every SYNC). At rest: the IMU reads gravity, the F/T sensor a
+configured wrench. Fault injection: :attr:`stopped` (no frame: the master sees it go stale)
+and :attr:`wrong_dlc` (frames one byte short)."""
+
+from __future__ import annotations
+
+import time
+
+import canopen
+import cantools
+
+from ..sensors import SENSORS_DBC
+
+SYNC_COB_ID = 0x80
+
+
+class SimSensorGateway:
+    def __init__(self, network: canopen.Network, *, imu_period_s: float = 0.002, ft_period_s: float = 0.002,
+                 wrench: tuple[float, ...] = (1.0, -2.0, 15.0, 0.1, -0.05, 0.02)) -> None:
+        self.network = network
+        db = cantools.database.load_file(str(SENSORS_DBC))
+        self.counter = 0
+        self.stopped = False
+        self.wrong_dlc = False
+        fx, fy, fz, tx, ty, tz = wrench
+        self.groups = [  # (period, next due, [(frame id, payload values)])
+            [imu_period_s, 0.0, [(db.get_message_by_name("IMU_Orientation"), {"W": 1.0, "X": 0.0, "Y": 0.0, "Z": 0.0}),
+                                 (db.get_message_by_name("IMU_Gyro"), {"X": 0.0, "Y": 0.0, "Z": 0.0, "Status": 1}),
+                                 (db.get_message_by_name("IMU_Accel"), {"X": 0.0, "Y": 0.0, "Z": 9.81})]],
+            [ft_period_s, 0.0, [(db.get_message_by_name("FT_Force"), {"X": fx, "Y": fy, "Z": fz, "Status": 1}),
+                                (db.get_message_by_name("FT_Torque"), {"X": tx, "Y": ty, "Z": tz})]],
+        ]
+        self.frames = 0
+        network.subscribe(SYNC_COB_ID, self._on_sync)
+
+    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if self.stopped:
+            return
+        now = time.monotonic()
+        for group in self.groups:
+            period, due, messages = group
+            if now < due:
+                continue
+            group[1] = due + period if now - due < period else now + period  # its own period, whatever the SYNC rate
+            self.counter = (self.counter + 1) & 0xFF
+            for message, values in messages:
+                if "Counter" in [s.name for s in message.signals]:
+                    values = {**values, "Counter": self.counter}
+                payload = message.encode(values, strict=False, padding=True)
+                if self.wrong_dlc:
+                    payload = payload[:-1]
+                self.network.send_message(message.frame_id, payload)
+                self.frames += 1
+
+    def close(self) -> None:
+        self.stopped = True

@@ -1,0 +1,240 @@
+"""The canopen driver against simulated CiA 402 nodes on python-can's virtual interface (in
+process, no root): bring-up, enable, following, drive fault with EMCY and reset, heartbeat
+loss, malformed frames, identity check; and a node of another EDS and PDO layout."""
+
+from __future__ import annotations
+
+import itertools
+import os
+
+import numpy as np
+import pytest
+
+from aiohal.config import parse_config
+from aiohal.drivers.canopen import busload  # the `can` extra, installed by `make test`
+from aiohal.loop import ControlLoop
+from aiohal.robot import Fault
+
+_channels = itertools.count()
+JOINTS = ("j0", "j1", "j2")
+
+
+def channel() -> str:
+    """A virtual channel of this test alone: no other test sees its frames."""
+    return f"aiohal-test-{os.getpid()}-{next(_channels)}"
+
+
+def raw_config(ch: str, controller: dict | None = None, nodes: list[dict] | None = None, **options) -> dict:
+    return {
+        "robot": {"name": "can_arm"},
+        "loop": {"rate_hz": 250, "max_feedback_age": 50},
+        "joints": {j: {"position": [-2.0, 2.0], "velocity": 2.0, "acceleration": 20.0, "effort": 50.0}
+                   for j in JOINTS},
+        "driver": [{"type": "canopen", "name": "bus", "joints": list(JOINTS), "options": {
+            "interface": "virtual", "channel": ch, "simulate": True,
+            "nodes": nodes or [{"node_id": i + 1, "joint": j} for i, j in enumerate(JOINTS)], **options}}],
+        "controller": controller or {"type": "hold"},
+    }
+
+
+SINE = {"type": "sine", "params": {"amplitude": 0.3, "frequency": 0.5}}
+
+
+def driver_of(loop):
+    return loop.slots[0].driver
+
+
+def stop_when(condition, after_ticks: int = 0):
+    """A publisher that ends the run ``after_ticks`` after ``condition(loop)`` first held (once)."""
+    seen: dict[str, int] = {}
+
+    def publish(loop):
+        tick = loop.robot.clock.tick
+        if "done" in seen:
+            return
+        if "tick" not in seen and condition(loop):
+            seen["tick"] = tick
+        if "tick" in seen and tick >= seen["tick"] + after_ticks:
+            seen["done"] = tick
+            loop.request_stop("condition met")
+
+    return publish
+
+
+def test_frame_bits_with_worst_case_stuffing():
+    assert busload.frame_bits(8, worst_case=False) == 111
+    assert busload.frame_bits(8) == 135
+    assert busload.frame_bits(0, worst_case=False) == 47 and busload.frame_bits(0) == 55
+    assert busload.load([8] * 10, 1000, 1_000_000) == pytest.approx(1.35)
+    with pytest.raises(ValueError):
+        busload.frame_bits(9)
+
+
+@pytest.mark.asyncio
+async def test_bring_up_enables_every_drive_and_the_joints_follow_a_sine():
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver = driver_of(loop)
+        assert driver.drives.all_enabled()
+        reach, error = [0.0], [0.0]
+
+        def watch(lp):
+            state, command = lp.robot.state, lp.robot.command
+            reach[0] = max(reach[0], float(np.max(np.abs(state.position))))
+            error[0] = max(error[0], float(np.max(np.abs(state.position - command.position))))
+
+        loop.add_publisher(watch)
+        report = await loop.run(ticks=500)
+        # the drives follow: one cycle behind (4 ms) at up to 0.3·π rad/s, and a stiff servo
+        assert reach[0] > 0.2 and error[0] < 0.05
+    health = report["drivers"]["bus"]
+    assert report["faults"] == []
+    assert health["drives_enabled"] == "3/3" and health["malformed"] == 0 and health["tx_errors"] == 0
+    assert health["rx_tpdos"] >= 3 * (report["ticks"] - health["late_cycles"])
+    # 3 RPDOs of 7 bytes (125 bits), SYNC (55), 3 TPDOs of 8 bytes (135) at 250 Hz on 1 Mbit/s
+    assert health["bus_load_configured_pct"] == pytest.approx(100 * (3 * 125 + 55 + 3 * 135) * 250 / 1e6, abs=0.1)
+    assert 0 < health["bus_load_pct"] <= health["bus_load_configured_pct"] + 1
+
+
+@pytest.mark.asyncio
+async def test_a_drive_fault_sends_an_emcy_holds_the_robot_and_a_reset_enables_it_where_it_stands():
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver = driver_of(loop)
+        driver.sim.drives[2].inject_fault(0x2310)
+        loop.add_publisher(stop_when(lambda lp: driver.drives.machines[1].faulted and driver.emergencies, 20))
+        await loop.run(ticks=1000)
+        machine = driver.drives.machines[1]
+        assert machine.faulted and machine.error_code == 0x2310
+        assert int(loop.robot.state.fault[1]) & Fault.HARDWARE and loop.level.name == "HOLD"
+        assert driver.reset_faults() == ["node2"]
+        loop.add_publisher(stop_when(lambda lp: driver.drives.machines[1].enabled, 20))
+        report = await loop.run(ticks=1000)
+        state, command = loop.robot.state, loop.robot.command
+        assert driver.drives.machines[1].enabled and int(state.fault[1]) & Fault.HARDWARE == 0
+        assert abs(command.position[1] - state.position[1]) < 0.01  # bumpless
+    errors = [f.error for f in loop.faults if f.source == "driver:bus"]
+    assert any("EMCY from node 2" in e and "0x2310" in e for e in errors)
+    assert any("joint j1" in e and "EMCY error code 0x2310" in e for e in errors)
+    assert report["drivers"]["bus"]["drive_faults"] == 1 and report["drivers"]["bus"]["emergencies"] >= 1
+
+
+@pytest.mark.asyncio
+async def test_a_node_whose_heartbeat_stops_puts_the_robot_in_its_safe_state():
+    raw = raw_config(channel(), SINE, heartbeat_ms=10, heartbeat_timeout_ms=100)
+    async with ControlLoop(parse_config(raw)) as loop:
+        driver = driver_of(loop)
+        driver.sim.drives[3].go_silent()
+        report = await loop.run(ticks=1500)
+    assert report["ticks"] + report["missed_ticks"] < 1500  # ended early: no driver left
+    fault, *_ = [f for f in report["faults"] if f["source"] == "driver:bus"]
+    assert "heartbeat lost" in fault["error"] and "node 3" in fault["error"] and "joint j2" in fault["error"]
+    assert report["safety_level"] == "estop"
+    assert np.all(loop.robot.state.fault & Fault.DRIVER)
+
+
+@pytest.mark.asyncio
+async def test_tpdos_of_the_wrong_length_are_counted_and_dropped():
+    async with ControlLoop(parse_config(raw_config(channel()))) as loop:
+        driver = driver_of(loop)
+        await loop.run(ticks=20)
+        good = driver.rx_tpdos
+        driver.sim.drives[1].wrong_dlc = True
+        loop.add_publisher(stop_when(lambda lp: driver.malformed >= 20))
+        await loop.run(ticks=1000)
+        assert driver.malformed >= 20
+        driver.sim.drives[1].wrong_dlc = False
+        assert driver.rx_tpdos > good  # the other nodes' frames still arrive
+        report = await loop.run(ticks=50)
+    assert report["drivers"]["bus"]["malformed"] >= 20
+    assert report["drivers"]["bus"]["drives_enabled"] == "3/3"
+
+
+@pytest.mark.asyncio
+async def test_an_identity_that_is_not_the_configured_one_is_refused_at_bring_up():
+    nodes = [{"node_id": i + 1, "joint": j, "vendor_id": 0x1234 if i == 1 else None} for i, j in enumerate(JOINTS)]
+    loop = ControlLoop(parse_config(raw_config(channel(), nodes=nodes)))
+    with pytest.raises(Exception, match=r"node 2 \(node2\): vendor id 0x000A1A1A, the config says 0x00001234"):
+        async with loop:
+            pass
+
+
+def test_check_names_the_node_of_an_unknown_joint_and_a_joint_without_node():
+    from aiohal.errors import ConfigError
+
+    nodes = [{"node_id": 1, "joint": "j0"}, {"node_id": 1, "joint": "j9"}]
+    with pytest.raises(ConfigError) as err:
+        parse_config(raw_config(channel(), nodes=nodes))
+    text = str(err.value)
+    assert "options.nodes[1].node_id" in text and "options.nodes[1].joint" in text
+    assert 'joint "j1" has no node' in text
+
+
+@pytest.mark.asyncio
+async def test_a_pdo_mapping_from_the_config_is_written_read_back_and_used():
+    remap = {"rx_pdos": {"0x1600": ["0x6040:0:16", "0x607A:0:32"]},
+             "tx_pdos": {"0x1A00": ["0x6041:0:16", "0x6064:0:32"], "0x1A01": ["0x606C:0:32", "0x603F:0:16"]}}
+    nodes = [{"node_id": i + 1, "joint": j, **remap} for i, j in enumerate(JOINTS)]
+    async with ControlLoop(parse_config(raw_config(channel(), SINE, nodes=nodes))) as loop:
+        driver = driver_of(loop)
+        for node in driver.remotes:
+            assert [[(v.index, v.length) for v in m.map] for m in node.tpdo.map.values() if m.enabled] == [
+                [(0x6041, 16), (0x6064, 32)], [(0x606C, 32), (0x603F, 16)]]
+        speeds = []
+        loop.add_publisher(lambda lp: speeds.append(float(abs(lp.robot.state.velocity).max())))
+        report = await loop.run(ticks=300)
+    health = report["drivers"]["bus"]
+    assert report["faults"] == [] and health["drives_enabled"] == "3/3"
+    assert max(speeds) > 0.1  # the velocity now comes from the remapped second TPDO
+    # 3 RPDOs of 6 bytes (115 bits), SYNC (55), 6 TPDOs of 6 bytes (115) at 250 Hz
+    assert health["bus_load_configured_pct"] == pytest.approx(100 * (9 * 115 + 55) * 250 / 1e6, abs=0.1)
+
+
+def test_a_pdo_entry_that_cannot_be_parsed_is_named():
+    from aiohal.errors import ConfigError
+
+    nodes = [{"node_id": i + 1, "joint": j} for i, j in enumerate(JOINTS)]
+    nodes[0]["rx_pdos"] = {"0x1600": ["0x6040:0"], "0x1A00": []}
+    with pytest.raises(ConfigError) as err:
+        parse_config(raw_config(channel(), nodes=nodes))
+    text = str(err.value)
+    assert "options.nodes[0].rx_pdos.0x1600[0]" in text and "options.nodes[0].rx_pdos.0x1A00: not a PDO mapping" in text
+
+
+@pytest.mark.asyncio
+async def test_bus_off_puts_the_robot_in_its_safe_state():
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver_of(loop).sim.bus_off()
+        report = await loop.run(ticks=1000)
+    assert report["ticks"] + report["missed_ticks"] < 1000
+    fault, *_ = [f for f in report["faults"] if f["source"] == "driver:bus"]
+    assert "bus-off" in fault["error"] and report["safety_level"] == "estop"
+
+
+@pytest.mark.asyncio
+async def test_frames_that_cannot_be_sent_fail_the_driver_after_the_limit():
+    import can
+
+    async with ControlLoop(parse_config(raw_config(channel(), SINE, tx_error_limit=5))) as loop:
+        driver = driver_of(loop)
+        await loop.run(ticks=10)
+
+        def refuse(msg, timeout=None):
+            raise can.CanOperationError("Transmit buffer full")
+
+        driver.bus.send = refuse
+        report = await loop.run(ticks=500)
+    fault, *_ = [f for f in report["faults"] if f["source"] == "driver:bus"]
+    assert "5 cycles in a row could not send their frames" in fault["error"]
+    assert report["safety_level"] == "estop" and report["drivers"]["bus"]["tx_errors"] >= 5 * 4
+
+
+@pytest.mark.asyncio
+async def test_dropped_tpdos_leave_the_joints_unrefreshed_and_the_run_goes_on():
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver = driver_of(loop)
+        await loop.run(ticks=20)
+        late = driver.late_cycles
+        driver.sim.drives[1].drop_tpdos = 10  # ten cycles without node 1's TPDO: under max_feedback_age (50)
+        loop.add_publisher(stop_when(lambda lp: driver.sim.drives[1].drop_tpdos == 0, 20))
+        report = await loop.run(ticks=1000)
+    assert driver.late_cycles - late >= 10
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "3/3"

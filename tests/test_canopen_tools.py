@@ -1,0 +1,91 @@
+"""The CANopen scan (identity, NMT state, PDO mapping as the driver would use it, a config
+that checks) and the simulated nodes' command line, on python-can's virtual interface."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import threading
+import tomllib
+
+import can
+import canopen
+import pytest
+
+from aiohal.config import parse_config
+from aiohal.drivers.canopen import scan
+from aiohal.drivers.canopen.sim import SimBus
+from aiohal.drivers.canopen.sim.__main__ import main as sim_main
+from aiohal.drivers.canopen.sim.__main__ import node_ids
+from aiohal.loop import ControlLoop
+
+_channels = itertools.count()
+
+
+def channel() -> str:
+    return f"aiohal-tools-{os.getpid()}-{next(_channels)}"
+
+
+def connected(ch: str) -> canopen.Network:
+    network = canopen.Network(can.Bus(interface="virtual", channel=ch, receive_own_messages=False))
+    network.NOTIFIER_CYCLE = 0.05
+    return network.connect()
+
+
+def test_scan_lists_the_nodes_and_prints_a_config_that_checks():
+    ch = channel()
+    sim = SimBus("virtual", ch, [3, 5])
+    sim.drives[3].node.nmt.start_heartbeat(20)
+    network = connected(ch)
+    try:
+        nodes = scan.scan(network, listen_s=0.3)
+    finally:
+        network.disconnect()
+        sim.close()
+    assert [n.node_id for n in nodes] == [3, 5]
+    three = nodes[0]
+    assert three.is_drive and three.vendor_id == 0x000A1A1A and three.product_code == 0x402 and three.serial == 3
+    assert three.nmt_state == "PRE-OPERATIONAL" and nodes[1].nmt_state is None
+    assert [p.cob_id for p in three.tpdos] == [0x183, 0x283] and three.tpdos[0].enabled and not three.tpdos[1].enabled
+    assert three.tpdos[0].entries == [(0x6041, 0, 16), (0x6064, 0, 32), (0x6077, 0, 16)]
+    used, missing = three.drive_mapping()
+    assert used == ["Statusword", "Position actual value", "Torque actual value", "Controlword", "Target position",
+                    "Modes of operation"] and missing == []
+    text = scan.describe(nodes)
+    assert "node 3: CiA 402 drive, vendor 0x000A1A1A" in text and "NMT unknown (no heartbeat heard)" in text
+    toml = tomllib.loads(scan.to_toml(nodes, "socketcan", "can0", 1_000_000))
+    raw = {"joints": {j: {"velocity": 1.0} for j in toml["driver"][0]["joints"]}, **toml}
+    config = parse_config(raw)  # the printed config is valid as it stands
+    assert [n.node_id for n in config.drivers[0].options.nodes] == [3, 5]
+
+
+@pytest.mark.asyncio
+async def test_the_simulator_command_line_serves_a_driver_until_stopped():
+    ch = channel()
+    stop, ready = threading.Event(), threading.Event()
+    runner = threading.Thread(target=sim_main, args=(["--interface", "virtual", "--channel", ch, "--drives", "1-2"],
+                                                     stop, ready))
+    runner.start()
+    try:
+        assert ready.wait(10)
+        raw = {
+            "loop": {"rate_hz": 250, "max_feedback_age": 50},
+            "joints": {"j0": {"velocity": 1.0}, "j1": {"velocity": 1.0}},
+            "driver": [{"type": "canopen", "name": "bus", "joints": ["j0", "j1"], "options": {
+                "interface": "virtual", "channel": ch,
+                "nodes": [{"node_id": 1, "joint": "j0"}, {"node_id": 2, "joint": "j1"}]}}],
+        }
+        async with ControlLoop(parse_config(raw)) as loop:
+            report = await loop.run(ticks=100)
+        assert report["drivers"]["bus"]["drives_enabled"] == "2/2" and report["faults"] == []
+    finally:
+        stop.set()
+        runner.join(5)
+    assert not runner.is_alive()
+
+
+def test_node_ids_are_parsed_and_checked():
+    assert node_ids("1-3,7") == [1, 2, 3, 7]
+    for bad in ("0", "1-200", "a", "1,1"):
+        with pytest.raises(Exception, match="node ids"):
+            node_ids(bad)
