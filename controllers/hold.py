@@ -10,10 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from aiohal.hal import Controller, Options
-from aiohal.robot import JOINT_COMMAND_FIELDS, Mode
-
-if JOINT_COMMAND_FIELDS[:2] != ("position", "velocity"):
-    raise ImportError("controllers/hold.py writes position and velocity as the command block's first two rows")
+from aiohal.robot import Mode
 
 
 class HoldParams(Options):
@@ -39,13 +36,7 @@ class HoldController(Controller):
         cmd.effort[:] = 0.0
         cmd.feedforward[:] = 0.0
         self._braking = self.t_settled > 0.0
-        x_final = self.x0 + 0.5 * self.v0 * self.t_stop
-        # at rest, one copy per tick writes both rows (position, velocity), adjacent in the
-        # command block, as a byte copy between memoryviews: on the real clock's cold caches
-        # np.copyto costs about twice as much (docs/performance-log.md, "Issue 4, eleventh session").
-        # The robot allocates its command block C-contiguous; cast() refuses any other layout.
-        self._rest = memoryview(np.array([x_final, np.zeros_like(x_final)])).cast("B")
-        self._position_velocity = memoryview(cmd.block[:2]).cast("B")
+        self._rest = self.x0 + 0.5 * self.v0 * self.t_stop  # where each joint comes to rest
         self._write(0.0)
 
     def _write(self, elapsed: float) -> None:
@@ -65,7 +56,9 @@ class HoldController(Controller):
             self._write(elapsed)
             self._braking = elapsed < self.t_settled
         else:
-            self._position_velocity[:] = self._rest
+            cmd = self.robot.command
+            np.copyto(cmd.position, self._rest)
+            cmd.velocity.fill(0.0)
 
     def metrics(self) -> dict:
         return {"braking_s": round(self.t_settled, 4)}

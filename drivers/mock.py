@@ -18,8 +18,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
+from aiohal.robot import Mode
 
 
 class MockFaults(Options):
@@ -66,8 +66,9 @@ class MockDriver(Driver):
         faults = opts.faults
         # without delay or lost feedback the simulated joints *are* the state rows: no copy
         self._direct = opts.feedback_delay_ticks == 0 and faults.feedback_lost_at_tick is None
-        self.sim = view.state.block[:3] if self._direct else np.zeros((3, n))
-        self.position, self.velocity, self.effort = self.sim  # views: position, velocity, effort
+        state = view.state
+        self.sim = (state.position, state.velocity, state.effort) if self._direct else np.zeros((3, n))
+        self.position, self.velocity, self.effort = self.sim
         self.position[:] = start
         self.velocity[:] = 0.0
         self.effort[:] = 0.0
@@ -96,28 +97,21 @@ class MockDriver(Driver):
         for ft in view.devices_of("force_torque"):
             ft.force[:] = opts.force
             ft.torque[:] = opts.torque
-        self._bind_kernel()
-
-    def _bind_kernel(self) -> None:
-        """The compiled step, called directly (numba's dispatch would cost more than the work):
-        its arrays are taken and checked here, once; the robot's blocks are never reallocated."""
-        from . import mock_kernels
-
-        state, command = self.view.state, self.view.command
-        self._step_args = (command.block, command.mode, self.sim)
-        self._stamp_args = (state.updated_tick, state.stamp_ns)
-        kernel_call.check(mock_kernels.step_joints,
-                          (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0))
-        self._step_joints = kernel_call.direct(mock_kernels.step_joints)
+        # scratch rows of the step, allocated once
+        self._target = np.zeros(n)
+        self._moved = np.zeros(n)
+        self._by_velocity = np.zeros(n, dtype=bool)
+        self._by_effort = np.zeros(n, dtype=bool)
         # the devices, a run of adjacent rows at a time: the stamps of each run, and the hands'
-        # rows (grasp, speed, force, position, effort) for the compiled hand step
-        runs = self.view.device_runs()
+        # rows (grasp, speed, force, position, effort) with scratch rows for their step
+        runs = view.device_runs()
         self._device_stamps = [(group.updated_tick[rows], group.stamp_ns[rows]) for group, rows in runs]
-        self._hand_runs = [tuple(getattr(group, field)[rows] for field in ("grasp", "speed", "force", "position", "effort"))
-                           for group, rows in runs if group.kind == "hand"]
-        for hands in self._hand_runs:
-            kernel_call.check(mock_kernels.step_hands, (*hands, 1.0, 1e-3))
-        self._step_hands = kernel_call.direct(mock_kernels.step_hands)
+        self._hand_runs = []
+        for group, rows in runs:
+            if group.kind == "hand":
+                hands = rows.stop - rows.start
+                self._hand_runs.append((group.grasp[rows], group.speed[rows], group.force[rows], group.position[rows],
+                                        group.effort[rows], np.zeros(hands), np.zeros(hands), np.zeros(hands, dtype=bool)))
 
     def _set_dt(self, dt: float) -> None:
         """The step's factors for a time step of ``dt`` (a new one after a missed tick)."""
@@ -126,33 +120,45 @@ class MockDriver(Driver):
         self._alpha = 1.0 - math.exp(-dt / self.options.time_constant) if self._first_order else 1.0
 
     async def read(self) -> None:
-        # spelled out: a helper frame per call costs more than its lines on the tick's cold
-        # caches (see controllers/circle.py)
         view = self.view
         clock = view.clock
         tick = clock.tick
         if self._faulty:
             self._inject_read_faults(tick)
-        stamped = False
         if tick > self._last_tick and not self.stopped:
-            # advance the simulated joints toward the command; when they are the state's rows
-            # (no delay, no loss), the compiled step stamps them too
             dt = (tick - self._last_tick) * clock.period_ns * 1e-9
             if dt != self._dt:
                 self._set_dt(dt)
-            stamped = self._direct
-            self._step_joints(*self._step_args, dt, self._first_order, self._alpha, self._inv_dt, stamped,
-                              *self._stamp_args, tick, clock.now_ns)
+            self._step(dt)
         self._last_tick = tick
         self.reads += 1
         if not self._direct and not self._publish_state(tick):
             return
-        if stamped:
-            view.fresh_tick = tick
-        else:
-            view.mark_fresh()
+        view.mark_fresh()
         if self._device_stamps:
             self._read_devices(tick, clock.now_ns)
+
+    def _step(self, dt: float) -> None:
+        """Move each simulated joint toward its target over ``dt``: the position command, or
+        the position plus velocity × dt in velocity mode, or where it is in effort mode; all
+        the way (mirror) or by ``alpha`` of the way (first order). The step over dt is the
+        velocity, the commanded effort plus feed-forward the effort."""
+        position, velocity, effort = self.sim
+        command = self.view.command
+        target, moved = self._target, self._moved
+        np.equal(command.mode, Mode.VELOCITY, out=self._by_velocity)
+        np.equal(command.mode, Mode.EFFORT, out=self._by_effort)
+        np.copyto(target, command.position)
+        np.multiply(command.velocity, dt, out=moved)
+        moved += position
+        np.copyto(target, moved, where=self._by_velocity)
+        np.copyto(target, position, where=self._by_effort)
+        np.subtract(target, position, out=moved)
+        if self._first_order:
+            moved *= self._alpha
+        position += moved
+        np.multiply(moved, self._inv_dt, out=velocity)
+        np.add(command.effort, command.feedforward, out=effort)
 
     def _inject_read_faults(self, tick: int) -> None:
         opts = self.options
@@ -174,23 +180,32 @@ class MockDriver(Driver):
         ):
             self.feedback_lost += 1
             return False
-        measured = self.view.state.block[:3]
+        shown = self.sim
         if opts.feedback_delay_ticks:
             history = self._history
             np.copyto(history[self._slot], self.sim)
             self._slot = (self._slot + 1) % len(history)
-            np.copyto(measured, history[self._slot])
-        else:
-            np.copyto(measured, self.sim)
+            shown = history[self._slot]
+        state = self.view.state
+        for measured, value in zip((state.position, state.velocity, state.effort), shown):
+            np.copyto(measured, value)
         return True
 
     def _read_devices(self, tick: int, now: int) -> None:
         """IMUs and F/T sensors keep the values set at open (gravity, the configured wrench);
-        the hands move toward their grasp; every device is stamped with this read."""
-        if self._hand_runs:
-            hand_speed, period_s = self.options.hand_speed, self.view.clock.period_ns * 1e-9
-            for grasp, speed, force, position, effort in self._hand_runs:
-                self._step_hands(grasp, speed, force, position, effort, hand_speed, period_s)
+        each hand moves toward its grasp by at most ``hand_speed × speed`` per second and
+        pushes with its force while not fully open; every device is stamped with this read."""
+        period_s = self.view.clock.period_ns * 1e-9
+        for grasp, speed, force, position, effort, step, moved, closed in self._hand_runs:
+            np.greater(position, 0.0, out=closed)
+            effort.fill(0.0)
+            np.copyto(effort, force, where=closed)
+            np.multiply(speed, self.options.hand_speed * period_s, out=step)
+            np.subtract(grasp, position, out=moved)
+            np.minimum(moved, step, out=moved)
+            np.negative(step, out=step)
+            np.maximum(moved, step, out=moved)
+            position += moved
         for ticks, stamps in self._device_stamps:
             ticks.fill(tick)
             stamps.fill(now)

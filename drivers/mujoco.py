@@ -142,24 +142,22 @@ class MujocoDriver(Driver):
         self._viewer = self._open_viewer() if opts.viewer else None
 
     def _bind_kernels(self) -> None:
-        """The compiled read and torque law, called directly (numba's dispatch would cost more
-        than the work): every array they get is taken and checked here, once. MjData's arrays
+        """The compiled read and torque law, called without numba's dispatch (it would cost more
+        than the work; ``aiohal.kernel_call``): every array they get is taken and checked here, once. MjData's arrays
         and the robot's blocks are never reallocated while the driver is open."""
         from . import mujoco_kernels as kernels
 
         data, state, command = self.data, self.view.state, self.view.command
         self._read_args = (data.qpos, data.qvel, self._index, self.tau, state.block, state.updated_tick,
                            state.stamp_ns)
-        kernel_call.check(kernels.read_joints, (*self._read_args, 0, 0))
+        self._read_joints = kernel_call.compiled_for(kernels.read_joints, (*self._read_args, 0, 0))
         self._torque_args = (command.block, command.mode, state.block, self._table, self._index, data.qfrc_bias,
                              self.options.gravity_compensation, self.tau, data.ctrl)
-        kernel_call.check(kernels.drive_torque, self._torque_args)
+        self._drive_torque = kernel_call.compiled_for(kernels.drive_torque, self._torque_args)
         self._sensor_runs = [(data.sensordata, *run) for run in self._gather_plan()]
+        self._read_sensors = kernels.read_sensors  # (no run: never called)
         for run in self._sensor_runs:
-            kernel_call.check(kernels.read_sensors, (*run, 0, 0))
-        self._read_sensors = kernel_call.direct(kernels.read_sensors)
-        self._read_joints = kernel_call.direct(kernels.read_joints)
-        self._drive_torque = kernel_call.direct(kernels.drive_torque)
+            self._read_sensors = kernel_call.compiled_for(kernels.read_sensors, (*run, 0, 0))
 
     def _gather_plan(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """How read() fills the devices: for each run of this driver's devices in adjacent rows

@@ -13,29 +13,25 @@ so the torques are bit for bit those of the numpy formulation, but for the sign 
 
 Arguments are few (numba's call costs about 0.3 µs per argument even when called directly):
 the joints' MjData addresses are one int array (rows below), the per-joint gains and torque
-bounds one float table (rows below). Module globals are frozen into numba's on-disk cache,
-which only notices changes to this file: the rows are literals here, checked at import.
+bounds one float table (rows below). The state and command rows and the modes come from
+:mod:`aiohal.robot` (see ``CommandRow`` there about numba's cache).
 """
 
 from __future__ import annotations
 
 from numba import njit, types
 
-from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, Mode
+from aiohal.robot import CommandRow, Mode, StateRow
 
 # rows of ``index`` (intp): qpos address, dof address, actuator of each joint
 QPOS, DOF, ACTUATOR = 0, 1, 2
 # rows of ``table`` (float64): position gain, velocity gain, lower and upper torque bound
 KP, KD, TAU_MIN, TAU_MAX = 0, 1, 2, 3
-# rows of the robot's state and command blocks
-S_POSITION, S_VELOCITY, S_EFFORT = 0, 1, 2
-C_POSITION, C_VELOCITY, C_EFFORT, C_STIFFNESS, C_DAMPING, C_FEEDFORWARD = 0, 1, 2, 3, 4, 5
-POSITION, VELOCITY, IMPEDANCE = 1, 2, 4
-
-if (JOINT_STATE_FIELDS[:3] != ("position", "velocity", "effort")
-        or JOINT_COMMAND_FIELDS != ("position", "velocity", "effort", "stiffness", "damping", "feedforward")
-        or (int(Mode.POSITION), int(Mode.VELOCITY), int(Mode.IMPEDANCE)) != (POSITION, VELOCITY, IMPEDANCE)):
-    raise ImportError("drivers/mujoco_kernels.py: its literal rows or modes no longer match aiohal.robot")
+# rows of the robot's state and command blocks, and the command modes (see aiohal.robot)
+S_POSITION, S_VELOCITY, S_EFFORT = int(StateRow.POSITION), int(StateRow.VELOCITY), int(StateRow.EFFORT)
+C_POSITION, C_VELOCITY, C_EFFORT = int(CommandRow.POSITION), int(CommandRow.VELOCITY), int(CommandRow.EFFORT)
+C_STIFFNESS, C_DAMPING, C_FEEDFORWARD = int(CommandRow.STIFFNESS), int(CommandRow.DAMPING), int(CommandRow.FEEDFORWARD)
+POSITION, VELOCITY, IMPEDANCE = int(Mode.POSITION), int(Mode.VELOCITY), int(Mode.IMPEDANCE)
 
 _VECTOR = types.Array(types.float64, 1, "C")  # MjData's arrays, the driver's own torque
 _RO_VECTOR = types.Array(types.float64, 1, "C", readonly=True)

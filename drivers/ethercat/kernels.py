@@ -15,9 +15,8 @@ variables' offsets in :data:`~.devices.DRIVE_INPUTS` order, the outputs' in
 ``constants`` (float64, columns below) and its integer state one row of ``ints`` (int64,
 columns below). Values are little-endian, as on the bus.
 
-Everything a kernel reads from outside is passed in or is a literal here: numba freezes
-module globals into its on-disk cache, which only notices changes to this file. The literal
-tables are checked against their sources at import.
+Everything else a kernel reads is a constant of this module, taken from :mod:`aiohal.robot`
+and :mod:`aiohal.fieldbus.cia402` (see ``CommandRow`` in aiohal.robot about numba's cache).
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from numba import njit, types
 from aiohal.fieldbus.cia402 import CSP as _CSP
 from aiohal.fieldbus.cia402 import CST as _CST
 from aiohal.fieldbus.cia402 import CSV as _CSV
-from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, Mode
+from aiohal.robot import CommandRow, Mode, StateRow
 
 # layout columns: 5 input offsets, 5 output offsets, the joint's row
 IN, OUT, ROW = 0, 5, 10
@@ -37,18 +36,15 @@ RAD_PER_COUNT, MOTOR_RAD_PER_COUNT, NM_PER_PER_MILLE, POSITION_OFFSET, COUNTS_PE
 # ints columns (int64): VALID says the drive's position was read once (so it can be unwrapped)
 STATUSWORD, ERROR_CODE, RAW_POSITION, COUNTS, CONTROLWORD, HOLD, VALID = range(7)
 # rows of the joints' state and command blocks (aiohal.robot), and the CiA 402 modes
-S_POSITION, S_VELOCITY, S_EFFORT, S_MOTOR_POSITION = 0, 1, 2, 3
-C_POSITION, C_VELOCITY, C_EFFORT, C_FEEDFORWARD = 0, 1, 2, 5
-CSP, CSV, CST = 8, 9, 10
-#: joint command mode (index) → CiA 402 mode of operation (impedance runs as CSP: the drive's own loop)
-MODE_OF_OPERATION = np.array([CSP, CSP, CSV, CST, CSP], dtype=np.int64)
-
-if (JOINT_STATE_FIELDS[:4] != ("position", "velocity", "effort", "motor_position")
-        or tuple(JOINT_COMMAND_FIELDS[i] for i in (0, 1, 2, 5)) != ("position", "velocity", "effort", "feedforward")
-        or (CSP, CSV, CST) != (int(_CSP), int(_CSV), int(_CST))
-        or [int(m) for m in (Mode.NONE, Mode.POSITION, Mode.VELOCITY, Mode.EFFORT, Mode.IMPEDANCE)] != [0, 1, 2, 3, 4]
-        or len(Mode) != len(MODE_OF_OPERATION)):
-    raise ImportError("drivers/ethercat/kernels.py: its literal rows or modes no longer match aiohal.robot / aiohal.fieldbus.cia402")
+S_POSITION, S_VELOCITY = int(StateRow.POSITION), int(StateRow.VELOCITY)
+S_EFFORT, S_MOTOR_POSITION = int(StateRow.EFFORT), int(StateRow.MOTOR_POSITION)
+C_POSITION, C_VELOCITY = int(CommandRow.POSITION), int(CommandRow.VELOCITY)
+C_EFFORT, C_FEEDFORWARD = int(CommandRow.EFFORT), int(CommandRow.FEEDFORWARD)
+CSP, CSV, CST = int(_CSP), int(_CSV), int(_CST)
+#: joint command mode → CiA 402 mode of operation (impedance runs as CSP: the drive's own loop)
+MODE_OF_OPERATION = np.full(max(Mode) + 1, CSP, dtype=np.int64)
+MODE_OF_OPERATION[Mode.VELOCITY] = CSV
+MODE_OF_OPERATION[Mode.EFFORT] = CST
 
 
 @njit(cache=True, nogil=True, inline="always")
