@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from aiohal.hal import Controller, Options
-from aiohal.robot import Mode
+from aiohal.robot import CommandRow, Mode
 
 
 class HoldParams(Options):
@@ -36,7 +36,17 @@ class HoldController(Controller):
         cmd.effort[:] = 0.0
         cmd.feedforward[:] = 0.0
         self._braking = self.t_settled > 0.0
-        self._rest = self.x0 + 0.5 * self.v0 * self.t_stop  # where each joint comes to rest
+        # At rest, one copy per tick writes the position and velocity rows, adjacent in the
+        # command block: [where each joint comes to rest, 0]. A byte copy between memoryviews,
+        # because on the real clock's cold caches np.copyto costs several µs more per tick
+        # (docs/performance.md, "Why the compiled kernels are kept"); memoryview.cast()
+        # refuses any block that is not C-contiguous.
+        rows = cmd.block[CommandRow.POSITION : CommandRow.VELOCITY + 1]
+        if rows.shape[0] != 2:
+            raise RuntimeError("hold writes position and velocity as adjacent rows of the command block")
+        rest = np.array([self.x0 + 0.5 * self.v0 * self.t_stop, np.zeros_like(self.x0)])
+        self._rest = memoryview(rest).cast("B")
+        self._position_velocity = memoryview(rows).cast("B")
         self._write(0.0)
 
     def _write(self, elapsed: float) -> None:
@@ -56,9 +66,7 @@ class HoldController(Controller):
             self._write(elapsed)
             self._braking = elapsed < self.t_settled
         else:
-            cmd = self.robot.command
-            np.copyto(cmd.position, self._rest)
-            cmd.velocity.fill(0.0)
+            self._position_velocity[:] = self._rest
 
     def metrics(self) -> dict:
         return {"braking_s": round(self.t_settled, 4)}

@@ -18,8 +18,13 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
-from aiohal.robot import Mode
+from aiohal.robot import StateRow
+
+
+#: the state rows the simulated joints move (the others keep what the driver last wrote)
+MOVED_ROWS = (StateRow.POSITION, StateRow.VELOCITY, StateRow.EFFORT)
 
 
 class MockFaults(Options):
@@ -60,15 +65,14 @@ class MockDriver(Driver):
         if opts.faults.open_error:
             raise OSError(errno.ENODEV, "injected open error")
         view = self.view
-        n = view.dof
         start = view.per_joint(opts.initial_position)
         np.clip(start, view.position_min, view.position_max, out=start)
         faults = opts.faults
         # without delay or lost feedback the simulated joints *are* the state rows: no copy
         self._direct = opts.feedback_delay_ticks == 0 and faults.feedback_lost_at_tick is None
         state = view.state
-        self.sim = (state.position, state.velocity, state.effort) if self._direct else np.zeros((3, n))
-        self.position, self.velocity, self.effort = self.sim
+        self.sim = state.block if self._direct else np.zeros_like(state.block)  # rows as in the state block
+        self.position, self.velocity, self.effort = (self.sim[row] for row in MOVED_ROWS)
         self.position[:] = start
         self.velocity[:] = 0.0
         self.effort[:] = 0.0
@@ -81,8 +85,8 @@ class MockDriver(Driver):
         self._alpha = 1.0
         self._inv_dt = 0.0
         delay = opts.feedback_delay_ticks
-        self._history = np.zeros((delay + 1, 3, n))  # ring of past states, oldest next
-        self._history[:, 0, :] = start
+        self._history = np.zeros((delay + 1, *self.sim.shape))  # ring of past states, oldest next
+        self._history[:, StateRow.POSITION, :] = start
         self._slot = 0
         self._last_tick = view.clock.tick
         self.reads = 0
@@ -97,11 +101,7 @@ class MockDriver(Driver):
         for ft in view.devices_of("force_torque"):
             ft.force[:] = opts.force
             ft.torque[:] = opts.torque
-        # scratch rows of the step, allocated once
-        self._target = np.zeros(n)
-        self._moved = np.zeros(n)
-        self._by_velocity = np.zeros(n, dtype=bool)
-        self._by_effort = np.zeros(n, dtype=bool)
+        self._bind_step()
         # the devices, a run of adjacent rows at a time: the stamps of each run, and the hands'
         # rows (grasp, speed, force, position, effort) with scratch rows for their step
         runs = view.device_runs()
@@ -119,46 +119,43 @@ class MockDriver(Driver):
         self._inv_dt = 1.0 / dt
         self._alpha = 1.0 - math.exp(-dt / self.options.time_constant) if self._first_order else 1.0
 
+    def _bind_step(self) -> None:
+        """The compiled joint step (``mock_kernels``), called without numba's dispatch: its
+        arrays are taken and checked here, once; the robot's blocks are never reallocated."""
+        from . import mock_kernels
+
+        state, command = self.view.state, self.view.command
+        self._step_args = (command.block, command.mode, self.sim)
+        self._stamp_args = (state.updated_tick, state.stamp_ns)
+        self._step_joints = kernel_call.compiled_for(
+            mock_kernels.step_joints, (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0))
+
     async def read(self) -> None:
         view = self.view
         clock = view.clock
         tick = clock.tick
         if self._faulty:
             self._inject_read_faults(tick)
+        stamped = False
         if tick > self._last_tick and not self.stopped:
+            # advance the simulated joints toward the command; when they are the state's rows
+            # (no delay, no loss), the compiled step stamps them too
             dt = (tick - self._last_tick) * clock.period_ns * 1e-9
             if dt != self._dt:
                 self._set_dt(dt)
-            self._step(dt)
+            stamped = self._direct
+            self._step_joints(*self._step_args, dt, self._first_order, self._alpha, self._inv_dt, stamped,
+                              *self._stamp_args, tick, clock.now_ns)
         self._last_tick = tick
         self.reads += 1
         if not self._direct and not self._publish_state(tick):
             return
-        view.mark_fresh()
+        if stamped:
+            view.fresh_tick = tick
+        else:
+            view.mark_fresh()
         if self._device_stamps:
             self._read_devices(tick, clock.now_ns)
-
-    def _step(self, dt: float) -> None:
-        """Move each simulated joint toward its target over ``dt``: the position command, or
-        the position plus velocity × dt in velocity mode, or where it is in effort mode; all
-        the way (mirror) or by ``alpha`` of the way (first order). The step over dt is the
-        velocity, the commanded effort plus feed-forward the effort."""
-        position, velocity, effort = self.sim
-        command = self.view.command
-        target, moved = self._target, self._moved
-        np.equal(command.mode, Mode.VELOCITY, out=self._by_velocity)
-        np.equal(command.mode, Mode.EFFORT, out=self._by_effort)
-        np.copyto(target, command.position)
-        np.multiply(command.velocity, dt, out=moved)
-        moved += position
-        np.copyto(target, moved, where=self._by_velocity)
-        np.copyto(target, position, where=self._by_effort)
-        np.subtract(target, position, out=moved)
-        if self._first_order:
-            moved *= self._alpha
-        position += moved
-        np.multiply(moved, self._inv_dt, out=velocity)
-        np.add(command.effort, command.feedforward, out=effort)
 
     def _inject_read_faults(self, tick: int) -> None:
         opts = self.options
@@ -186,9 +183,9 @@ class MockDriver(Driver):
             np.copyto(history[self._slot], self.sim)
             self._slot = (self._slot + 1) % len(history)
             shown = history[self._slot]
-        state = self.view.state
-        for measured, value in zip((state.position, state.velocity, state.effort), shown):
-            np.copyto(measured, value)
+        measured = self.view.state.block
+        for row in MOVED_ROWS:
+            np.copyto(measured[row], shown[row])
         return True
 
     def _read_devices(self, tick: int, now: int) -> None:

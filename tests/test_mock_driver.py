@@ -7,8 +7,13 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from aiohal.robot import Mode
+from aiohal import kernel_call
+from aiohal.drivers import mock_kernels
+from aiohal.drivers.mock import MOVED_ROWS
+from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, CommandRow, Mode
 from helpers import arm_raw, virtual_loop
 from aiohal.hal import Controller
 
@@ -192,6 +197,50 @@ def test_views_write_in_place():
         ro.state.position[0] = 1.0  # controllers read state, they do not write it
     ro.command.position[0] = 1.0
     assert robot.command.position[0] == 1.0
+
+
+def numpy_step(command, mode, sim, dt, alpha):
+    """The mock's step in plain numpy, the reference the compiled step must match (alpha None:
+    mirror; ``sim`` has the state block's rows)."""
+    position, motion, effort = (sim[row] for row in MOVED_ROWS)
+    command = {row: command[row] for row in CommandRow}
+    velocity_rows, effort_rows = mode == Mode.VELOCITY, mode == Mode.EFFORT
+    with np.errstate(all="ignore"):
+        target = command[CommandRow.POSITION].copy()
+        tmp = np.multiply(command[CommandRow.VELOCITY], dt)
+        tmp += position
+        np.copyto(target, tmp, where=velocity_rows)
+        np.copyto(target, position, where=effort_rows)
+        np.subtract(target, position, out=motion)
+        if alpha is not None:
+            motion *= alpha
+        position += motion
+        motion *= 1.0 / dt
+        np.add(command[CommandRow.EFFORT], command[CommandRow.FEEDFORWARD], out=effort)
+
+
+FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64) | st.floats(-10.0, 10.0)
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data(), n=st.integers(1, 10), dt=st.sampled_from([0.001, 0.0005, 0.003]),
+       first_order=st.booleans())
+def test_the_compiled_step_matches_the_numpy_formulation(data, n, dt, first_order):
+    vectors = st.lists(FLOATS, min_size=n, max_size=n)
+    command = np.array([data.draw(vectors) for _ in JOINT_COMMAND_FIELDS])
+    mode = np.array(data.draw(st.lists(st.sampled_from(list(Mode)), min_size=n, max_size=n)), dtype=np.int8)
+    sim = np.array([data.draw(vectors) for _ in JOINT_STATE_FIELDS])
+    alpha = 1.0 - math.exp(-dt / 0.02) if first_order else 1.0
+    expected = sim.copy()
+    numpy_step(command, mode, expected, dt, alpha if first_order else None)
+
+    ticks, stamps = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+    args = (command, mode, sim, dt, first_order, alpha, 1.0 / dt, True, ticks, stamps, 5, 77)
+    kernel_call.compiled_for(mock_kernels.step_joints, args)(*args)
+    nan = np.isnan(expected)  # equal bits elsewhere (0.0 is not -0.0), NaN where NaN
+    np.testing.assert_array_equal(np.isnan(sim), nan)
+    np.testing.assert_array_equal(sim[~nan].view(np.uint64), expected[~nan].view(np.uint64))
+    assert (ticks == 5).all() and (stamps == 77).all()
 
 
 @pytest.mark.asyncio
