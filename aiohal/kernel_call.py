@@ -1,7 +1,7 @@
 """Calling a compiled (numba) kernel on the tick without numba's per-call dispatch.
 
 numba's dispatcher types every argument on every call to choose a compiled version: for a
-kernel of nine arguments that is most of the call (``python -m benchmarks.kernel_call``;
+kernel of nine arguments that is most of the call (``python -m benchmarks.kernel_call``,
 figures in docs/performance.md). A kernel with one explicit signature has one compiled
 version, and :func:`compiled_for` returns its entry point. That entry point checks almost
 nothing: an array of another dtype of the same item size is misread, a strided array in a

@@ -1,15 +1,14 @@
 """The command limiter's per-tick work, compiled with numba (see :mod:`aiohal.limits`).
 
-Why compiled: as numpy calls the limiter was 9 calls per tick, 9–14 µs back to back on 33
-joints, and 21–56 µs after a 0.9 ms sleep, which is how the real clock runs it: every tick
-starts with the caches and branch predictors cold after the wait (the guest's idle CPU exits
-to the host). One call of a kernel that loops over the joints costs 1.5–3.3 µs back to back
-and 6–18 µs after a sleep on the same machine (``python -m benchmarks.isolated``, both sides
-alternately; docs/performance.md). It is imported only when a limiter is
-built, so ``import aiohal`` and the processes of NRT drivers do not load numba.
+Why compiled: as numpy the limiter's rules are 9 calls per tick, and on the real clock every
+tick starts with the caches and branch predictors cold after the wait, where each call costs
+several times its warm price; one call of a kernel that loops over the joints pays that once
+(figures: docs/performance.md, "Why the compiled kernels are kept"; the numpy formulation it
+must match: ``tests/test_limits.py``). It is imported only when a limiter is built, so
+``import aiohal`` and the processes of NRT drivers do not load numba.
 
-Everything the kernel needs besides the command is one float64 table (rows below): numba's
-call costs about 0.3 µs per argument. The rows and modes come from :mod:`aiohal.robot`
+Everything the kernel needs besides the command is one float64 table (rows below): each
+argument adds to the cost of a call. The rows and modes come from :mod:`aiohal.robot`
 (see ``CommandRow`` there about numba's cache).
 """
 

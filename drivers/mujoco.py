@@ -13,8 +13,8 @@ timestep). On the virtual clock this is lockstep: the simulation is the clock an
 as the CPU allows, deterministically. On a real clock (timerfd) it is real time, paced by the
 ticker. ``step = "inline"`` (default) steps inside ``write()``; ``step = "thread"`` steps in a
 worker thread between ticks (``mj_step`` releases the GIL), which takes the step off the tick
-but adds two thread hand-offs per tick: on the 2-vCPU development VM it lowered lateness p99 by
-about 30 µs and cost about 20 % more CPU and a few more missed ticks (docs/performance-log.md, "Stepping in a worker thread").
+but adds two thread hand-offs per tick: lower lateness, for more CPU and, on a machine of two
+CPUs, a few more missed ticks.
 
 IMUs read ``framequat``/``gyro``/``accelerometer`` sensors, force/torque devices ``force``/
 ``torque`` sensors, named ``<device>_quat``, ``<device>_gyro``, ``<device>_accel``,

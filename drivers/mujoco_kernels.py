@@ -1,17 +1,15 @@
 """The MuJoCo driver's per-tick work, compiled with numba: MjData ↔ robot arrays.
 
-Why compiled: as numpy calls the driver's read was 3 gathers and 2 stamp fills, plus a gather
+Why compiled: as numpy calls the driver's read is 3 gathers and 2 stamp fills, plus a gather
 and 2 fills per run of sensors, and its torque law 12 calls (gains by mode, PD terms,
-compensation, clamp, scatter into ``ctrl``): about 6 and 15 µs per tick on WALK-MAN (33
-joints) back to back. Called in turn with the controller and ``mj_step``, as in the tick,
-the read cost 2.4x what it cost back to back (18 against 7.5 µs): caches cold after the step,
-most likely (this VM has no performance counters to show it). Fewer, smaller calls suffer
-less. One call
-per joint read, per sensor run and for the torque does the same arithmetic in the same order,
-so the torques are bit for bit those of the numpy formulation, but for the sign bit of a NaN
-(``tests/test_mujoco_kernels.py``).
+compensation, clamp, scatter into ``ctrl``); called in turn with the controller and
+``mj_step``, as in the tick, each call runs on caches the step left cold. One call per joint
+read, per sensor run and for the torque does the same arithmetic in the same order, so the
+torques are bit for bit those of the numpy formulation, but for the sign bit of a NaN
+(``tests/test_mujoco_kernels.py``; figures: docs/performance.md, "Why the compiled kernels
+are kept").
 
-Arguments are few (numba's call costs about 0.3 µs per argument even when called directly):
+Arguments are few (each adds to the cost of a call, even a direct one):
 the joints' MjData addresses are one int array (rows below), the per-joint gains and torque
 bounds one float table (rows below). The state and command rows and the modes come from
 :mod:`aiohal.robot` (see ``CommandRow`` there about numba's cache).

@@ -1,16 +1,15 @@
 """The drives' per-cycle conversions, compiled with numba: process image ↔ robot arrays.
 
-Why compiled: in CPython each drive cost a struct call and about twenty interpreted
-operations each way: with 7 drives, decode 17.5–18 µs and encode 24–25 µs per tick in the
-loop (``benchmarks.ethercat --breakdown 7``, before the kernels). A numba kernel loops over the drives
-in machine code, and its fixed cost (the call, the arguments' types) is paid once per cycle,
-whatever the number of drives. numba does this better than a hand-written C extension would
-here: no compiler at install time, the kernels stay readable Python, and they are cached
-on disk after the first compilation.
+Why compiled: in CPython each drive costs a struct call and about twenty interpreted
+operations each way. A numba kernel loops over the drives in machine code, and its fixed cost
+(the call, the arguments' types) is paid once per cycle, whatever the number of drives
+(figures: docs/performance.md, "Why the compiled kernels are kept"). numba does this better
+than a hand-written C extension would here: no compiler at install time, the kernels stay
+readable Python, and they are cached on disk after the first compilation.
 
-Arguments are few on purpose: numba's call costs about 0.3 µs per argument on this kind of
-machine, so each drive's byte offsets and row are one row of ``layout`` (int64: the input
-variables' offsets in :data:`~.devices.DRIVE_INPUTS` order, the outputs' in
+Arguments are few on purpose: each adds to the cost of a call, so each drive's byte offsets
+and row are one row of ``layout`` (int64: the input variables' offsets in
+:data:`~.devices.DRIVE_INPUTS` order, the outputs' in
 :data:`~.devices.DRIVE_OUTPUTS` order, then the joint's row), its unit constants one row of
 ``constants`` (float64, columns below) and its integer state one row of ``ints`` (int64,
 columns below). Values are little-endian, as on the bus.
