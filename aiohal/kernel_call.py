@@ -1,15 +1,15 @@
 """Calling a compiled (numba) kernel on the tick without numba's per-call dispatch.
 
 numba's dispatcher types every argument on every call to choose a compiled version: for a
-kernel of nine arguments that is most of the call (the EtherCAT decode of 7 drives: 4.2 µs
-through the dispatcher, 1.5 µs direct, ``python -m benchmarks.kernel_call``). aiohal's
-kernels have one explicit signature, so the choice is known in advance: :func:`direct`
-returns that version's entry point. That entry point checks almost nothing: an array of
-another dtype of the same item size is misread, a strided array in a C-contiguous kernel
-reads the wrong memory, a read-only array is written, and an array of more dimensions than
-the signature's can crash the process. So :func:`check` is not optional: every array a
-direct call gets must have been checked (callers check the arrays they hold once, and again
-whenever they are handed another one).
+kernel of nine arguments that is most of the call (``python -m benchmarks.kernel_call``,
+figures in docs/performance.md). A kernel with one explicit signature has one compiled
+version, and :func:`compiled_for` returns its entry point. That entry point checks almost
+nothing: an array of another dtype of the same item size is misread, a strided array in a
+C-contiguous kernel reads the wrong memory, a read-only array is written, and an array of
+more dimensions than the signature's can crash the process. So the only way to it is
+:func:`compiled_for`, which checks the arrays it will be called on (dtype, dimensions,
+layout, writable) as the dispatch would; its callers hold those arrays for their lifetime
+(the robot's blocks are never reallocated) and check again whenever they are handed another.
 """
 
 from __future__ import annotations
@@ -20,11 +20,14 @@ from typing import Any
 import numpy as np
 
 
-def direct(kernel: Any) -> Callable[..., Any]:
-    """The compiled version of a kernel with exactly one explicit signature."""
+def compiled_for(kernel: Any, args: Sequence[Any]) -> Callable[..., Any]:
+    """The compiled version of ``kernel`` (which has exactly one explicit signature), to be
+    called on the arrays of ``args``: they are checked here first (:func:`check`), and the
+    caller passes those same arrays on every call, or calls this again for new ones."""
     if len(kernel.signatures) != 1:
         raise TypeError(f"{kernel.py_func.__qualname__}: one explicit signature is needed for a direct call, "
                         f"it has {len(kernel.signatures)}")
+    check(kernel, args)
     return kernel.get_overload(kernel.signatures[0])
 
 

@@ -1,16 +1,15 @@
 """The command limiter's per-tick work, compiled with numba (see :mod:`aiohal.limits`).
 
-Why compiled: as numpy calls the limiter was 9 calls per tick, 9–14 µs back to back on 33
-joints, and 21–56 µs after a 0.9 ms sleep, which is how the real clock runs it: every tick
-starts with the caches and branch predictors cold after the wait (the guest's idle CPU exits
-to the host). One call of a kernel that loops over the joints costs 1.5–3.3 µs back to back
-and 6–18 µs after a sleep on the same machine (``python -m benchmarks.isolated``, both sides
-alternately; docs/performance-log.md). It is imported only when a limiter is
-built, so ``import aiohal`` and the processes of NRT drivers do not load numba.
+Why compiled: as numpy the limiter's rules are 9 calls per tick, and on the real clock every
+tick starts with the caches and branch predictors cold after the wait, where each call costs
+several times its warm price; one call of a kernel that loops over the joints pays that once
+(figures: docs/performance.md, "Why the compiled kernels are kept"; the numpy formulation it
+must match: ``tests/test_limits.py``). It is imported only when a limiter is built, so
+``import aiohal`` and the processes of NRT drivers do not load numba.
 
-Everything the kernel needs besides the command is one float64 table (rows below): numba's
-call costs about 0.3 µs per argument. Module globals are frozen into numba's on-disk cache,
-which only notices changes to this file: the rows are literals here.
+Everything the kernel needs besides the command is one float64 table (rows below): each
+argument adds to the cost of a call. The rows and modes come from :mod:`aiohal.robot`
+(see ``CommandRow`` there about numba's cache).
 """
 
 from __future__ import annotations
@@ -19,20 +18,18 @@ import math
 
 from numba import njit, types
 
-from .robot import JOINT_COMMAND_FIELDS, Mode
+from .robot import CommandRow, Mode
 
 # table rows: the [position, velocity] sent last tick, the same one tick earlier, how far each
 # may move in one tick (velocity and acceleration limit × period), then the fixed lower and
-# upper bounds of every command row (6 rows each, in JOINT_COMMAND_FIELDS order)
-LAST, BEFORE, STEP, LOWER, UPPER = 0, 2, 4, 6, 12
-ROWS = 18
-POSITION_ROW, VELOCITY_ROW, VELOCITY_MODE = 0, 1, 2
+# upper bounds of every command row (one per row of the command block, in its order)
+LAST, BEFORE, STEP, LOWER = 0, 2, 4, 6
+UPPER = LOWER + len(CommandRow)
+ROWS = UPPER + len(CommandRow)
+POSITION_ROW, VELOCITY_ROW = int(CommandRow.POSITION), int(CommandRow.VELOCITY)
+VELOCITY_MODE = int(Mode.VELOCITY)
 #: bits of the kernel's result
 REFUSED, OUTSIDE = 1, 2
-
-if (JOINT_COMMAND_FIELDS[:2] != ("position", "velocity") or len(JOINT_COMMAND_FIELDS) != UPPER - LOWER
-        or int(Mode.VELOCITY) != VELOCITY_MODE):
-    raise ImportError("aiohal/limit_kernel.py: its literal rows or modes no longer match aiohal.robot")
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -64,10 +61,11 @@ def limit_commands(block, mode, position, table, outside):
     still_outside = False
     p_min = table[LOWER + POSITION_ROW]
     p_max = table[UPPER + POSITION_ROW]
-    for r in range(2):  # position within a rate step of the last, velocity an acceleration step
-        x_row, last_row, before_row, step = block[r], table[LAST + r], table[BEFORE + r], table[STEP + r]
+    for i in range(2):  # position within a rate step of the last, velocity an acceleration step
+        velocity = i == 1
+        r = VELOCITY_ROW if velocity else POSITION_ROW
+        x_row, last_row, before_row, step = block[r], table[LAST + i], table[BEFORE + i], table[STEP + i]
         fixed_lo, fixed_hi = table[LOWER + r], table[UPPER + r]
-        velocity = r == VELOCITY_ROW
         for j in range(n):
             last = last_row[j]
             lo = last - step[j]
@@ -95,7 +93,9 @@ def limit_commands(block, mode, position, table, outside):
             last_row[j] = x
             if not velocity:
                 still_outside |= x < p_min[j] or x > p_max[j]
-    for r in range(2, rows):  # fixed bounds, never NaN (the config refuses NaN limits)
+    for r in range(rows):  # the other rows: fixed bounds, never NaN (the config refuses NaN limits)
+        if r == POSITION_ROW or r == VELOCITY_ROW:
+            continue
         x_row, lower, upper = block[r], table[LOWER + r], table[UPPER + r]
         for j in range(n):
             lo, hi = lower[j], upper[j]

@@ -23,11 +23,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernel_call
-from .robot import JOINT_COMMAND_FIELDS, Robot
+from .robot import CommandRow, Robot
 
-_ROW = {name: i for i, name in enumerate(JOINT_COMMAND_FIELDS)}
-POS, VEL = _ROW["position"], _ROW["velocity"]
-assert (POS, VEL) == (0, 1)  # the kernel's POSITION_ROW and VELOCITY_ROW
 #: Stiffness and damping have no configured limit; this cap keeps every sum finite.
 GAIN_CAP = 1e12
 
@@ -47,35 +44,34 @@ class CommandLimiter:
         self.position_min = robot.position_min
         self.position_max = robot.position_max
         table = np.zeros((lk.ROWS, n))
-        for name, i in _ROW.items():
-            lower, upper = table[lk.LOWER + i], table[lk.UPPER + i]
-            if name in ("effort", "feedforward"):
+        for row in CommandRow:
+            lower, upper = table[lk.LOWER + row], table[lk.UPPER + row]
+            if row in (CommandRow.EFFORT, CommandRow.FEEDFORWARD):
                 lower[:], upper[:] = -robot.effort_limit, robot.effort_limit
-            elif name == "velocity":
+            elif row == CommandRow.VELOCITY:
                 lower[:], upper[:] = -robot.velocity_limit, robot.velocity_limit
-            elif name == "position":
+            elif row == CommandRow.POSITION:
                 lower[:], upper[:] = robot.position_min, robot.position_max
             else:  # stiffness, damping
                 lower[:], upper[:] = 0.0, GAIN_CAP
         # rows [position, velocity]: how far each may move from the last command in one tick
-        table[lk.STEP + POS] = robot.velocity_limit * period_s
-        table[lk.STEP + VEL] = robot.acceleration_limit * period_s
+        table[lk.STEP] = robot.velocity_limit * period_s
+        table[lk.STEP + 1] = robot.acceleration_limit * period_s
         self._table = table
         self.last = table[lk.LAST : lk.LAST + 2]  # [position, velocity] sent last tick (views)
         self._before = table[lk.BEFORE : lk.BEFORE + 2]  # the same, one tick earlier
         self._outside = False  # a joint's last command lies outside its range
         self.refused = 0  # ticks whose command was not finite
         self._dispatcher = lk.limit_commands
-        self._kernel = kernel_call.direct(lk.limit_commands)
         self._rebind()
 
     def _rebind(self) -> None:
         """Check the robot's arrays for the kernel, which is called directly (no numba dispatch)."""
         args = (self.cmd.block, self.cmd.mode, self.state.position, self._table)
-        kernel_call.check(self._dispatcher, (*args, False))
+        self._kernel = kernel_call.compiled_for(self._dispatcher, (*args, False))
         n = self._table.shape[1]
-        if args[0].shape != (len(_ROW), n) or args[1].shape != (n,) or args[2].shape != (n,):
-            raise ValueError(f"the limiter's kernel needs the robot's command block {(len(_ROW), n)}, modes and "
+        if args[0].shape != (len(CommandRow), n) or args[1].shape != (n,) or args[2].shape != (n,):
+            raise ValueError(f"the limiter's kernel needs the robot's command block {(len(CommandRow), n)}, modes and "
                              f"positions ({n},): got {args[0].shape}, {args[1].shape}, {args[2].shape}")
         self._args = args
 

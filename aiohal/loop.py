@@ -650,11 +650,8 @@ class ControlLoop:
         clock = robot.clock
         period_s, period_ns = self.period_s, self.period_ns
         mask = stats.mask
-        # the tick stores its figures through memoryviews of the stats arrays: an item store
-        # there is a smaller code path than numpy's, which counts on the tick's cold caches
-        # (docs/performance-log.md, "Issue 4, eleventh session")
-        lat_buf, work_buf = memoryview(stats.lateness), memoryview(stats.work)
-        ph_read, ph_check, ph_control, ph_limits, ph_write, ph_publish = (memoryview(row) for row in stats.phases)
+        lat_buf, work_buf = stats.lateness, stats.work
+        ph_read, ph_check, ph_control, ph_limits, ph_write, ph_publish = stats.phases
         first_lateness = stats.first_lateness
         mono = time.monotonic_ns
         now_ns = self.source.now_ns

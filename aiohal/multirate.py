@@ -18,9 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .robot import JointCommand, Mode
+from .robot import CommandRow, JointCommand, Mode
 
-POS, VEL = 0, 1  # rows of the command block (aiohal.robot.JOINT_COMMAND_FIELDS)
+POS, VEL = CommandRow.POSITION, CommandRow.VELOCITY
 
 
 class TargetExtrapolator:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .safety import SafetyLevel
 from .stats import PHASES
 
 
@@ -69,7 +70,7 @@ def plot(recording, out_dir: Path, joints: list[str] | None = None) -> list[Path
         safety = recording["/safety"]
         fig, ax = plt.subplots(figsize=(10, 3))
         ax.step(safety.t, safety.level, where="post")
-        ax.set_yticks(range(4), ["off", "estop", "hold", "run"])
+        ax.set_yticks(range(len(SafetyLevel)), [level.name.lower() for level in sorted(SafetyLevel)])
         rate = recording.info.get("rate_hz") or 1000.0
         for fault in recording.faults:
             t = (fault["tick"] - safety.tick[0]) / rate + safety.t[0]

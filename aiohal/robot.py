@@ -17,8 +17,36 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-JOINT_STATE_FIELDS = ("position", "velocity", "effort", "motor_position", "motor_velocity", "temperature")
-JOINT_COMMAND_FIELDS = ("position", "velocity", "effort", "stiffness", "damping", "feedforward")
+
+class StateRow(IntEnum):
+    """Row of each measured quantity in the state block (``JointState.block``)."""
+
+    POSITION = 0
+    VELOCITY = 1
+    EFFORT = 2
+    MOTOR_POSITION = 3
+    MOTOR_VELOCITY = 4
+    TEMPERATURE = 5
+
+
+class CommandRow(IntEnum):
+    """Row of each commanded quantity in the command block (``JointCommand.block``).
+
+    Compiled kernels take these rows, and the modes below, as constants when they are
+    compiled, and numba's on-disk cache only notices changes to the kernel's own file: after
+    changing a row or a mode, delete the ``__pycache__`` directories (the kernels' tests
+    compare them with plain numpy on the current rows, and fail on a stale cache)."""
+
+    POSITION = 0
+    VELOCITY = 1
+    EFFORT = 2
+    STIFFNESS = 3
+    DAMPING = 4
+    FEEDFORWARD = 5
+
+
+JOINT_STATE_FIELDS = tuple(row.name.lower() for row in StateRow)
+JOINT_COMMAND_FIELDS = tuple(row.name.lower() for row in CommandRow)
 
 
 class Mode(IntEnum):

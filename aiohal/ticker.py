@@ -52,12 +52,10 @@ def off_the_kernel_tick(t_ns: int, period_ns: int) -> int:
     (500 µs at 1 kHz, 250 µs at 2 kHz, 100 µs at 5 kHz; a period that shares no step with 1 ms
     sweeps every phase whatever its start, and its start is left as it is).
 
-    Why: a deadline on the kernel's tick shares the CPU with the tick's interrupt. On the
-    development VM (HZ = 250), a 1 kHz loop in precision mode whose deadlines fell on whole
-    milliseconds had every fourth tick late: 26 % of ticks over 5 µs and a p99 of 58 µs,
-    against 1.0-1.8 % at the other phases (``python -m benchmarks.tick_phase --fifo``). A loop
-    started at a chance phase has a few chances in a hundred of that; the plain timerfd wake
-    (no spin) showed no difference beyond the noise.
+    Why: a deadline on the kernel's tick shares the CPU with the tick's interrupt. A 1 kHz
+    loop in precision mode whose deadlines fall on whole milliseconds has every fourth tick
+    late on a HZ = 250 kernel (``python -m benchmarks.tick_phase --fifo``; docs/performance.md,
+    "Deadlines and the kernel's tick").
     """
     step = math.gcd(period_ns, KERNEL_TICK_GRID_NS)
     return at_phase(t_ns, step // 2, step)
@@ -239,9 +237,8 @@ class IdleWait:
     nothing to run before it.
 
     Through the loop, each tick costs two of its iterations (the timer's callback, then the
-    task's wake-up), a future and a task switch: about 40–80 µs of CPU per tick on the
-    development VM against about 20 for a blocking wait (``python -m benchmarks.tick``, CPU
-    column). When the loop has no callback ready and no timer due before the tick, this waits
+    task's wake-up), a future and a task switch: several times the CPU of a blocking wait
+    (``python -m benchmarks.idle_wait``). When the loop has no callback ready and no timer due before the tick, this waits
     in one epoll on the timerfd and on the loop's own epoll: the timer resumes the tick at once;
     anything else (I/O, a thread's ``call_soon_threadsafe`` or a signal, both of which write
     the loop's self-pipe, or a loop timer falling due) hands the wait back to the loop, which
@@ -359,7 +356,7 @@ class VirtualTickSource(TickSource):
     It never sleeps: a lockstep simulation runs as fast as the CPU allows, deterministically.
     Every ``yield_every_ms`` of wall time it yields to the event loop, so other tasks (a stop
     request, a signal handler, a test) still run; yielding on every tick would cost a round
-    trip through the event loop (12-23 µs measured) on each one. On asyncio's own loop it
+    trip through the event loop on each one. On asyncio's own loop it
     yields only when the loop has something to run (:meth:`IdleWait.loop_has_work`).
     """
 

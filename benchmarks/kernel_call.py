@@ -69,8 +69,7 @@ def _after_sleep_us(fn, args, calls: int = 200) -> float:
 
 
 def measure(name: str, kernel, args: tuple, rounds: int) -> dict:
-    kernel_call.check(kernel, args)
-    ways = {"dispatch": kernel, "direct": kernel_call.direct(kernel)}
+    ways = {"dispatch": kernel, "direct": kernel_call.compiled_for(kernel, args)}
     samples: dict[str, list[float]] = {f"{way}_{when}": [] for way in ways for when in ("warm", "after_sleep")}
     for _ in range(rounds):
         for way, fn in ways.items():

@@ -33,9 +33,9 @@ each tick touches only plain numpy arrays and MuJoCo. It does:
 * Mock robots: the mock driver's simulated joints per driver slice (first-order or mirror
   step, effort echo, the hands' scalar motion) and ``hold``'s two array writes.
 
-aiohal's MuJoCo and mock drivers do the same joint arithmetic in compiled (numba) kernels,
-bit for bit (``drivers/mujoco_kernels.py``, ``drivers/mock_kernels.py``); the no-HAL loop
-writes it with numpy, as a Python user without the HAL would.
+aiohal's MuJoCo driver does the same joint arithmetic in compiled (numba) kernels, bit for
+bit (``drivers/mujoco_kernels.py``); the no-HAL loop writes it with numpy, as a Python user
+without the HAL would, and so does aiohal's mock driver.
 
 It does not: await anything or run an event loop; check feedback age, command modes or
 finiteness; clamp commands to the joint limits (the circle's own clip stays, it is the

@@ -2,7 +2,7 @@
 to the fast loop, with the NRT side in a thread vs in a subprocess.
 
 (a) Round trip. The fast loop (aiohal ``Ticker`` on timerfd, 1 kHz) sends one message per tick
-    to ``aiohal.pipe:echo``, which returns it with its ``stamp_ns`` kept; round trip = receive
+    to ``benchmarks.pipe_targets:echo``, which returns it with its ``stamp_ns`` kept; round trip = receive
     time − stamp. "per tick": the fast end is polled once per tick, so the figure is quantised
     by the tick (about one period); "tight poll": right after the send the fast end is polled
     non-blockingly in a loop until the echo is back (the pipe's own latency; the tick waits for
@@ -79,7 +79,7 @@ def _cpu_s(peer: NrtPeer) -> float:
 
 
 async def _start_peer(target: str, mode: str) -> NrtPeer:
-    peer = NrtPeer.start(f"aiohal.pipe:{target}", mode=mode)
+    peer = NrtPeer.start(f"benchmarks.pipe_targets:{target}", mode=mode)
     deadline = time.monotonic() + READY_S
     while time.monotonic() < deadline and peer.alive():
         peer.fast.send(Ping())

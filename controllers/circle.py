@@ -234,7 +234,8 @@ def _check_start(c: CircleController) -> str:
 
 # The tick's work is a closure over the controller's arrays, built once at start(): every
 # attribute lookup and method frame costs more than its line, and more still on the caches
-# the step and the wait left cold (docs/performance-log.md, "Issue 4, tenth session").
+# the step and the wait left cold; it keeps the overhead benchmark's WALK-MAN ratio under
+# 1.10 (docs/performance.md). tests/test_circle.py compares it with a plain formulation.
 
 
 def _kinematics(c: CircleController):

@@ -10,10 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from aiohal.hal import Controller, Options
-from aiohal.robot import JOINT_COMMAND_FIELDS, Mode
-
-if JOINT_COMMAND_FIELDS[:2] != ("position", "velocity"):
-    raise ImportError("controllers/hold.py writes position and velocity as the command block's first two rows")
+from aiohal.robot import CommandRow, Mode
 
 
 class HoldParams(Options):
@@ -39,13 +36,17 @@ class HoldController(Controller):
         cmd.effort[:] = 0.0
         cmd.feedforward[:] = 0.0
         self._braking = self.t_settled > 0.0
-        x_final = self.x0 + 0.5 * self.v0 * self.t_stop
-        # at rest, one copy per tick writes both rows (position, velocity), adjacent in the
-        # command block, as a byte copy between memoryviews: on the real clock's cold caches
-        # np.copyto costs about twice as much (docs/performance-log.md, "Issue 4, eleventh session").
-        # The robot allocates its command block C-contiguous; cast() refuses any other layout.
-        self._rest = memoryview(np.array([x_final, np.zeros_like(x_final)])).cast("B")
-        self._position_velocity = memoryview(cmd.block[:2]).cast("B")
+        # At rest, one copy per tick writes the position and velocity rows, adjacent in the
+        # command block: [where each joint comes to rest, 0]. A byte copy between memoryviews,
+        # because on the real clock's cold caches np.copyto costs several µs more per tick
+        # (docs/performance.md, "Why the compiled kernels are kept"); memoryview.cast()
+        # refuses any block that is not C-contiguous.
+        rows = cmd.block[CommandRow.POSITION : CommandRow.VELOCITY + 1]
+        if rows.shape[0] != 2:
+            raise RuntimeError("hold writes position and velocity as adjacent rows of the command block")
+        rest = np.array([self.x0 + 0.5 * self.v0 * self.t_stop, np.zeros_like(self.x0)])
+        self._rest = memoryview(rest).cast("B")
+        self._position_velocity = memoryview(rows).cast("B")
         self._write(0.0)
 
     def _write(self, elapsed: float) -> None:

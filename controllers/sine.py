@@ -14,7 +14,6 @@ import math
 import numpy as np
 from pydantic import Field
 
-from aiohal import kernel_call
 from aiohal.hal import Controller, JointValues, Options, unknown_joint_issues
 from aiohal.robot import Mode
 
@@ -65,44 +64,57 @@ class SineController(Controller):
 
     def configure(self, robot, params) -> None:
         super().configure(robot, params)
-        from . import sine_kernels  # noqa: F401  compiled or loaded from numba's cache now, before drivers open
         self.amplitude = robot.per_joint(params.amplitude, 0.0)
         self.omega = 2.0 * math.pi * robot.per_joint(params.frequency, 0.5)
         self.phase = robot.per_joint(params.phase, 0.0)
         self.sin_phase = np.sin(self.phase)
+        self.peak_velocity = self.amplitude * self.omega
+        n = robot.dof
+        self._error = np.zeros(n)
+        self._angle = np.zeros(n)
+        self._swing = np.zeros(n)
 
     def start(self, t: float) -> None:
         robot = self.robot
         self.t0 = t
         self.q0 = robot.state.position.copy()
         robot.command.mode[:] = Mode.POSITION
-        self._error = np.zeros(3)  # sum of squares, largest magnitude, samples
-        self._tick = _tick_function(self)
+        self._sum_sq, self._largest, self._samples = 0.0, 0.0, 0
 
     def update(self, t: float, dt: float) -> None:
-        self._tick(t, dt)
+        """Command ``q0 + r·A·(sin(ωt+φ) − sin φ)`` and its derivative, where ``r`` ramps the
+        amplitude in from 0 to 1 over ``ramp`` seconds (minimum jerk); first, the tracking
+        error of the position commanded the tick before."""
+        command = self.robot.command
+        error, angle, swing = self._error, self._angle, self._swing
+        np.subtract(self.robot.state.position, command.position, out=error)
+        self._sum_sq += float(np.dot(error, error))
+        np.abs(error, out=error)
+        self._largest = max(self._largest, float(error.max(initial=0.0)))
+        self._samples += len(error)
+
+        elapsed = t - self.t0
+        np.multiply(self.omega, elapsed, out=angle)
+        angle += self.phase
+        np.sin(angle, out=swing)
+        swing -= self.sin_phase
+        swing *= self.amplitude
+        np.cos(angle, out=command.velocity)
+        command.velocity *= self.peak_velocity
+        ramp = self.params.ramp
+        if elapsed < ramp:
+            x = elapsed / ramp
+            r = x * x * x * (10.0 + x * (-15.0 + 6.0 * x))
+            dr = 30.0 * x * x * (1.0 - x) * (1.0 - x) / ramp
+            command.velocity *= r
+            np.multiply(swing, dr, out=angle)
+            command.velocity += angle
+            swing *= r
+        np.add(swing, self.q0, out=command.position)
 
     def metrics(self) -> dict:
-        sum_sq, largest, samples = getattr(self, "_error", (0.0, 0.0, 0.0))
+        sum_sq, largest, samples = getattr(self, "_sum_sq", 0.0), getattr(self, "_largest", 0.0), getattr(self, "_samples", 0)
         if not samples:
             return {"tracking_rms_rad_or_m": float("nan"), "tracking_max_rad_or_m": float("nan")}
         return {"tracking_rms_rad_or_m": round(math.sqrt(sum_sq / samples), 6), "tracking_max_rad_or_m": round(float(largest), 6)}
 
-
-def _tick_function(c: SineController):
-    """``update(t, dt)`` of a started controller: one call of the compiled tick, with the
-    arrays bound once here (the robot's blocks are never reallocated) and checked, because the
-    direct call checks nothing itself (``aiohal.kernel_call``)."""
-    from . import sine_kernels
-
-    robot = c.robot
-    arrays = (robot.state.position, robot.command.block, c.q0, c.amplitude, c.omega, c.phase, c.sin_phase)
-    t0, ramp, error = c.t0, c.params.ramp, c._error
-    kernel_call.check(sine_kernels.sine_tick, (*arrays, 0.0, ramp, error))
-    kernel = kernel_call.direct(sine_kernels.sine_tick)
-    measured, command, q0, amplitude, omega, phase, sin_phase = arrays
-
-    def update(t: float, dt: float) -> None:
-        kernel(measured, command, q0, amplitude, omega, phase, sin_phase, t - t0, ramp, error)
-
-    return update

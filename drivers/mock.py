@@ -22,9 +22,14 @@ from pydantic import Field
 
 from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
+from aiohal.robot import StateRow
 from aiohal.watchdog import SendDatagram
 
 ESTOP_PAYLOAD = b"ESTOP"
+
+
+#: the state rows the simulated joints move (the others keep what the driver last wrote)
+MOVED_ROWS = (StateRow.POSITION, StateRow.VELOCITY, StateRow.EFFORT)
 
 
 class MockFaults(Options):
@@ -71,14 +76,14 @@ class MockDriver(Driver):
         if opts.faults.open_error:
             raise OSError(errno.ENODEV, "injected open error")
         view = self.view
-        n = view.dof
         start = view.per_joint(opts.initial_position)
         np.clip(start, view.position_min, view.position_max, out=start)
         faults = opts.faults
         # without delay or lost feedback the simulated joints *are* the state rows: no copy
         self._direct = opts.feedback_delay_ticks == 0 and faults.feedback_lost_at_tick is None
-        self.sim = view.state.block[:3] if self._direct else np.zeros((3, n))
-        self.position, self.velocity, self.effort = self.sim  # views: position, velocity, effort
+        state = view.state
+        self.sim = state.block if self._direct else np.zeros_like(state.block)  # rows as in the state block
+        self.position, self.velocity, self.effort = (self.sim[row] for row in MOVED_ROWS)
         self.position[:] = start
         self.velocity[:] = 0.0
         self.effort[:] = 0.0
@@ -91,8 +96,8 @@ class MockDriver(Driver):
         self._alpha = 1.0
         self._inv_dt = 0.0
         delay = opts.feedback_delay_ticks
-        self._history = np.zeros((delay + 1, 3, n))  # ring of past states, oldest next
-        self._history[:, 0, :] = start
+        self._history = np.zeros((delay + 1, *self.sim.shape))  # ring of past states, oldest next
+        self._history[:, StateRow.POSITION, :] = start
         self._slot = 0
         self._last_tick = view.clock.tick
         self.reads = 0
@@ -107,28 +112,17 @@ class MockDriver(Driver):
         for ft in view.devices_of("force_torque"):
             ft.force[:] = opts.force
             ft.torque[:] = opts.torque
-        self._bind_kernel()
-
-    def _bind_kernel(self) -> None:
-        """The compiled step, called directly (numba's dispatch would cost more than the work):
-        its arrays are taken and checked here, once; the robot's blocks are never reallocated."""
-        from . import mock_kernels
-
-        state, command = self.view.state, self.view.command
-        self._step_args = (command.block, command.mode, self.sim)
-        self._stamp_args = (state.updated_tick, state.stamp_ns)
-        kernel_call.check(mock_kernels.step_joints,
-                          (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0))
-        self._step_joints = kernel_call.direct(mock_kernels.step_joints)
+        self._bind_step()
         # the devices, a run of adjacent rows at a time: the stamps of each run, and the hands'
-        # rows (grasp, speed, force, position, effort) for the compiled hand step
-        runs = self.view.device_runs()
+        # rows (grasp, speed, force, position, effort) with scratch rows for their step
+        runs = view.device_runs()
         self._device_stamps = [(group.updated_tick[rows], group.stamp_ns[rows]) for group, rows in runs]
-        self._hand_runs = [tuple(getattr(group, field)[rows] for field in ("grasp", "speed", "force", "position", "effort"))
-                           for group, rows in runs if group.kind == "hand"]
-        for hands in self._hand_runs:
-            kernel_call.check(mock_kernels.step_hands, (*hands, 1.0, 1e-3))
-        self._step_hands = kernel_call.direct(mock_kernels.step_hands)
+        self._hand_runs = []
+        for group, rows in runs:
+            if group.kind == "hand":
+                hands = rows.stop - rows.start
+                self._hand_runs.append((group.grasp[rows], group.speed[rows], group.force[rows], group.position[rows],
+                                        group.effort[rows], np.zeros(hands), np.zeros(hands), np.zeros(hands, dtype=bool)))
 
     def _set_dt(self, dt: float) -> None:
         """The step's factors for a time step of ``dt`` (a new one after a missed tick)."""
@@ -136,9 +130,18 @@ class MockDriver(Driver):
         self._inv_dt = 1.0 / dt
         self._alpha = 1.0 - math.exp(-dt / self.options.time_constant) if self._first_order else 1.0
 
+    def _bind_step(self) -> None:
+        """The compiled joint step (``mock_kernels``), called without numba's dispatch: its
+        arrays are taken and checked here, once; the robot's blocks are never reallocated."""
+        from . import mock_kernels
+
+        state, command = self.view.state, self.view.command
+        self._step_args = (command.block, command.mode, self.sim)
+        self._stamp_args = (state.updated_tick, state.stamp_ns)
+        self._step_joints = kernel_call.compiled_for(
+            mock_kernels.step_joints, (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0))
+
     async def read(self) -> None:
-        # spelled out: a helper frame per call costs more than its lines on the tick's cold
-        # caches (see controllers/circle.py)
         view = self.view
         clock = view.clock
         tick = clock.tick
@@ -185,23 +188,32 @@ class MockDriver(Driver):
         ):
             self.feedback_lost += 1
             return False
-        measured = self.view.state.block[:3]
+        shown = self.sim
         if opts.feedback_delay_ticks:
             history = self._history
             np.copyto(history[self._slot], self.sim)
             self._slot = (self._slot + 1) % len(history)
-            np.copyto(measured, history[self._slot])
-        else:
-            np.copyto(measured, self.sim)
+            shown = history[self._slot]
+        measured = self.view.state.block
+        for row in MOVED_ROWS:
+            np.copyto(measured[row], shown[row])
         return True
 
     def _read_devices(self, tick: int, now: int) -> None:
         """IMUs and F/T sensors keep the values set at open (gravity, the configured wrench);
-        the hands move toward their grasp; every device is stamped with this read."""
-        if self._hand_runs:
-            hand_speed, period_s = self.options.hand_speed, self.view.clock.period_ns * 1e-9
-            for grasp, speed, force, position, effort in self._hand_runs:
-                self._step_hands(grasp, speed, force, position, effort, hand_speed, period_s)
+        each hand moves toward its grasp by at most ``hand_speed × speed`` per second and
+        pushes with its force while not fully open; every device is stamped with this read."""
+        period_s = self.view.clock.period_ns * 1e-9
+        for grasp, speed, force, position, effort, step, moved, closed in self._hand_runs:
+            np.greater(position, 0.0, out=closed)
+            effort.fill(0.0)
+            np.copyto(effort, force, where=closed)
+            np.multiply(speed, self.options.hand_speed * period_s, out=step)
+            np.subtract(grasp, position, out=moved)
+            np.minimum(moved, step, out=moved)
+            np.negative(step, out=step)
+            np.maximum(moved, step, out=moved)
+            position += moved
         for ticks, stamps in self._device_stamps:
             ticks.fill(tick)
             stamps.fill(now)

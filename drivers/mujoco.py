@@ -13,8 +13,8 @@ timestep). On the virtual clock this is lockstep: the simulation is the clock an
 as the CPU allows, deterministically. On a real clock (timerfd) it is real time, paced by the
 ticker. ``step = "inline"`` (default) steps inside ``write()``; ``step = "thread"`` steps in a
 worker thread between ticks (``mj_step`` releases the GIL), which takes the step off the tick
-but adds two thread hand-offs per tick: on the 2-vCPU development VM it lowered lateness p99 by
-about 30 µs and cost about 20 % more CPU and a few more missed ticks (docs/performance-log.md, "Stepping in a worker thread").
+but adds two thread hand-offs per tick: lower lateness, for more CPU and, on a machine of two
+CPUs, a few more missed ticks.
 
 IMUs read ``framequat``/``gyro``/``accelerometer`` sensors, force/torque devices ``force``/
 ``torque`` sensors, named ``<device>_quat``, ``<device>_gyro``, ``<device>_accel``,
@@ -180,24 +180,22 @@ class MujocoDriver(Driver):
         self._viewer = self._open_viewer() if opts.viewer else None
 
     def _bind_kernels(self) -> None:
-        """The compiled read and torque law, called directly (numba's dispatch would cost more
-        than the work): every array they get is taken and checked here, once. MjData's arrays
+        """The compiled read and torque law, called without numba's dispatch (it would cost more
+        than the work; ``aiohal.kernel_call``): every array they get is taken and checked here, once. MjData's arrays
         and the robot's blocks are never reallocated while the driver is open."""
         from . import mujoco_kernels as kernels
 
         data, state, command = self.data, self.view.state, self.view.command
         self._read_args = (data.qpos, data.qvel, self._index, self.tau, state.block, state.updated_tick,
                            state.stamp_ns)
-        kernel_call.check(kernels.read_joints, (*self._read_args, 0, 0))
+        self._read_joints = kernel_call.compiled_for(kernels.read_joints, (*self._read_args, 0, 0))
         self._torque_args = (command.block, command.mode, state.block, self._table, self._index, data.qfrc_bias,
                              self.options.gravity_compensation, self.tau, data.ctrl)
-        kernel_call.check(kernels.drive_torque, self._torque_args)
+        self._drive_torque = kernel_call.compiled_for(kernels.drive_torque, self._torque_args)
         self._sensor_runs = [(data.sensordata, *run) for run in self._gather_plan()]
+        self._read_sensors = kernels.read_sensors  # (no run: never called)
         for run in self._sensor_runs:
-            kernel_call.check(kernels.read_sensors, (*run, 0, 0))
-        self._read_sensors = kernel_call.direct(kernels.read_sensors)
-        self._read_joints = kernel_call.direct(kernels.read_joints)
-        self._drive_torque = kernel_call.direct(kernels.drive_torque)
+            self._read_sensors = kernel_call.compiled_for(kernels.read_sensors, (*run, 0, 0))
 
     def _gather_plan(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """How read() fills the devices: for each run of this driver's devices in adjacent rows

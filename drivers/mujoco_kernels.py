@@ -1,41 +1,35 @@
 """The MuJoCo driver's per-tick work, compiled with numba: MjData ↔ robot arrays.
 
-Why compiled: as numpy calls the driver's read was 3 gathers and 2 stamp fills, plus a gather
+Why compiled: as numpy calls the driver's read is 3 gathers and 2 stamp fills, plus a gather
 and 2 fills per run of sensors, and its torque law 12 calls (gains by mode, PD terms,
-compensation, clamp, scatter into ``ctrl``): about 6 and 15 µs per tick on WALK-MAN (33
-joints) back to back. Called in turn with the controller and ``mj_step``, as in the tick,
-the read cost 2.4x what it cost back to back (18 against 7.5 µs): caches cold after the step,
-most likely (this VM has no performance counters to show it). Fewer, smaller calls suffer
-less. One call
-per joint read, per sensor run and for the torque does the same arithmetic in the same order,
-so the torques are bit for bit those of the numpy formulation, but for the sign bit of a NaN
-(``tests/test_mujoco_kernels.py``).
+compensation, clamp, scatter into ``ctrl``); called in turn with the controller and
+``mj_step``, as in the tick, each call runs on caches the step left cold. One call per joint
+read, per sensor run and for the torque does the same arithmetic in the same order, so the
+torques are bit for bit those of the numpy formulation, but for the sign bit of a NaN
+(``tests/test_mujoco_kernels.py``; figures: docs/performance.md, "Why the compiled kernels
+are kept").
 
-Arguments are few (numba's call costs about 0.3 µs per argument even when called directly):
+Arguments are few (each adds to the cost of a call, even a direct one):
 the joints' MjData addresses are one int array (rows below), the per-joint gains and torque
-bounds one float table (rows below). Module globals are frozen into numba's on-disk cache,
-which only notices changes to this file: the rows are literals here, checked at import.
+bounds one float table (rows below). The state and command rows and the modes come from
+:mod:`aiohal.robot` (see ``CommandRow`` there about numba's cache).
 """
 
 from __future__ import annotations
 
 from numba import njit, types
 
-from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, Mode
+from aiohal.robot import CommandRow, Mode, StateRow
 
 # rows of ``index`` (intp): qpos address, dof address, actuator of each joint
 QPOS, DOF, ACTUATOR = 0, 1, 2
 # rows of ``table`` (float64): position gain, velocity gain, lower and upper torque bound
 KP, KD, TAU_MIN, TAU_MAX = 0, 1, 2, 3
-# rows of the robot's state and command blocks
-S_POSITION, S_VELOCITY, S_EFFORT = 0, 1, 2
-C_POSITION, C_VELOCITY, C_EFFORT, C_STIFFNESS, C_DAMPING, C_FEEDFORWARD = 0, 1, 2, 3, 4, 5
-POSITION, VELOCITY, IMPEDANCE = 1, 2, 4
-
-if (JOINT_STATE_FIELDS[:3] != ("position", "velocity", "effort")
-        or JOINT_COMMAND_FIELDS != ("position", "velocity", "effort", "stiffness", "damping", "feedforward")
-        or (int(Mode.POSITION), int(Mode.VELOCITY), int(Mode.IMPEDANCE)) != (POSITION, VELOCITY, IMPEDANCE)):
-    raise ImportError("drivers/mujoco_kernels.py: its literal rows or modes no longer match aiohal.robot")
+# rows of the robot's state and command blocks, and the command modes (see aiohal.robot)
+S_POSITION, S_VELOCITY, S_EFFORT = int(StateRow.POSITION), int(StateRow.VELOCITY), int(StateRow.EFFORT)
+C_POSITION, C_VELOCITY, C_EFFORT = int(CommandRow.POSITION), int(CommandRow.VELOCITY), int(CommandRow.EFFORT)
+C_STIFFNESS, C_DAMPING, C_FEEDFORWARD = int(CommandRow.STIFFNESS), int(CommandRow.DAMPING), int(CommandRow.FEEDFORWARD)
+POSITION, VELOCITY, IMPEDANCE = int(Mode.POSITION), int(Mode.VELOCITY), int(Mode.IMPEDANCE)
 
 _VECTOR = types.Array(types.float64, 1, "C")  # MjData's arrays, the driver's own torque
 _RO_VECTOR = types.Array(types.float64, 1, "C", readonly=True)

@@ -6,8 +6,6 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from helpers import arm_raw, virtual_loop
 
@@ -89,50 +87,6 @@ async def test_sine_ramps_in_without_a_jump():
     assert accel.max() < 6e-5
     assert np.abs(np.diff(q))[:10].max() < 1e-6
     assert q[2] - 0.2 == pytest.approx(0.0, abs=1e-8)
-
-
-def numpy_sine_tick(measured, command, q0, amplitude, omega, phase, sin_phase, elapsed, ramp):
-    """The sine controller's tick as it was written with numpy before the compiled kernel:
-    (sum of squared errors, largest error) and the command rows written in place."""
-    err = measured - command[0]
-    angle = omega * elapsed + phase
-    sin, cos = np.sin(angle) - sin_phase, np.cos(angle)
-    if elapsed >= ramp:
-        command[0] = sin * amplitude + q0
-        command[1] = cos * (amplitude * omega)
-    else:
-        x = elapsed / ramp
-        r = x * x * x * (10.0 + x * (-15.0 + 6.0 * x))
-        dr = 30.0 * x * x * (1.0 - x) * (1.0 - x) / ramp
-        swing = sin * amplitude
-        command[1] = cos * ((amplitude * omega) * r) + swing * dr
-        command[0] = swing * r + q0
-    return float(np.dot(err, err)), float(np.abs(err).max())
-
-
-@settings(max_examples=200, deadline=None)
-@given(data=st.data(), n=st.integers(1, 12), elapsed=st.floats(0.0, 20.0), ramp=st.sampled_from([0.0, 0.5, 2.0]))
-def test_the_compiled_sine_tick_matches_the_numpy_formulation(data, n, elapsed, ramp):
-    from aiohal import kernel_call
-    from aiohal.controllers import sine_kernels
-
-    def vector(lo, hi):
-        return np.array(data.draw(st.lists(st.floats(lo, hi), min_size=n, max_size=n)))
-
-    measured, q0, amplitude = vector(-3, 3), vector(-3, 3), vector(-1, 1)
-    omega, phase = vector(0, 20), vector(-4, 4)
-    command = np.array([vector(-3, 3) for _ in range(7)])
-    expected = command.copy()
-    sum_sq, largest = numpy_sine_tick(measured, expected, q0, amplitude, omega, phase, np.sin(phase), elapsed, ramp)
-
-    error = np.array([1.0, 0.25, 3.0])  # what earlier ticks left: the tick adds to it
-    args = (measured, command, q0, amplitude, omega, phase, np.sin(phase), elapsed, ramp, error)
-    kernel_call.check(sine_kernels.sine_tick, args)
-    kernel_call.direct(sine_kernels.sine_tick)(*args)
-    # sin and cos are numba's, not numpy's: equal to the last bit or two
-    np.testing.assert_allclose(command, expected, rtol=0, atol=1e-12)
-    assert error[0] == pytest.approx(1.0 + sum_sq, rel=1e-12)
-    assert error[1] == max(0.25, largest) and error[2] == 3.0 + n
 
 
 @pytest.mark.asyncio

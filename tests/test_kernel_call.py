@@ -20,9 +20,9 @@ def _scale_first(out, rows):
 
 
 def test_a_direct_call_computes_what_the_dispatched_call_does():
-    direct = kernel_call.direct(_scale_first)
     a, b = np.array([1.5, 2.0]), np.array([1.5, 2.0])
     rows = np.full((2, 2), 3, dtype=np.int64)
+    direct = kernel_call.compiled_for(_scale_first, (a, rows))
     assert direct(a, rows) == _scale_first(b, rows) == 4.5
     assert np.array_equal(a, b)
 
@@ -53,7 +53,9 @@ def test_check_refuses_a_read_only_array_the_kernel_writes_and_takes_one_it_only
     kernel_call.check(_scale_first, (np.zeros(3), np.zeros((4, 4), dtype=np.int64)[::2, ::2]))  # strided: "A"
 
 
-def test_check_counts_the_arguments_and_direct_needs_one_signature():
+def test_the_entry_point_is_given_only_for_checked_arrays_and_one_signature():
+    with pytest.raises(TypeError, match="argument 0: not C-contiguous"):
+        kernel_call.compiled_for(_scale_first, (np.zeros(6)[::2], np.zeros((1, 1), dtype=np.int64)))
     with pytest.raises(TypeError, match="takes 2 arguments, got 1"):
         kernel_call.check(_scale_first, (np.zeros(3),))
 
@@ -62,7 +64,7 @@ def test_check_counts_the_arguments_and_direct_needs_one_signature():
         return 2 * x
 
     with pytest.raises(TypeError, match="one explicit signature is needed.*it has 2"):
-        kernel_call.direct(twice)
+        kernel_call.compiled_for(twice, (1.0,))
 
 
 def _robot(n=3):

@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 
 from aiohal import kernel_call
 from aiohal.drivers import mock_kernels
-from aiohal.robot import JOINT_COMMAND_FIELDS, Mode
+from aiohal.drivers.mock import MOVED_ROWS
+from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, CommandRow, Mode
 from helpers import arm_raw, virtual_loop
 from aiohal.hal import Controller
 
@@ -199,12 +200,14 @@ def test_views_write_in_place():
 
 
 def numpy_step(command, mode, sim, dt, alpha):
-    """The mock's step as it was written with numpy before the kernel (alpha None: mirror)."""
-    position, motion, effort = sim
+    """The mock's step in plain numpy, the reference the compiled step must match (alpha None:
+    mirror; ``sim`` has the state block's rows)."""
+    position, motion, effort = (sim[row] for row in MOVED_ROWS)
+    command = {row: command[row] for row in CommandRow}
     velocity_rows, effort_rows = mode == Mode.VELOCITY, mode == Mode.EFFORT
     with np.errstate(all="ignore"):
-        target = command[0].copy()
-        tmp = np.multiply(command[1], dt)
+        target = command[CommandRow.POSITION].copy()
+        tmp = np.multiply(command[CommandRow.VELOCITY], dt)
         tmp += position
         np.copyto(target, tmp, where=velocity_rows)
         np.copyto(target, position, where=effort_rows)
@@ -213,7 +216,7 @@ def numpy_step(command, mode, sim, dt, alpha):
             motion *= alpha
         position += motion
         motion *= 1.0 / dt
-        np.add(command[2], command[5], out=effort)
+        np.add(command[CommandRow.EFFORT], command[CommandRow.FEEDFORWARD], out=effort)
 
 
 FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64) | st.floats(-10.0, 10.0)
@@ -226,39 +229,18 @@ def test_the_compiled_step_matches_the_numpy_formulation(data, n, dt, first_orde
     vectors = st.lists(FLOATS, min_size=n, max_size=n)
     command = np.array([data.draw(vectors) for _ in JOINT_COMMAND_FIELDS])
     mode = np.array(data.draw(st.lists(st.sampled_from(list(Mode)), min_size=n, max_size=n)), dtype=np.int8)
-    sim = np.array([data.draw(vectors) for _ in range(3)])
+    sim = np.array([data.draw(vectors) for _ in JOINT_STATE_FIELDS])
     alpha = 1.0 - math.exp(-dt / 0.02) if first_order else 1.0
     expected = sim.copy()
     numpy_step(command, mode, expected, dt, alpha if first_order else None)
 
     ticks, stamps = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
     args = (command, mode, sim, dt, first_order, alpha, 1.0 / dt, True, ticks, stamps, 5, 77)
-    kernel_call.check(mock_kernels.step_joints, args)
-    kernel_call.direct(mock_kernels.step_joints)(*args)
+    kernel_call.compiled_for(mock_kernels.step_joints, args)(*args)
     nan = np.isnan(expected)  # equal bits elsewhere (0.0 is not -0.0), NaN where NaN
     np.testing.assert_array_equal(np.isnan(sim), nan)
     np.testing.assert_array_equal(sim[~nan].view(np.uint64), expected[~nan].view(np.uint64))
     assert (ticks == 5).all() and (stamps == 77).all()
-
-
-@settings(max_examples=300, deadline=None)
-@given(data=st.data(), n=st.integers(1, 4), hand_speed=st.floats(0.0, 5.0))
-def test_the_compiled_hand_step_matches_the_python_formulation(data, n, hand_speed):
-    rows = [np.array(data.draw(st.lists(FLOATS, min_size=n, max_size=n))) for _ in range(5)]
-    grasp, speed, force, position, effort = rows
-    expected_position, expected_effort = position.copy(), effort.copy()
-    for i in range(n):  # the mock's hand step as it was written per hand, with Python's min/max
-        step = hand_speed * float(speed[i]) * 1e-3
-        before = float(position[i])
-        expected_position[i] = min(max(float(grasp[i]), before - step), before + step)
-        expected_effort[i] = float(force[i]) if before > 0.0 else 0.0
-    args = (*rows, hand_speed, 1e-3)
-    kernel_call.check(mock_kernels.step_hands, args)
-    kernel_call.direct(mock_kernels.step_hands)(*args)
-    for got, expected in ((position, expected_position), (effort, expected_effort)):
-        nan = np.isnan(expected)
-        np.testing.assert_array_equal(np.isnan(got), nan)
-        np.testing.assert_array_equal(got[~nan].view(np.uint64), expected[~nan].view(np.uint64))
 
 
 @pytest.mark.asyncio

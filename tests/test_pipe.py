@@ -23,7 +23,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal import pipe
+from aiohal.pipe import codec
 from aiohal.pipe import (
     HEADER,
     MAGIC,
@@ -224,7 +224,7 @@ def test_fields_default_to_zero_and_unknown_fields_are_refused():
 
 
 def test_bad_message_definitions_are_refused(monkeypatch):
-    monkeypatch.setattr(pipe, "_REGISTRY", dict(pipe._REGISTRY))  # whatever registers here is undone
+    monkeypatch.setattr(codec, "_REGISTRY", dict(codec._REGISTRY))  # whatever registers here is undone
     cases = [
         ("already", lambda: type("Clash", (Message,), {"TYPE": 201, "FIELDS": (("x", "d"),)})),
         ("MAX_MESSAGE", lambda: type("Huge", (Message,), {"TYPE": 230, "FIELDS": tuple((f"x{i}", "d") for i in range(31))})),
@@ -241,7 +241,7 @@ def test_bad_message_definitions_are_refused(monkeypatch):
         with pytest.raises(MessageDefinitionError, match=why):
             define()
     assert issubclass(MessageDefinitionError, TypeError)
-    assert pipe._REGISTRY[201] is Grip  # a refused class registered nothing
+    assert codec._REGISTRY[201] is Grip  # a refused class registered nothing
     # 31 doubles are 264 bytes with the header; 30 (256 bytes) are the most that fit
     Fits = type("Fits", (Message,), {"TYPE": 235, "FIELDS": tuple((f"x{i}", "d") for i in range(30))})
     assert len(Fits().encode()) == MAX_MESSAGE
@@ -249,7 +249,7 @@ def test_bad_message_definitions_are_refused(monkeypatch):
     for _ in range(2):
         class Again(Message):
             TYPE = 236
-    assert pipe._REGISTRY[236] is Again
+    assert codec._REGISTRY[236] is Again
 
 
 # ---------------------------------------------------------------- the ends, in one process
@@ -560,9 +560,9 @@ def test_nrt_thread_drops_an_inherited_realtime_policy(peers):
 
 def test_peer_start_refuses_bad_arguments():
     with pytest.raises(ValueError, match="mode"):
-        NrtPeer.start("aiohal.pipe:echo", mode="fork")
+        NrtPeer.start("benchmarks.pipe_targets:echo", mode="fork")
     with pytest.raises(TypeError):
-        NrtPeer.start("aiohal.pipe:echo", {"when": object()}, mode="thread")
+        NrtPeer.start("benchmarks.pipe_targets:echo", {"when": object()}, mode="thread")
     with pytest.raises(ValueError, match="package.module:function"):
         NrtPeer.start("aiohal.pipe", mode="thread")
     with pytest.raises(AttributeError):
@@ -570,7 +570,7 @@ def test_peer_start_refuses_bad_arguments():
 
 
 def test_subprocess_echo_and_clean_stop(peers):
-    peer = NrtPeer.start("aiohal.pipe:echo", mode="subprocess")
+    peer = NrtPeer.start("benchmarks.pipe_targets:echo", mode="subprocess")
     peers.append(peer)
     assert peer.pid and peer.pid != os.getpid() and peer.alive()
     fast = peer.fast
@@ -589,7 +589,7 @@ def test_subprocess_echo_and_clean_stop(peers):
 
 
 def test_subprocess_killed_mid_run_is_detected(peers):
-    peer = NrtPeer.start("aiohal.pipe:echo", mode="subprocess")
+    peer = NrtPeer.start("benchmarks.pipe_targets:echo", mode="subprocess")
     peers.append(peer)
     fast = Timed(peer.fast)
     echoes: list[Message] = []
@@ -611,7 +611,7 @@ def test_subprocess_killed_mid_run_is_detected(peers):
 
 
 def test_stopped_subprocess_never_blocks_the_fast_side_and_stop_escalates(peers):
-    peer = NrtPeer.start("aiohal.pipe:echo", mode="subprocess")
+    peer = NrtPeer.start("benchmarks.pipe_targets:echo", mode="subprocess")
     peers.append(peer)
     os.kill(peer.pid, signal.SIGSTOP)  # the NRT side stalls completely (it cannot even be scheduled)
     fast = Timed(peer.fast)

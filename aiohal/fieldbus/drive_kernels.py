@@ -1,23 +1,21 @@
 """The drives' per-cycle conversions, compiled with numba: process image ↔ robot arrays.
 
-Why compiled: in CPython each drive cost a struct call and about twenty interpreted
-operations each way: with 7 drives, decode 17.5–18 µs and encode 24–25 µs per tick in the
-loop (``benchmarks.ethercat --breakdown 7``, before the kernels). A numba kernel loops over the drives
-in machine code, and its fixed cost (the call, the arguments' types) is paid once per cycle,
-whatever the number of drives. numba does this better than a hand-written C extension would
-here: no compiler at install time, the kernels stay readable Python, and they are cached
-on disk after the first compilation.
+Why compiled: in CPython each drive costs a struct call and about twenty interpreted
+operations each way. A numba kernel loops over the drives in machine code, and its fixed cost
+(the call, the arguments' types) is paid once per cycle, whatever the number of drives
+(figures: docs/performance.md, "Why the compiled kernels are kept"). numba does this better
+than a hand-written C extension would here: no compiler at install time, the kernels stay
+readable Python, and they are cached on disk after the first compilation.
 
-Arguments are few on purpose: numba's call costs about 0.3 µs per argument on this kind of
-machine, so each drive's byte offsets and row are one row of ``layout`` (int64: the input
-variables' offsets in :data:`~.drives.DRIVE_INPUTS` order, the outputs' in
+Arguments are few on purpose: each adds to the cost of a call, so each drive's byte offsets
+and row are one row of ``layout`` (int64: the input variables' offsets in
+:data:`~.drives.DRIVE_INPUTS` order, the outputs' in
 :data:`~.drives.DRIVE_OUTPUTS` order, then the joint's row), its unit constants one row of
 ``constants`` (float64, columns below) and its integer state one row of ``ints`` (int64,
 columns below). Values are little-endian, as on the bus.
 
-Everything a kernel reads from outside is passed in or is a literal here: numba freezes
-module globals into its on-disk cache, which only notices changes to this file. The literal
-tables are checked against their sources at import.
+Everything else a kernel reads is a constant of this module, taken from :mod:`aiohal.robot`
+and :mod:`aiohal.fieldbus.cia402` (see ``CommandRow`` in aiohal.robot about numba's cache).
 """
 
 from __future__ import annotations
@@ -28,7 +26,7 @@ from numba import njit, types
 from aiohal.fieldbus.cia402 import CSP as _CSP
 from aiohal.fieldbus.cia402 import CST as _CST
 from aiohal.fieldbus.cia402 import CSV as _CSV
-from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, Mode
+from aiohal.robot import CommandRow, Mode, StateRow
 
 # layout columns: 5 input offsets, 5 output offsets, the joint's row
 IN, OUT, ROW = 0, 5, 10
@@ -37,18 +35,15 @@ RAD_PER_COUNT, MOTOR_RAD_PER_COUNT, NM_PER_PER_MILLE, POSITION_OFFSET, COUNTS_PE
 # ints columns (int64): VALID says the drive's position was read once (so it can be unwrapped)
 STATUSWORD, ERROR_CODE, RAW_POSITION, COUNTS, CONTROLWORD, HOLD, VALID = range(7)
 # rows of the joints' state and command blocks (aiohal.robot), and the CiA 402 modes
-S_POSITION, S_VELOCITY, S_EFFORT, S_MOTOR_POSITION = 0, 1, 2, 3
-C_POSITION, C_VELOCITY, C_EFFORT, C_FEEDFORWARD = 0, 1, 2, 5
-CSP, CSV, CST = 8, 9, 10
-#: joint command mode (index) → CiA 402 mode of operation (impedance runs as CSP: the drive's own loop)
-MODE_OF_OPERATION = np.array([CSP, CSP, CSV, CST, CSP], dtype=np.int64)
-
-if (JOINT_STATE_FIELDS[:4] != ("position", "velocity", "effort", "motor_position")
-        or tuple(JOINT_COMMAND_FIELDS[i] for i in (0, 1, 2, 5)) != ("position", "velocity", "effort", "feedforward")
-        or (CSP, CSV, CST) != (int(_CSP), int(_CSV), int(_CST))
-        or [int(m) for m in (Mode.NONE, Mode.POSITION, Mode.VELOCITY, Mode.EFFORT, Mode.IMPEDANCE)] != [0, 1, 2, 3, 4]
-        or len(Mode) != len(MODE_OF_OPERATION)):
-    raise ImportError("aiohal/fieldbus/drive_kernels.py: its literal rows or modes no longer match aiohal.robot / aiohal.fieldbus.cia402")
+S_POSITION, S_VELOCITY = int(StateRow.POSITION), int(StateRow.VELOCITY)
+S_EFFORT, S_MOTOR_POSITION = int(StateRow.EFFORT), int(StateRow.MOTOR_POSITION)
+C_POSITION, C_VELOCITY = int(CommandRow.POSITION), int(CommandRow.VELOCITY)
+C_EFFORT, C_FEEDFORWARD = int(CommandRow.EFFORT), int(CommandRow.FEEDFORWARD)
+CSP, CSV, CST = int(_CSP), int(_CSV), int(_CST)
+#: joint command mode → CiA 402 mode of operation (impedance runs as CSP: the drive's own loop)
+MODE_OF_OPERATION = np.full(max(Mode) + 1, CSP, dtype=np.int64)
+MODE_OF_OPERATION[Mode.VELOCITY] = CSV
+MODE_OF_OPERATION[Mode.EFFORT] = CST
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -133,18 +133,17 @@ class DriveGroup:
         self._checked_mode: np.ndarray | None = None
         # the kernels are called directly (numba's dispatch would be most of the call): every
         # array they are given is checked first, here, in bind_state and for each new command
-        self._decode, self._encode = kernel_call.direct(kernels.decode_drives), kernel_call.direct(kernels.encode_drives)
         self._check_decode(self._scratch, *self._scratch_stamps)
         self._check_encode(self._no_command, self._no_mode)
         self.write_holding()
 
     def _check_decode(self, state: np.ndarray, ticks: np.ndarray, stamps: np.ndarray) -> None:
-        kernel_call.check(kernels.decode_drives,
-                          (self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps, 0, 0))
+        self._decode = kernel_call.compiled_for(
+            kernels.decode_drives, (self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps, 0, 0))
 
     def _check_encode(self, block: np.ndarray, mode: np.ndarray) -> None:
-        kernel_call.check(kernels.encode_drives,
-                          (self._outputs, self._layout, self._constants, self.ints, block, mode, False))
+        self._encode = kernel_call.compiled_for(
+            kernels.encode_drives, (self._outputs, self._layout, self._constants, self.ints, block, mode, False))
 
     def __len__(self) -> int:
         return len(self.specs)

@@ -15,10 +15,11 @@ from typing import Any
 
 import numpy as np
 
+from ..safety import SafetyLevel
 from ..stats import PHASES, percentiles_us
 from .cdr import Layout
 
-LEVELS = ("off", "estop", "hold", "run")
+LEVELS = tuple(level.name.lower() for level in sorted(SafetyLevel))  # by value: the recorded number
 
 
 @dataclass

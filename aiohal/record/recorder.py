@@ -131,8 +131,8 @@ class Recorder:
                                [stats.lateness, stats.work, *stats.phases], stats.mask)
         from .. import kernel_call
 
-        kernel_call.check(R.record_tick, (self.ring.data, self.ring.sources, self.ring.state, 0, 0, 0, 0))
-        self._kernel = kernel_call.direct(R.record_tick)
+        self._kernel = kernel_call.compiled_for(R.record_tick, (self.ring.data, self.ring.sources, self.ring.state,
+                                                                0, 0, 0, 0))
         self._file = None
         self._writer = None
         if self.path is not None:

@@ -1,0 +1,89 @@
+"""The circle controller's tick (a closure over its arrays, with MuJoCo's small dense routines)
+against a plain formulation of the same damped-least-squares step in numpy."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from conftest import CONFIGS, require_module
+
+mujoco = require_module("mujoco")
+
+from aiohal.config import parse_config  # noqa: E402
+from aiohal.loop import ControlLoop  # noqa: E402
+from aiohal.ticker import VirtualTickSource  # noqa: E402
+
+
+def plain_step(c, q_all: np.ndarray, elapsed: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """One IK step as the module's docstring states it: the next q* (robot order) and the
+    velocity command of the moving rows."""
+    p = c.params
+    data = mujoco.MjData(c.model)
+    data.qpos[:] = c.data.qpos
+    data.qpos[c.all_qpos] = q_all
+    mujoco.mj_kinematics(c.model, data)
+    mujoco.mj_comPos(c.model, data)
+    x = data.site_xpos[c.site_ids].ravel()
+    jacobians = []
+    for sid in c.site_ids:
+        jac = np.zeros((3, c.model.nv))
+        mujoco.mj_jacSite(c.model, data, jac, None, int(sid))
+        jacobians.append(jac[:, c.dof_adr])
+    J = np.vstack(jacobians)
+
+    phase = c.omega * elapsed
+    x_d = c.center + p.radius * (math.cos(phase) * c.U + math.sin(phase) * c.V)
+    v_d = p.radius * c.omega * (-math.sin(phase) * c.U + math.cos(phase) * c.V)
+    if elapsed < p.ramp:  # minimum-jerk blend from the start pose
+        r = elapsed / p.ramp
+        b = r**3 * (10 - 15 * r + 6 * r**2)
+        db = 30 * r**2 * (1 - r) ** 2 / p.ramp
+        v_d = b * v_d + db * (x_d - c.x_start)
+        x_d = c.x_start + b * (x_d - c.x_start)
+    task = v_d + p.gain * (x_d - x)
+    dq = J.T @ np.linalg.solve(J @ J.T + p.damping**2 * np.eye(len(x)), task) * dt
+    limit = c.max_step * dt
+    dq = np.clip(dq, -limit, limit)
+    q_next = q_all.copy()
+    q_next[c.rows] = np.clip(q_all[c.rows] + dq, c.q_min, c.q_max)
+    return q_next, dq / dt
+
+
+@pytest.fixture(scope="module")
+def started():
+    """A lockstep KUKA loop, activated and run for a few ticks: its controller started."""
+    import asyncio
+
+    raw = tomllib.loads((CONFIGS / "kuka_lwr_sim.toml").read_text())
+    # the test sets the tick's time and pose at will: far from the circle, not a tracking fault
+    raw["controller"]["params"]["max_error_m"] = 100.0
+    config = parse_config(raw, base_dir=CONFIGS).with_loop(clock="virtual")
+    loop = ControlLoop(config, tick_source=VirtualTickSource())
+    runner = asyncio.new_event_loop()
+    runner.run_until_complete(loop.__aenter__())
+    runner.run_until_complete(loop.run(ticks=5))
+    yield loop
+    runner.run_until_complete(loop.__aexit__(None, None, None))
+    runner.close()
+
+
+@settings(max_examples=40, deadline=None)
+@given(elapsed=st.floats(0.0, 12.0), dt=st.sampled_from([0.001, 0.002, 0.004]),
+       nudge=st.lists(st.floats(-0.05, 0.05), min_size=7, max_size=7))
+def test_the_circle_tick_matches_the_plain_formulation(started, elapsed, dt, nudge):
+    c = started.controller
+    command = started.robot.command
+    q_cmd = c.q_cmd
+    q_cmd += np.array(nudge)  # any commanded configuration near the start pose
+    before = q_cmd.copy()
+    expected_q, expected_v = plain_step(c, before, elapsed, dt)
+    c.update(c.t0 + elapsed, dt)
+    np.testing.assert_allclose(command.position, expected_q, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(command.velocity[c.rows], expected_v, rtol=0, atol=1e-7)
+    np.copyto(q_cmd, before - np.array(nudge))  # back near the start for the next example
