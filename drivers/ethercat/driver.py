@@ -180,7 +180,8 @@ class EthercatOptions(Options):
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
     safeop_timeout_s: FiniteFloat = Field(2.0, gt=0, description="Mapped slaves reach SAFEOP within this (a request "
                                                                    "lost in a stall is sent again).")
-    op_timeout_s: FiniteFloat = Field(5.0, gt=0)
+    op_timeout_s: FiniteFloat = Field(10.0, gt=0, description="SAFEOP -> OP within this (a slave's ESI gives its "
+                                                               "SafeopOpTimeout; drives can take seconds).")
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
 
     def sync0_slaves(self) -> list[int]:
@@ -270,6 +271,7 @@ class EthercatDriver(Driver):
         period_ns = self.view.clock.period_ns
         self._lock = threading.Lock()  # one thread at a time on the cyclic frame and the device state
         self._activated = False  # the first read (activation) was done
+        self._in_op = False  # every slave reached OP: the drives apply outputs, their machines run
         self._estop_requested = False
         self._estop_sent = False
         self._outstanding = False  # a cyclic frame was sent and not yet received
@@ -354,6 +356,7 @@ class EthercatDriver(Driver):
         self._on_event = self._on_drive_event  # bound once, not on every read
         period_s = self.view.clock.period_ns * 1e-9
         bus.request_op(self._bringup_cycle, opts.op_timeout_s, period_s)
+        self._in_op = True
         log.info("ethercat %s: %d slave(s) in OP on %s, %d B out / %d B in", self.name, len(self.infos),
                  opts.interface, len(image.outputs), len(image.inputs))
         self._start_keepalive(period_s)
@@ -406,7 +409,8 @@ class EthercatDriver(Driver):
             self._load_inputs()
             if self.drives is not None:
                 self.drives.decode(0, 0, into_state=False)  # the robot's state is the loop's
-                self.drives.update_machines(self._on_drive_event)
+                if self._in_op:  # before OP a drive ignores its outputs: a fault reset would be spent
+                    self.drives.update_machines(self._on_drive_event)
         return wkc
 
     def _pack_outputs_holding(self) -> None:
