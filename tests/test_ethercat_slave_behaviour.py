@@ -58,3 +58,42 @@ async def test_a_drive_in_fault_at_power_on_is_reset_and_enabled_after_a_slow_sa
     drive3 = status["slaves"][2]["device"]
     assert drive3["state"] == "operation_enabled" and drive3["faults"] == 1
     assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "7/7"
+
+
+@pytest.mark.asyncio
+async def test_a_sensor_dropped_to_safeop_error_is_faulted_with_its_al_status_within_100_ms(segment):
+    """In SAFEOP its SyncManagers still work, so the working counter stays right: only the
+    periodic AL state check sees it."""
+    seen: dict = {}
+
+    def drop_ft(loop):
+        driver = driver_of(loop)
+
+        def run():
+            segment.control({"cmd": "al_error", "slave": 8, "code": 0x001B})  # SM watchdog
+            seen["done"] = driver.cycles
+
+        seen["future"] = asyncio.get_running_loop().run_in_executor(None, run)
+
+    def watch(loop):
+        tick = loop.robot.clock.tick
+        if tick == 500:
+            drop_ft(loop)
+        if "done" in seen and "faulted" not in seen and loop.robot.device("wrist_ft").fault:
+            seen["faulted"] = driver_of(loop).cycles
+        if "faulted" in seen and driver_of(loop).cycles > seen["faulted"] + 50:
+            loop.request_stop("seen")
+
+    raw = raw_config(segment.ifname, recover_interval_s=60)  # it stays lost for the assertions
+    async with ControlLoop(parse_config(raw)) as loop:
+        loop.add_publisher(watch)
+        report = await loop.run(ticks=8000)
+        await seen["future"]
+        bus = report["drivers"]["bus"]
+    assert loop.stop_reason == "seen", loop.stop_reason
+    # the check runs every 20 bus cycles (1 kHz): faulted within 100 of the slave's drop
+    assert seen["faulted"] - seen["done"] < 100, seen
+    lost = [f for f in report["faults"] if "ft" in f["error"] and "lost" in f["error"]]
+    assert len(lost) == 1 and "SAFEOP+ERROR, AL status 0x001B (Sync manager watchdog)" in lost[0]["error"]
+    assert bus["wkc_errors"] == bus["frames_lost"]  # the working counter never showed it
+    assert report["safety_level"] == "run" and bus["lost"] == ["ft"]

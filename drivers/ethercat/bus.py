@@ -18,6 +18,7 @@ import functools
 import logging
 import socket
 import struct
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -91,6 +92,9 @@ class Bus:
         #: pysoem's errors for a mailbox or datagram frame that did not come back (not a refusal)
         self.lost_frame = (pysoem.MailboxError, pysoem.PacketError, pysoem.WkcError)
         self.is_open = False
+        #: the AL states are read from the tick (after a bus error) and off it (the periodic
+        #: check): one at a time, so that a read never sees another's half-written states
+        self._states_lock = threading.Lock()
 
     # ------------------------------------------------------------ bring-up
 
@@ -290,8 +294,9 @@ class Bus:
 
     def states(self) -> list[int]:
         """Every slave's AL state, read now (holds the GIL for a frame or two)."""
-        self.master.read_state()
-        return [s.state for s in self.slaves]
+        with self._states_lock:
+            self.master.read_state()
+            return [s.state for s in self.slaves]
 
     def recover_steps(self, positions: Sequence[int]) -> list[int]:
         """One quick step toward OP for each slave that dropped out: acknowledge an error, or
@@ -299,14 +304,15 @@ class Bus:
         (gone, or back after losing power) would need SOEM's reconfig / recover, which wait
         up to seconds holding the GIL: that is not done here. Returns every slave's state."""
         states = self.states()
-        for position in positions:
-            slave, state = self.slaves[position], states[position]
-            if state == SAFEOP | STATE_ERROR:
-                slave.state = SAFEOP | STATE_ACK
-                slave.write_state()
-            elif state == SAFEOP:
-                slave.state = OP
-                slave.write_state()
+        with self._states_lock:
+            for position in positions:
+                slave, state = self.slaves[position], states[position]
+                if state == SAFEOP | STATE_ERROR:
+                    slave.state = SAFEOP | STATE_ACK
+                    slave.write_state()
+                elif state == SAFEOP:
+                    slave.state = OP
+                    slave.write_state()
         return states
 
     def watch_emergencies(self, on_emergency: Any) -> None:

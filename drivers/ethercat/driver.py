@@ -172,6 +172,9 @@ class EthercatOptions(Options):
                                            "drives need it, e.g. in CSP); needs dc.")
     sync0_shift_us: FiniteFloat = Field(0.0, ge=0, description="SYNC0 pulses this long after the period's DC time.")
     wkc_error_limit: int = Field(10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read.")
+    al_check_interval_ms: FiniteFloat = Field(
+        20.0, ge=1, le=10_000, description="Every slave's AL state is read this often, off the tick: a slave in SAFEOP "
+                                           "(+ERROR) keeps its working counter, so only its state tells.")
     recover_interval_s: FiniteFloat = Field(1.0, gt=0, description="Between two recovery steps of a lost sensor.")
     bringup_attempts: int = Field(2, ge=1, le=10, description="A bring-up that fails is tried again from scratch.")
     enable_on_open: bool = Field(True, description="Enable the drives at bring-up; else enable_drives() does.")
@@ -282,6 +285,12 @@ class EthercatDriver(Driver):
         self._keepalive_stop = threading.Event()
         self._keepalive_error: BaseException | None = None
         self._keepalive_cycles = 0
+        self._wake = threading.Event()  # the keep-alive thread: stop, or an AL state check is due
+        self._al_every = max(1, round(self.options.al_check_interval_ms * 1e6 / period_ns))  # in bus cycles
+        self._al_next = 0  # the bus cycle at which write() asks for the next AL state check
+        self._al_due = False
+        self._al_found: list[int] | None = None  # states read off the tick with a slave out of OP
+        self.al_checks = 0
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
         self.infos: list[SlaveInfo] = []
         self.image: ProcessImage | None = None
@@ -427,19 +436,29 @@ class EthercatDriver(Driver):
         check_s = self._keepalive_after_ns / 2e9
         running_timeout_us = max(2 * self.view.clock.period_ns // 1000, self.options.receive_timeout_us)
 
+        al_every_s = self.options.al_check_interval_ms / 1e3
+        wake = self._wake
+
         def run() -> None:
             try:
-                deadline = time.monotonic()
+                deadline = next_al = time.monotonic()
                 while not self._keepalive_stop.is_set():
                     if time.monotonic_ns() - self._last_tick_ns < self._keepalive_after_ns:
                         ready.set()
-                        self._keepalive_stop.wait(check_s)
-                        deadline = time.monotonic()
+                        wake.wait(check_s)  # set by write() when an AL state check is due
+                        wake.clear()
+                        if self._al_due:
+                            self._al_due = False
+                            self._check_al_states()
+                        deadline = next_al = time.monotonic()
                         continue
                     with self._lock:
                         self._bringup_cycle(running_timeout_us if self._activated else None)
                         self._keepalive_cycles += 1
                     ready.set()
+                    if self._activated and time.monotonic() >= next_al:
+                        next_al = time.monotonic() + al_every_s
+                        self._check_al_states()
                     deadline += period_s
                     time.sleep(max(0.0, deadline - time.monotonic()))
             except BaseException as exc:  # reported by the next read, or by open
@@ -454,6 +473,7 @@ class EthercatDriver(Driver):
         thread, self._keepalive = self._keepalive, None
         if thread is not None:
             self._keepalive_stop.set()
+            self._wake.set()
             thread.join(2.0)
         self._raise_keepalive_error(raise_error)
 
@@ -538,6 +558,9 @@ class EthercatDriver(Driver):
             if self._check_states:  # a slave in SAFEOP still counts in the working counter
                 self._check_states = False
                 self._diagnose(wkc)
+            if self._al_found is not None:
+                states, self._al_found = self._al_found, None
+                self._judge(states, "AL state check")
             if self.lost and time.monotonic() >= self._next_recover:
                 self._recover_lost()
         self._read_cpu = (perf() - t0) - (received - sent)
@@ -592,6 +615,10 @@ class EthercatDriver(Driver):
             if self._split and not self._outstanding:
                 self._send_now()
                 self._outstanding = True
+            if self.cycles >= self._al_next:  # the AL states, read while the loop waits for its next tick
+                self._al_next = self.cycles + self._al_every
+                self._al_due = True
+                self._wake.set()
         self._cpu_ns[self.cycles & (RING - 1)] = self._read_cpu + perf() - t0
 
     def _advance_tares(self) -> None:
@@ -665,26 +692,49 @@ class EthercatDriver(Driver):
         """``wkc_error_limit`` bad cycles in a row: which slaves are not in OP?"""
         self.diagnoses += 1
         self._bad_run = 0
+        expected = self._expected  # the failing cycle's, before the states change it
         states = self.bus.states()  # holds the GIL for a frame or two
+        if wkc != expected and all(st == OP for st in states):
+            self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
+                               self.name, wkc, expected)
+        self._judge(states, f"working counter {wkc}/{expected}")
+
+    def _check_al_states(self) -> None:
+        """Off the tick (the keep-alive thread): every slave's AL state. A slave that dropped to
+        SAFEOP (+ERROR) keeps its SyncManagers, so the working counter does not show it; the
+        loop's next read() judges what this finds. ``read_state`` holds the GIL for one frame
+        (two when states differ), so it runs right after write(), while the loop waits."""
+        try:
+            states = self.bus.states()
+        except Exception as exc:  # a frame lost: the next check reads again
+            self._warn.warning("alcheck", "ethercat %s: reading the AL states failed: %s", self.name, exc)
+            return
+        self.al_checks += 1
+        if any(st != OP for st in states) or self.lost:
+            self._al_found = states
+
+    def _judge(self, states: list[int], why: str) -> None:
+        """States read: a drive out of OP fails the driver, another slave is lost (reported
+        with its AL status code, recovered step by step)."""
         lost = {i for i, st in enumerate(states) if st != OP}
         self._update_lost(states, lost)
         if not lost:
-            if wkc != self._expected:
-                self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
-                                   self.name, wkc, self._expected)
             return
+        slaves = self.bus.slaves
         describe = {i: f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
-                       f"{self.bus.slaves[i].al_status:04X}" for i in sorted(lost)}
+                       f"{slaves[i].al_status:04X} ({pysoem.al_status_code_to_string(slaves[i].al_status)})"
+                    for i in sorted(lost)}
         drives_lost = [i for i in sorted(lost) if self.options.slaves[i].kind == "cia402"]
         if drives_lost:
             joints = ", ".join(self.options.slaves[i].joint or "?" for i in drives_lost)
-            raise EthercatError(f"working counter {wkc}/{self._expected}: drive(s) of joint(s) {joints} "
-                                f"out of OP: " + "; ".join(describe.values()))
-        for i in sorted(lost - self._reported):
+            raise EthercatError(f"{why}: drive(s) of joint(s) {joints} out of OP: " + "; ".join(describe.values()))
+        new = lost - self._reported
+        for i in sorted(new):
             self.view.report_fault("read", f"{describe[i]}: lost; the run goes on without it, "
                                    f"recovery every {self.options.recover_interval_s:g} s")
         self._reported = set(lost)
-        self._next_recover = time.monotonic() + self.options.recover_interval_s
+        if new:  # (a check finding it still lost does not put its recovery off)
+            self._next_recover = time.monotonic() + self.options.recover_interval_s
 
     def _update_lost(self, states: list[int], lost: set[int]) -> None:
         """New states read: who is lost, who came back, and the working counter to expect (a
@@ -859,6 +909,7 @@ class EthercatDriver(Driver):
             out["cpu_us"] = [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
         if self._keepalive_cycles:
             out["keepalive_cycles"] = self._keepalive_cycles
+        out["al_checks"] = self.al_checks
         if self.drives is not None:
             enabled = self._enabled_at_close
             if enabled is None:
