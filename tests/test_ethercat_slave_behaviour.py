@@ -9,6 +9,7 @@ Through real SOEM (pysoem) against the simulated segment over veth, like
 from __future__ import annotations
 
 import asyncio
+import re
 import subprocess
 import sys
 import time
@@ -97,3 +98,95 @@ async def test_a_sensor_dropped_to_safeop_error_is_faulted_with_its_al_status_wi
     assert len(lost) == 1 and "SAFEOP+ERROR, AL status 0x001B (Sync manager watchdog)" in lost[0]["error"]
     assert bus["wkc_errors"] == bus["frames_lost"]  # the working counter never showed it
     assert report["safety_level"] == "run" and bus["lost"] == ["ft"]
+
+
+def _config_file(segment, tmp_path, name="ethercat_sim.toml", **options) -> str:
+    text = CONFIG.read_text().replace('interface = "ecm0"', f'interface = "{segment.ifname}"')
+    # this shared host stalls for longer than the loop's own feedback watchdogs at times
+    text = text.replace("rate_hz = 1000\n", "rate_hz = 1000\nmax_feedback_age = 5000\nstall_timeout_ms = 5000\n", 1)
+    for key, value in options.items():
+        text = text.replace("sync0 = true", f"sync0 = true\n{key} = {value}")
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def _wait_all_op(segment, timeout_s=60.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if all(s["state"] == "OP" for s in segment.status()["slaves"]):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _second_master(config: str, tmp_path, **env) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "aiohal", config, "--duration", "1"], capture_output=True,
+                          text=True, timeout=120, cwd=ROOT, env={**__import__("os").environ, **env})
+
+
+@pytest.mark.parametrize("refused_by", ["lock", "op"])
+def test_a_second_master_is_refused_and_the_first_keeps_running(segment, tmp_path, refused_by):
+    """A second ``python -m aiohal`` on the interface: refused by the first one's lock on it,
+    or (another master that is not aiohal here: a lock directory of its own) because the
+    slaves are in OP; exit 1 before anything is written, and the first runs on undisturbed."""
+    config = _config_file(segment, tmp_path)
+    report_path = tmp_path / "first.json"
+    first = subprocess.Popen([sys.executable, "-m", "aiohal", config, "--duration", "8", "--quiet",
+                              "--report-json", str(report_path)], cwd=ROOT, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        assert _wait_all_op(segment), "the first master did not bring the bus up"
+        counters_before = segment.status()["commands"]
+        env = {"AIOHAL_LOCK_DIR": str(tmp_path)} if refused_by == "op" else {}
+        second = _second_master(config, tmp_path, **env)
+        counters_after = segment.status()["commands"]
+        _, first_err = first.communicate(timeout=120)
+    finally:
+        if first.poll() is None:
+            first.kill()
+    assert second.returncode == 1, second.stderr[-2000:]
+    if refused_by == "lock":
+        assert "is held by another aiohal process (pid " in second.stderr
+    else:
+        assert re.search(r"are in OP \(AL states ORed: 0x[0-9A-F]{2}\): another master is running this bus",
+                         second.stderr), second.stderr[-2000:]
+        assert "options.take_over = true" in second.stderr
+    # nothing written by the second: no broadcast or addressed write beyond the first's own
+    assert counters_after.get("BWR", 0) == counters_before.get("BWR", 0)
+    assert counters_after.get("APWR", 0) == counters_before.get("APWR", 0)
+    assert first.returncode == 0, first_err[-3000:]
+    report = __import__("json").loads(report_path.read_text())
+    bus = report["drivers"]["bus"]
+    assert report["faults"] == [] and bus["drives_enabled"] == "7/7"
+    assert bus["wkc_errors"] == bus["frames_lost"] <= max(20, bus["cycles"] // 20)  # late frames (stalls) only
+
+
+@pytest.mark.asyncio
+async def test_a_drive_without_pdo_assignment_objects_is_mapped_from_its_sii(segment, caplog):
+    """0x1C12/0x1C13 answered "object does not exist": SOEM maps the PDOs its SII describes,
+    and the driver reads its layout from there too."""
+    segment.control({"cmd": "hide_objects", "slave": 0, "indices": [0x1C12, 0x1C13]})
+    with caplog.at_level("INFO", logger="aiohal.drivers.ethercat.bus"):
+        async with ControlLoop(parse_config(raw_config(segment.ifname))) as loop:
+            runs = TicksRun()
+            loop.add_publisher(runs)
+            report = await runs.run(loop, 300)
+            layout = driver_of(loop).infos[0].layout
+    assert "slave 0 (AIOHAL-Drive) has no PDO assignment object (0x1C12/0x1C13)" in caplog.text
+    assert (layout.output_bits, layout.input_bits) == (13 * 8, 15 * 8)
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "7/7"
+
+
+@pytest.mark.asyncio
+async def test_a_configuration_error_is_not_retried_and_its_message_stays(segment, caplog):
+    from aiohal.errors import DriverError
+
+    segment.control({"cmd": "dc", "slave": 3, "supported": False})
+    loop = ControlLoop(parse_config(raw_config(segment.ifname)))  # the shipped sync0 = true
+    with caplog.at_level("WARNING", logger="aiohal.drivers.ethercat.driver"):
+        with pytest.raises(DriverError) as err:
+            await loop.activate()
+    assert "slave 3 (AIOHAL-Drive) did not take SYNC0 at 1000000 ns" in str(err.value)
+    assert "trying again" not in caplog.text
+    assert segment.status()["counters"]["frames"] > 0 and not driver_of(loop).bus.is_open

@@ -40,13 +40,24 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 from pydantic import Field
 
-from aiohal.busvar import LayoutError, PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError, encode_mapping
+from aiohal.busvar import PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError, encode_mapping
 from aiohal.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 
-from .bus import OP, SAFEOP, BringUpError, Bus, EthercatError, SlaveInfo, check_identity, expected_wkc, state_name
+from .bus import (
+    OP,
+    SAFEOP,
+    BringUpError,
+    Bus,
+    EthercatError,
+    SlaveInfo,
+    TransientBringUpError,
+    check_identity,
+    expected_wkc,
+    state_name,
+)
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 
 log = logging.getLogger(__name__)
@@ -166,6 +177,8 @@ class EthercatOptions(Options):
     bringup_receive_timeout_us: int = Field(50_000, ge=1000, le=1_000_000)
     frame_timeout_us: int | None = Field(None, ge=500, le=100_000,
                                          description="pysoem.settings.timeouts.ret (process-wide) for bring-up frames.")
+    take_over: bool = Field(False, description="Bring up a bus whose slaves are in OP under another master (not "
+                                               "aiohal), knocking that one off; refused otherwise.")
     overlap_map: bool = Field(False, description="config_overlap_map (inputs and outputs share logical addresses).")
     dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
     sync0: bool = Field(False, description="Activate SYNC0 at the loop's period on every cia402 drive (DC-synchronous "
@@ -253,9 +266,10 @@ class EthercatDriver(Driver):
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"ethercat-{self.name}")
         loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
+        first: BaseException | None = None
         for attempt in range(1, opts.bringup_attempts + 1):
             self._init_state()
-            self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map)
+            self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map, take_over=opts.take_over)
             try:
                 await loop.run_in_executor(self._executor, self._bring_up)
                 return
@@ -263,10 +277,15 @@ class EthercatDriver(Driver):
                 self._stop_keepalive(raise_error=False)
                 await loop.run_in_executor(self._executor, self._shutdown)
                 # a frame lost in a stall (an SII or mailbox read, a state change) fails a
-                # bring-up that works the next time; a wrong config fails every attempt
-                retry = attempt < opts.bringup_attempts and not self._estop_requested and isinstance(
-                    exc, (EthercatError, LayoutError, *self.bus.lost_frame))
-                if not retry:
+                # bring-up that works the next time; a configuration error fails every attempt,
+                # and the first error is the one that says why
+                if first is None:
+                    first = exc
+                elif exc is not first:
+                    log.warning("ethercat %s: bring-up attempt %d failed too: %s", self.name, attempt, exc)
+                    raise first  # (chained to this one)
+                if not (attempt < opts.bringup_attempts and not self._estop_requested
+                        and isinstance(exc, (TransientBringUpError, *self.bus.lost_frame))):
                     raise
                 log.warning("ethercat %s: bring-up attempt %d failed (%s), trying again", self.name, attempt, exc)
 
@@ -495,7 +514,9 @@ class EthercatDriver(Driver):
         self._stop_keepalive()
         if self._estop_requested:
             raise BringUpError("emergency stop during bring-up: the drives were not enabled")
-        raise BringUpError(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
+        # a drive still in Fault after its reset would be in Fault again; a slow one may not be
+        error = BringUpError if any(m.faulted for m in self.drives.machines) else TransientBringUpError
+        raise error(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
 
     def _not_enabled(self) -> str:
         return ", ".join(f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")

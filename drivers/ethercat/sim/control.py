@@ -17,6 +17,8 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
 ``repair``         - (undo ``break``)
 ``al_error``       ``slave``, ``code`` (AL status code): SAFEOP (from OP) + error flag
 ``drive_fault``    ``slave``, ``code`` (CiA 402 error code, e.g. 0x2310 over-current)
+``hide_objects``   ``slave``, ``indices`` (list): its SDO server says these objects do not
+                   exist (e.g. 0x1C12/0x1C13: its PDOs are then in its SII only)
 ``op_delay``       ``ms`` (0 = off); ``slave`` (default: all): SAFEOP -> OP takes that long
 ``device``         ``slave`` + device settings (imu: quat/gyro/acc/noise/valid; ft: wrench/
                    noise/force_limit/torque_limit; dio: pattern; drive: load/inertia/viscous/
@@ -28,7 +30,8 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
 ``power_cycle``    ``slave`` (default: all): back to the power-on state (registers, SII,
                    object dictionary values, device model)
 ``clear``          - (drop, delay, wkc faults off; cable repaired; no EEPROM busy; every
-                   slave has DC again, no op_delay, no drive faulted at power-on)
+                   slave has DC again, no op_delay, no drive faulted at power-on, no
+                   hidden objects)
 ``reset_counters`` -
 =================  ==========================================================================
 
@@ -108,6 +111,15 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
     if cmd == "drive_fault":
         seg.drive_fault(_int(c["slave"], "slave"), _int(c.get("code", 0x2310), "code"))
         return None
+    if cmd == "hide_objects":
+        od = seg.slave(_int(c["slave"], "slave")).device.od
+        if od is None:
+            raise ValueError("this slave has no object dictionary")
+        indices = c["indices"]
+        if not isinstance(indices, list):
+            raise ValueError("indices: expected a list")
+        od.hidden = {_int(i, "indices") for i in indices}
+        return None
     if cmd == "op_delay":
         ms = float(c.get("ms", 0))
         if not 0 <= ms <= 60_000:
@@ -145,6 +157,8 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
         seg.eeprom_busy_off()
         for k, esc in enumerate(seg.slaves):
             esc.op_delay_ns = 0
+            if esc.device.od is not None:
+                esc.device.od.hidden = set()
             if getattr(esc.device, "power_on_fault", None) is not None:
                 esc.device.power_on_fault = None
             if not esc.has_dc:
