@@ -9,6 +9,8 @@ from __future__ import annotations
 import itertools
 import json
 import struct
+import subprocess
+import sys
 
 import pytest
 from aiohal.drivers.ethercat.sim import control
@@ -1410,3 +1412,42 @@ def test_fixture_explains_what_is_missing(monkeypatch):
     monkeypatch.setattr(fixture.shutil, "which", lambda tool: None if tool == "unshare" else "/usr/sbin/ip")
     with pytest.raises(fixture.SimulatorUnavailable, match="unshare"):
         fixture.check_environment()
+
+
+def test_the_control_channel_answers_any_input_with_an_error_and_carries_on():
+    seg = Bus("drive,dio").seg
+    nested = json.loads(control.apply_line(seg, b"[" * 6000))  # the JSON parser's recursion runs out
+    assert not nested["ok"] and "bad request: RecursionError" in nested["error"]
+    deep = json.loads(control.apply_line(seg, b'{"cmd": "device", "slave": 0, "load": ' + b"[" * 3000 + b"]" * 3000
+                                         + b"}"))
+    assert not deep["ok"]
+    assert json.loads(control.apply_line(seg, b'{"cmd": "ping"}'))["pong"]
+
+
+_json = st.recursive(st.none() | st.booleans() | st.integers(-2**70, 2**70) | st.floats() | st.text(max_size=8),
+                     lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+                     max_leaves=8)
+_commands = ["ping", "status", "drop", "delay", "wkc", "break", "repair", "al_error", "drive_fault", "device",
+             "dc", "eeprom_busy", "power_cycle", "clear", "reset_counters", "op_delay", "hide_objects", "nope"]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(_commands), st.dictionaries(
+    st.sampled_from(["slave", "code", "ms", "count", "prob", "where", "delta", "scope", "supported", "indices",
+                     "load", "fault", "power_on_fault", "position", "pattern", "quat"]), _json, max_size=4))
+def test_every_control_command_answers_whatever_its_fields(cmd, fields):
+    seg = _FUZZ_BUS.seg
+    answer = control.apply(seg, {"cmd": cmd, **fields})
+    assert isinstance(answer["ok"], bool)
+    json.loads(control.apply_line(seg, json.dumps({"cmd": cmd, **fields}, allow_nan=True)))
+    control.apply(seg, {"cmd": "clear"})
+    control.apply(seg, {"cmd": "power_cycle"})
+
+
+_FUZZ_BUS = Bus("drive,imu,ft,dio")
+
+
+def test_an_interface_name_longer_than_linux_allows_is_refused_at_once():
+    proc = subprocess.run([sys.executable, "-m", "aiohal.drivers.ethercat.sim", "--ifname", "a" * 16, "--wait-s", "30"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "is not a Linux interface name (1..15 bytes" in proc.stderr

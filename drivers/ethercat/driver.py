@@ -581,7 +581,7 @@ class EthercatDriver(Driver):
                 self._diagnose(wkc)
             if self._al_found is not None:
                 states, self._al_found = self._al_found, None
-                self._judge(states, "AL state check")
+                self._judge(states, f"AL state check (working counter {wkc}/{self._expected})")
             if self.lost and time.monotonic() >= self._next_recover:
                 self._recover_lost()
         self._read_cpu = (perf() - t0) - (received - sent)

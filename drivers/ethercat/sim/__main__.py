@@ -25,10 +25,20 @@ from .net import Runner, disable_ipv6, set_up, wait_for_interface
 from .segment import Segment
 
 
+IFNAMSIZ = 16  # Linux: an interface name is at most 15 bytes and a NUL
+
+
+def _ifname(text: str) -> str:
+    """Refused at once rather than after the wait for an interface that cannot exist."""
+    if not text or len(text.encode()) >= IFNAMSIZ or "/" in text or text.strip() != text or text in (".", ".."):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a Linux interface name (1..15 bytes, no '/' or spaces)")
+    return text
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m aiohal.drivers.ethercat.sim",
                                 description="Simulated EtherCAT slave segment on one interface.")
-    p.add_argument("--ifname", help="interface to answer on (only this one is opened)")
+    p.add_argument("--ifname", type=_ifname, help="interface to answer on (only this one is opened)")
     p.add_argument("--slaves", default="drive", help="bus order, e.g. 'drive*7,imu,ft,dio' "
                    "(dioN: I/O terminal with N channels)")
     p.add_argument("--control", metavar="PATH", help="UNIX socket path for JSON control commands")

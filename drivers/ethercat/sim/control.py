@@ -60,7 +60,7 @@ def apply(segment: Segment, command: dict[str, Any]) -> dict[str, Any]:
     """Run one command; never raises for a bad command (the error goes into the answer)."""
     try:
         return {"ok": True, **(_apply(segment, dict(command)) or {})}
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, IndexError, OverflowError, RecursionError) as exc:
         return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
 
 
@@ -177,8 +177,11 @@ def apply_line(segment: Segment, line: bytes | str) -> bytes:
         command = json.loads(line)
         if not isinstance(command, dict):
             raise ValueError("a JSON object is expected")
-    except ValueError as exc:
-        answer: dict[str, Any] = {"ok": False, "error": f"bad request: {exc}"}
+    except (ValueError, RecursionError) as exc:  # (deeply nested arrays exhaust the parser's stack)
+        answer: dict[str, Any] = {"ok": False, "error": f"bad request: {type(exc).__name__}: {str(exc)[:200]}"}
     else:
         answer = apply(segment, command)
-    return (json.dumps(answer) + "\n").encode()
+    try:
+        return (json.dumps(answer) + "\n").encode()
+    except (ValueError, TypeError, RecursionError):  # a command echoing back what cannot be encoded
+        return (json.dumps({"ok": False, "error": "the answer could not be encoded"}) + "\n").encode()
