@@ -308,7 +308,8 @@ class EthercatDriver(Driver):
         self._al_every = max(1, round(self.options.al_check_interval_ms * 1e6 / period_ns))  # in bus cycles
         self._al_next = 0  # the bus cycle at which write() asks for the next AL state check
         self._al_due = False
-        self._al_found: list[int] | None = None  # states read off the tick with a slave out of OP
+        self._al_found: tuple[int, list[int]] | None = None  # (generation, states) read off the tick, one not OP
+        self._states_generation = 0  # the tick's own state reads: a check read before one of them is stale
         self.al_checks = 0
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
         self.infos: list[SlaveInfo] = []
@@ -580,8 +581,9 @@ class EthercatDriver(Driver):
                 self._check_states = False
                 self._diagnose(wkc)
             if self._al_found is not None:
-                states, self._al_found = self._al_found, None
-                self._judge(states, f"AL state check (working counter {wkc}/{self._expected})")
+                (generation, states), self._al_found = self._al_found, None
+                if generation == self._states_generation:
+                    self._judge(states, f"AL state check (working counter {wkc}/{self._expected})")
             if self.lost and time.monotonic() >= self._next_recover:
                 self._recover_lost()
         self._read_cpu = (perf() - t0) - (received - sent)
@@ -725,6 +727,7 @@ class EthercatDriver(Driver):
         SAFEOP (+ERROR) keeps its SyncManagers, so the working counter does not show it; the
         loop's next read() judges what this finds. ``read_state`` holds the GIL for one frame
         (two when states differ), so it runs right after write(), while the loop waits."""
+        generation = self._states_generation
         try:
             states = self.bus.states()
         except Exception as exc:  # a frame lost: the next check reads again
@@ -732,7 +735,7 @@ class EthercatDriver(Driver):
             return
         self.al_checks += 1
         if any(st != OP for st in states) or self.lost:
-            self._al_found = states
+            self._al_found = (generation, states)
 
     def _judge(self, states: list[int], why: str) -> None:
         """States read: a drive out of OP fails the driver, another slave is lost (reported
@@ -760,6 +763,7 @@ class EthercatDriver(Driver):
     def _update_lost(self, states: list[int], lost: set[int]) -> None:
         """New states read: who is lost, who came back, and the working counter to expect (a
         slave in SAFEOP still counts: its SyncManagers work, only its application ignores outputs)."""
+        self._states_generation += 1
         for i in sorted(self.lost - lost):
             self._recovered(i)
         self.lost = set(lost)
