@@ -190,3 +190,22 @@ async def test_a_configuration_error_is_not_retried_and_its_message_stays(segmen
     assert "slave 3 (AIOHAL-Drive) did not take SYNC0 at 1000000 ns" in str(err.value)
     assert "trying again" not in caplog.text
     assert segment.status()["counters"]["frames"] > 0 and not driver_of(loop).bus.is_open
+
+
+def test_an_al_state_check_without_every_answer_is_not_judged():
+    """SOEM reads a slave that did not answer in time as NONE (a busy host delays the frame):
+    only a check every slave answered is judged; a slave really gone shows in the working counter."""
+    import logging
+
+    from aiohal.drivers.ethercat.driver import EthercatDriver
+    from aiohal.logutil import RateLimitedLogger
+
+    driver = object.__new__(EthercatDriver)  # the check's own state only, no bus opened
+    driver.name, driver.lost, driver._states_generation = "bus", set(), 3
+    driver.al_checks = driver.al_checks_unanswered = 0
+    driver._al_found, driver._warn = None, RateLimitedLogger(logging.getLogger("test"))
+    for states, found in (([8, 8, 8], None), ([0, 0, 0], None), ([8, 0, 8], None), ([8, 0x14, 8], (3, [8, 0x14, 8]))):
+        driver.bus = type("Bus", (), {"states": staticmethod(lambda states=states: list(states))})()
+        driver._check_al_states()
+        assert driver._al_found == found, states
+    assert (driver.al_checks, driver.al_checks_unanswered) == (4, 2)

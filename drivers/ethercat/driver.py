@@ -311,6 +311,7 @@ class EthercatDriver(Driver):
         self._al_found: tuple[int, list[int]] | None = None  # (generation, states) read off the tick, one not OP
         self._states_generation = 0  # the tick's own state reads: a check read before one of them is stale
         self.al_checks = 0
+        self.al_checks_unanswered = 0  # of which some slave did not answer in time (a busy host): not judged
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
         self.infos: list[SlaveInfo] = []
         self.image: ProcessImage | None = None
@@ -734,6 +735,9 @@ class EthercatDriver(Driver):
             self._warn.warning("alcheck", "ethercat %s: reading the AL states failed: %s", self.name, exc)
             return
         self.al_checks += 1
+        if 0 in states:  # no answer in time (SOEM then reads NONE): a slave really gone shows in the working counter
+            self.al_checks_unanswered += 1
+            return
         if any(st != OP for st in states) or self.lost:
             self._al_found = (generation, states)
 
@@ -935,6 +939,8 @@ class EthercatDriver(Driver):
         if self._keepalive_cycles:
             out["keepalive_cycles"] = self._keepalive_cycles
         out["al_checks"] = self.al_checks
+        if self.al_checks_unanswered:
+            out["al_checks_unanswered"] = self.al_checks_unanswered
         if self.drives is not None:
             enabled = self._enabled_at_close
             if enabled is None:
