@@ -16,6 +16,7 @@ import pytest
 from aiohal.drivers.ethercat.sim import control
 from aiohal.drivers.ethercat.sim.bench import soem_map
 from aiohal.drivers.ethercat.sim.od import (
+    ABORT_NO_OBJECT,
     BOOL,
     INT16,
     INT32,
@@ -23,6 +24,7 @@ from aiohal.drivers.ethercat.sim.od import (
     UINT8,
     Entry,
     PdoCodec,
+    SdoAbort,
 )
 from aiohal.drivers.ethercat.sim.segment import Segment
 from aiohal.drivers.ethercat.sim.sii import crc8
@@ -1451,3 +1453,47 @@ def test_an_interface_name_longer_than_linux_allows_is_refused_at_once():
     proc = subprocess.run([sys.executable, "-m", "aiohal.drivers.ethercat.sim", "--ifname", "a" * 16, "--wait-s", "30"],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "is not a Linux interface name (1..15 bytes" in proc.stderr
+
+
+def test_safeop_to_op_takes_the_configured_delay_and_a_repeated_request_does_not_restart_it():
+    bus = Bus("drive,imu")
+    assert control.apply(bus.seg, {"cmd": "op_delay", "ms": 30})["ok"]
+    bus.up(to=SAFEOP)
+    bus.lrw(bytes(bus.iomap))
+    bus.bwr(0x0120, u16(OP))
+    for _ in range(5):  # 25 ms of cycles and repeated requests: still SAFEOP
+        bus.clock.advance(5)
+        bus.lrw(bytes(bus.iomap))
+        bus.bwr(0x0120, u16(OP))
+        assert bus.brd(0x0130, 2)[0] == u16(SAFEOP)
+    bus.clock.advance(6)
+    bus.lrw(bytes(bus.iomap))  # the drive with outputs and the IMU without: both at the next cycle
+    assert [bus.al(0x1001 + i) for i in range(2)] == [(OP, 0), (OP, 0)]
+    control.apply(bus.seg, {"cmd": "clear"})
+    assert all(esc.op_delay_ns == 0 for esc in bus.seg.slaves)
+
+
+def test_a_drive_with_a_power_on_fault_is_in_fault_from_its_first_exchange_at_every_power_cycle():
+    bus = Bus("drive")
+    assert control.apply(bus.seg, {"cmd": "device", "slave": 0, "power_on_fault": "0x7500"})["ok"]
+    control.apply(bus.seg, {"cmd": "power_cycle"})
+    bus.up(to=SAFEOP)
+    for _ in range(3):
+        bus.clock.advance(1)
+        bus.lrw(bytes(bus.iomap))
+    drive = bus.seg.slaves[0].device.status()
+    assert drive["state"] == "fault" and drive["error_code"] == 0x7500
+    control.apply(bus.seg, {"cmd": "clear"})
+    control.apply(bus.seg, {"cmd": "power_cycle"})
+    assert bus.seg.slaves[0].device.power_on_fault is None
+
+
+def test_hidden_objects_are_answered_as_missing_and_clear_shows_them_again():
+    bus = Bus("drive")
+    od = bus.seg.slaves[0].device.od
+    assert control.apply(bus.seg, {"cmd": "hide_objects", "slave": 0, "indices": ["0x1C12", 0x1C13]})["ok"]
+    with pytest.raises(SdoAbort) as missing:
+        od.read(0x1C12, 0)
+    assert missing.value.code == ABORT_NO_OBJECT and od.read(0x1C00, 0)  # the others are there
+    control.apply(bus.seg, {"cmd": "clear"})
+    assert od.read(0x1C12, 0) == b"\x01"
