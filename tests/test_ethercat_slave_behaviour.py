@@ -9,37 +9,22 @@ Through real SOEM (pysoem) against the simulated segment over veth, like
 from __future__ import annotations
 
 import asyncio
+import json
+import os
 import re
 import subprocess
 import sys
 import time
 
 import pytest
-from conftest import ROOT, start_segment
+from conftest import ROOT
 from test_ethercat_driver import CONFIG, TicksRun, driver_of, raw_config
+from test_ethercat_driver import segment, sim  # noqa: F401 (fixtures: this module's own segment of the same line)
 
 from aiohal.config import parse_config
 from aiohal.loop import ControlLoop
 
 pytestmark = pytest.mark.root
-
-LINE = "drive*7,imu,ft"
-
-
-@pytest.fixture(scope="module")
-def sim():
-    segment = start_segment(LINE, watchdog_ms=1000)
-    yield segment
-    segment.stop()
-
-
-@pytest.fixture
-def segment(sim):
-    sim.control({"cmd": "clear"})
-    sim.control({"cmd": "power_cycle"})
-    sim.control({"cmd": "reset_counters"})
-    yield sim
-    sim.control({"cmd": "clear"})
 
 
 @pytest.mark.asyncio
@@ -100,13 +85,11 @@ async def test_a_sensor_dropped_to_safeop_error_is_faulted_with_its_al_status_wi
     assert report["safety_level"] == "run" and bus["lost"] == ["ft"]
 
 
-def _config_file(segment, tmp_path, name="ethercat_sim.toml", **options) -> str:
+def _config_file(segment, tmp_path) -> str:
     text = CONFIG.read_text().replace('interface = "ecm0"', f'interface = "{segment.ifname}"')
     # this shared host stalls for longer than the loop's own feedback watchdogs at times
     text = text.replace("rate_hz = 1000\n", "rate_hz = 1000\nmax_feedback_age = 5000\nstall_timeout_ms = 5000\n", 1)
-    for key, value in options.items():
-        text = text.replace("sync0 = true", f"sync0 = true\n{key} = {value}")
-    path = tmp_path / name
+    path = tmp_path / "ethercat_sim.toml"
     path.write_text(text)
     return str(path)
 
@@ -120,9 +103,9 @@ def _wait_all_op(segment, timeout_s=60.0) -> bool:
     return False
 
 
-def _second_master(config: str, tmp_path, **env) -> subprocess.CompletedProcess:
+def _second_master(config: str, **env) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "aiohal", config, "--duration", "1"], capture_output=True,
-                          text=True, timeout=120, cwd=ROOT, env={**__import__("os").environ, **env})
+                          text=True, timeout=120, cwd=ROOT, env={**os.environ, **env})
 
 
 @pytest.mark.parametrize("refused_by", ["lock", "op"])
@@ -139,7 +122,7 @@ def test_a_second_master_is_refused_and_the_first_keeps_running(segment, tmp_pat
         assert _wait_all_op(segment), "the first master did not bring the bus up"
         counters_before = segment.status()["commands"]
         env = {"AIOHAL_LOCK_DIR": str(tmp_path)} if refused_by == "op" else {}
-        second = _second_master(config, tmp_path, **env)
+        second = _second_master(config, **env)
         counters_after = segment.status()["commands"]
         _, first_err = first.communicate(timeout=120)
     finally:
@@ -156,7 +139,7 @@ def test_a_second_master_is_refused_and_the_first_keeps_running(segment, tmp_pat
     assert counters_after.get("BWR", 0) == counters_before.get("BWR", 0)
     assert counters_after.get("APWR", 0) == counters_before.get("APWR", 0)
     assert first.returncode == 0, first_err[-3000:]
-    report = __import__("json").loads(report_path.read_text())
+    report = json.loads(report_path.read_text())
     bus = report["drivers"]["bus"]
     assert report["faults"] == [] and bus["drives_enabled"] == "7/7"
     assert bus["wkc_errors"] == bus["frames_lost"] <= max(20, bus["cycles"] // 20)  # late frames (stalls) only
