@@ -17,11 +17,12 @@ import sys
 import time
 
 import pytest
-from conftest import ROOT
-from test_ethercat_driver import CONFIG, TicksRun, driver_of, raw_config
+from conftest import ROOT, start_segment
+from test_ethercat_driver import CONFIG, TicksRun, driver_of, one_drive_and, raw_config
 from test_ethercat_driver import segment, sim  # noqa: F401 (fixtures: this module's own segment of the same line)
 
 from aiohal.config import parse_config
+from aiohal.errors import DriverError
 from aiohal.loop import ControlLoop
 
 pytestmark = pytest.mark.root
@@ -163,8 +164,6 @@ async def test_a_drive_without_pdo_assignment_objects_is_mapped_from_its_sii(seg
 
 @pytest.mark.asyncio
 async def test_a_configuration_error_is_not_retried_and_its_message_stays(segment, caplog):
-    from aiohal.errors import DriverError
-
     segment.control({"cmd": "dc", "slave": 3, "supported": False})
     loop = ControlLoop(parse_config(raw_config(segment.ifname)))  # the shipped sync0 = true
     with caplog.at_level("WARNING", logger="aiohal.drivers.ethercat.driver"):
@@ -192,3 +191,41 @@ def test_an_al_state_check_without_every_answer_is_not_judged():
         driver._check_al_states()
         assert driver._al_found == found, states
     assert (driver.al_checks, driver.al_checks_unanswered) == (4, 2)
+
+
+
+@pytest.mark.asyncio
+async def test_slaves_left_in_op_are_refused_unless_the_config_takes_the_bus_over():
+    """A master that stopped without taking its slaves out of OP (it crashed; their SM
+    watchdogs are off): refused by default, brought up with options.take_over = true."""
+    line = start_segment("drive", watchdog_ms=0)  # (skips without root or pysoem)
+    import pysoem
+
+    try:
+        master = pysoem.Master()
+        master.open(line.ifname)
+        assert master.config_init() == 1
+        master.config_map()
+        assert master.state_check(pysoem.SAFEOP_STATE, 500_000) == pysoem.SAFEOP_STATE
+        master.send_processdata()
+        master.receive_processdata(20_000)
+        master.state = pysoem.OP_STATE
+        master.write_state()
+        for _ in range(50):  # bounded: OP once an output cycle has arrived
+            master.send_processdata()
+            master.receive_processdata(20_000)
+            if master.state_check(pysoem.OP_STATE, 5000) == pysoem.OP_STATE:
+                break
+        master.close()  # gone, its slave left in OP
+        assert line.status()["slaves"][0]["state"] == "OP"
+        loop = ControlLoop(parse_config(one_drive_and(line.ifname)))
+        with pytest.raises(DriverError, match="are in OP .* another master is running this bus"):
+            await loop.activate()
+        assert line.status()["slaves"][0]["state"] == "OP"  # nothing written
+        raw = one_drive_and(line.ifname)
+        raw["driver"][0]["options"]["take_over"] = True
+        async with ControlLoop(parse_config(raw)) as loop:
+            report = await loop.run(ticks=200)
+        assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "1/1"
+    finally:
+        line.stop()
