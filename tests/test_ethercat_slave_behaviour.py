@@ -64,7 +64,7 @@ async def test_a_sensor_dropped_to_safeop_error_is_faulted_with_its_al_status_wi
 
     def watch(loop):
         tick = loop.robot.clock.tick
-        if tick == 500:
+        if tick >= 500 and "future" not in seen:  # (a stall of the host skips ticks)
             drop_ft(loop)
         if "done" in seen and "faulted" not in seen and loop.robot.device("wrist_ft").fault:
             seen["faulted"] = driver_of(loop).cycles
