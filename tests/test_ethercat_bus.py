@@ -9,6 +9,15 @@ import pytest
 from aiohal.drivers.ethercat.bus import BOOT, INIT, OP, PREOP, SAFEOP, STATE_ERROR, BringUpError, Bus, reach_safeop
 
 
+@pytest.fixture(autouse=True)
+def lock_dir(tmp_path, monkeypatch):
+    """Interface locks of these scripted buses in a directory of the test's own."""
+    from aiohal.drivers.ethercat import bus
+
+    monkeypatch.setattr(bus, "LOCK_DIR", tmp_path)
+    return tmp_path
+
+
 class Slave:
     def __init__(self, lose_requests: int = 0, state: int = PREOP) -> None:
         self.state = state  # as read by read_state; set to the requested state before write_state
@@ -207,6 +216,9 @@ class ScanMaster:
     def open(self, ifname: str) -> None:
         pass
 
+    def state_check(self, state: int, timeout_us: int) -> int:
+        return PREOP  # nobody runs the bus: the broadcast read of the AL status finds PREOP
+
     def config_init(self, release_gil: bool = False) -> int:
         self.scans += 1
         unread = self.scans <= self.zero_scans
@@ -253,3 +265,135 @@ def test_an_identity_still_zero_after_three_scans_fails_with_the_reason():
     with pytest.raises(BringUpError) as wrong:  # a wrong device says nothing of scans
         check_identity(1, "other", "drive2", 0xAB, 0x999, 0xAB, 0x402)
     assert "scans" not in str(wrong.value)
+
+
+# ---------------------------------------------------------------- slave-supplied bytes
+
+from hypothesis import given  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from aiohal.drivers.ethercat.bus import (  # noqa: E402
+    SlaveDataError,
+    TransientBringUpError,
+    mapping_entry,
+    pdo_index,
+    sdo_count,
+)
+
+
+@given(st.binary(max_size=8))
+def test_an_entry_count_is_one_byte_of_at_most_254_or_a_named_error(data):
+    try:
+        count = sdo_count("slave 3 (X)", 0x1C12, data)
+    except SlaveDataError as exc:
+        assert str(exc).startswith("slave 3 (X): 0x1C12:00")
+        assert len(data) == 0 or data[0] > 254
+    else:
+        assert count == data[0] <= 254
+
+
+@given(st.sampled_from([0x1C12, 0x1C13]), st.integers(1, 254), st.binary(max_size=6))
+def test_a_pdo_index_is_two_bytes_in_its_direction_s_range_or_a_named_error(index, sub, data):
+    try:
+        pdo = pdo_index("slave 0 (D)", index, sub, data)
+    except SlaveDataError as exc:
+        assert f"slave 0 (D): 0x{index:04X}:{sub:02X}" in str(exc)
+    else:
+        assert len(data) >= 2 and pdo == int.from_bytes(data[:2], "little")
+        assert (0x1600 <= pdo <= 0x17FF) if index == 0x1C12 else (0x1A00 <= pdo <= 0x1BFF)
+
+
+@given(st.integers(0x1600, 0x1BFF), st.integers(1, 254), st.binary(max_size=8))
+def test_a_mapping_entry_is_four_bytes_of_1_to_64_bits_or_a_named_error(index, sub, data):
+    try:
+        entry = mapping_entry("slave 1 (D)", index, sub, data)
+    except SlaveDataError as exc:
+        assert f"slave 1 (D): 0x{index:04X}:{sub:02X}" in str(exc)
+    else:
+        assert len(data) >= 4 and entry == int.from_bytes(data[:4], "little") and 1 <= entry & 0xFF <= 64
+
+
+class SdoSlave:
+    """A CoE slave answering SDO reads from a table (bytes, or an exception to raise)."""
+
+    name, man, id = "AIOHAL-Drive", 0x000A1A1A, 0x402
+
+    def __init__(self, od: dict) -> None:
+        self.od = od
+
+    def sdo_read(self, index, subindex, size=0, release_gil=False):
+        value = self.od.get((index, subindex), LookupError(0x06020000))
+        if isinstance(value, Exception):
+            raise value
+        return value
+
+
+class SdoPysoem:
+    MailboxError = PacketError = WkcError = type("LostFrame", (Exception,), {})
+
+    class SdoError(Exception):
+        def __init__(self, abort_code: int) -> None:
+            self.abort_code, self.desc = abort_code, "object does not exist"
+
+
+GOOD_OD = {(0x1000, 0): (0x00020192).to_bytes(4, "little"),
+           (0x1C12, 0): b"\x01", (0x1C12, 1): (0x1600).to_bytes(2, "little"),
+           (0x1C13, 0): b"\x01", (0x1C13, 1): (0x1A00).to_bytes(2, "little"),
+           (0x1600, 0): b"\x01", (0x1600, 1): (0x60400010).to_bytes(4, "little"),
+           (0x1A00, 0): b"\x01", (0x1A00, 1): (0x60410010).to_bytes(4, "little")}
+
+
+def _coe_bus(od: dict) -> Bus:
+    bus = Bus(SdoPysoem, "scripted")
+    bus.slaves = [SdoSlave(od)]
+    bus.sii = lambda position: None  # noqa: E731 (read only through has_coe / read_pdos, scripted)
+    return bus
+
+
+@pytest.mark.parametrize(("key", "value", "message"), [
+    ((0x1C12, 0), b"", "0x1C12:00 (number of entries) came back empty"),
+    ((0x1C12, 1), b"\x00", "0x1C12:01 came back with 1 byte(s), a PDO index needs 2"),
+    ((0x1C13, 1), (0x1600).to_bytes(2, "little"), "0x1C13:01 = 0x1600, not a PDO of this direction"),
+    ((0x1600, 1), b"\x10\x00\x40", "0x1600:01 came back with 3 byte(s), a mapping entry needs 4"),
+    ((0x1A00, 0), b"\xff", "0x1A00:00 = 255 entries, at most 254"),
+    ((0x1A00, 1), (0x60410000).to_bytes(4, "little"), "a bit length of 0 (1..64)"),
+])
+def test_short_or_out_of_range_replies_fail_the_layout_naming_the_slave_and_object(monkeypatch, key, value, message):
+    from aiohal.drivers.ethercat import sii as sii_layout
+
+    monkeypatch.setattr(sii_layout, "has_coe", lambda sii: True)
+    bus = _coe_bus({**GOOD_OD, key: value})
+    with pytest.raises(SlaveDataError) as err:
+        bus.read_layout(0)
+    assert str(err.value).startswith("slave 0 (AIOHAL-Drive): ") and message in str(err.value)
+    assert not isinstance(err.value, TransientBringUpError)  # the same bytes would come again
+
+
+def test_a_coe_slave_without_a_pdo_assignment_is_read_from_its_sii(monkeypatch):
+    from aiohal.drivers.ethercat import sii as sii_layout
+
+    od = {k: v for k, v in GOOD_OD.items() if k[0] not in (0x1C12, 0x1C13)}
+    od[0x1C12, 0] = SdoPysoem.SdoError(0x06020000)
+    monkeypatch.setattr(sii_layout, "has_coe", lambda sii: True)
+    monkeypatch.setattr(sii_layout, "read_pdos", lambda sii: ({0x1600: [(0x6040, 0, 16, "Controlword")]},
+                                                              {0x1A00: [(0x6041, 0, 16, "Statusword")]}))
+    bus = _coe_bus(od)
+    layout = bus.read_layout(0)
+    assert (layout.output_bits, layout.input_bits) == (16, 16)
+    od[0x1C12, 0] = SdoPysoem.SdoError(0x06090011)  # another abort is not a missing object: it says so
+    with pytest.raises(Exception, match="abort 0x06090011"):
+        bus.read_layout(0)
+
+
+def test_a_held_interface_is_refused_naming_the_holder(lock_dir):
+    first = Bus(ScanPysoem(0), "ah1m")
+    first._hold_interface()
+    try:
+        with pytest.raises(BringUpError, match=r"'ah1m' is held by another aiohal process \(pid \d+"):
+            Bus(ScanPysoem(0), "ah1m")._hold_interface()
+        Bus(ScanPysoem(0), "ah2m")._hold_interface()  # another interface: its own lock
+    finally:
+        first._release_interface()
+    second = Bus(ScanPysoem(0), "ah1m")
+    second._hold_interface()  # released with the bus
+    second._release_interface()

@@ -250,6 +250,9 @@ async def test_a_drive_lost_mid_run_puts_the_robot_in_its_safe_state(segment):
     assert report["ticks"] + report["missed_ticks"] < 3000  # the run ended: no driver left
     fault, *_ = [f for f in report["faults"] if f["source"] == "driver:bus"]
     assert fault["phase"] == "read" and "joint(s) a5, a6, a7" in fault["error"]
+    # the failing cycle's figures: drives 1-4 answered (3 each) of the 25 expected
+    # (seen by the periodic AL state check or after wkc_error_limit bad cycles, whichever first)
+    assert "working counter 12/25" in fault["error"], fault["error"]
     assert "drive5" in fault["error"] and "drive7" in fault["error"]
     assert report["safety_level"] == "estop"
     assert np.all(loop.robot.state.fault & Fault.DRIVER)

@@ -159,3 +159,43 @@ def test_the_config_it_prints_runs_the_bus(sim, tmp_path):
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["ticks"] > 0 and not report["faults"]
     assert report["drivers"]["bus"]["cycles"] >= report["ticks"]
+
+
+# a joint another driver moves: a bus of I/O terminals is a part of a robot, not a robot
+MOCK_JOINT = """
+[joints.j1]
+[[driver]]
+type = "mock"
+name = "arm"
+joints = ["j1"]
+"""
+
+
+def test_a_bus_without_drives_says_what_to_add_and_runs_as_a_part_of_a_robot():
+    dio = PdoLayout.from_entries([[(0x7000, k, 1) for k in range(1, 9)]], [[(0x6000, k, 1) for k in range(1, 9)]],
+                                 {})
+    slaves = [scanned(0, "AIOHAL-DIO8", dio, product=0x808), scanned(1, "AIOHAL-DIO8", dio, product=0x808)]
+    text = to_toml("ecm0", slaves)
+    assert "joints = []" in text and "# This bus has no cia402 drive" in text and "Add this [[driver]]" in text
+    config = parse_config(tomllib.loads(text + ROBOT_PART + MOCK_JOINT))
+    assert [d.type for d in config.drivers] == ["ethercat", "mock"] and config.drivers[0].joints == ()
+
+
+def test_a_scanned_bus_of_io_terminals_runs_as_a_part_of_a_robot(tmp_path):
+    segment = start_segment("dio*2", watchdog_ms=1000)
+    try:
+        proc = run_scan(segment.ifname, "--toml")
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert "note: This bus has no cia402 drive" in proc.stderr  # what to add, said where it is seen
+        config = tmp_path / "io.toml"
+        config.write_text(proc.stdout + ROBOT_PART + MOCK_JOINT)
+        check = subprocess.run([sys.executable, "-m", "aiohal", "check", str(config)], capture_output=True,
+                               text=True, timeout=120, cwd=ROOT)
+        assert check.returncode == 0, check.stderr[-3000:]
+        run = subprocess.run([sys.executable, "-m", "aiohal", str(config), "--duration", "1", "--report-json",
+                              str(tmp_path / "report.json")], capture_output=True, text=True, timeout=120, cwd=ROOT)
+        assert run.returncode == 0, run.stderr[-3000:]
+        report = json.loads((tmp_path / "report.json").read_text())
+        assert report["ticks"] > 0 and not report["faults"] and report["drivers"]["bus"]["slaves"] == 2
+    finally:
+        segment.stop()

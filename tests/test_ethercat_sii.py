@@ -6,9 +6,11 @@ from __future__ import annotations
 import struct
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from aiohal.drivers.ethercat.names import DIO_NAMES
-from aiohal.fieldbus.busvar import LayoutError, PdoLayout
+from aiohal.fieldbus.busvar import LayoutError, PdoLayout, names_for
 from aiohal.drivers.ethercat import sii
 from aiohal.drivers.ethercat.sim.devices import DigitalIO
 from aiohal.drivers.ethercat.sim.drive import Drive
@@ -74,3 +76,23 @@ def test_a_pdo_longer_than_its_category_and_a_short_read_are_errors():
         sii.read_pdos(sii.SiiReader(Eeprom(image)))
     with pytest.raises(LayoutError, match="2 bytes read"):
         sii.SiiReader(lambda word: b"\x00\x00").word(0x1C)
+
+
+def _eeprom(categories: list[tuple[int, bytes]]) -> bytes:
+    body = bytearray(0x80)  # the header words, then the categories from word 0x40
+    for kind, data in categories:
+        data += b"\0" * (len(data) % 2)
+        body += struct.pack("<HH", kind, len(data) // 2) + data
+    return bytes(body + struct.pack("<H", 0xFFFF) + b"\0\0")
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([10, 30, 41, 50, 51]), st.binary(max_size=80)), max_size=5))
+def test_whatever_pdo_categories_an_eeprom_holds_they_map_or_fail_with_a_layout_error(categories):
+    image = _eeprom(categories)
+    reader = sii.SiiReader(lambda word: image[2 * word:2 * word + 4] if 2 * word + 4 <= len(image) else b"\xff" * 4)
+    try:
+        rx, tx = sii.read_pdos(reader)
+        PdoLayout.from_sii(rx, tx, names_for(0, 0, device_type=0))
+    except LayoutError:
+        pass

@@ -9,11 +9,14 @@ from __future__ import annotations
 import itertools
 import json
 import struct
+import subprocess
+import sys
 
 import pytest
 from aiohal.drivers.ethercat.sim import control
 from aiohal.drivers.ethercat.sim.bench import soem_map
 from aiohal.drivers.ethercat.sim.od import (
+    ABORT_NO_OBJECT,
     BOOL,
     INT16,
     INT32,
@@ -21,6 +24,7 @@ from aiohal.drivers.ethercat.sim.od import (
     UINT8,
     Entry,
     PdoCodec,
+    SdoAbort,
 )
 from aiohal.drivers.ethercat.sim.segment import Segment
 from aiohal.drivers.ethercat.sim.sii import crc8
@@ -1410,3 +1414,86 @@ def test_fixture_explains_what_is_missing(monkeypatch):
     monkeypatch.setattr(fixture.shutil, "which", lambda tool: None if tool == "unshare" else "/usr/sbin/ip")
     with pytest.raises(fixture.SimulatorUnavailable, match="unshare"):
         fixture.check_environment()
+
+
+def test_the_control_channel_answers_any_input_with_an_error_and_carries_on():
+    seg = Bus("drive,dio").seg
+    nested = json.loads(control.apply_line(seg, b"[" * 6000))  # the JSON parser's recursion runs out
+    assert not nested["ok"] and "bad request: RecursionError" in nested["error"]
+    deep = json.loads(control.apply_line(seg, b'{"cmd": "device", "slave": 0, "load": ' + b"[" * 3000 + b"]" * 3000
+                                         + b"}"))
+    assert not deep["ok"]
+    assert json.loads(control.apply_line(seg, b'{"cmd": "ping"}'))["pong"]
+
+
+_json = st.recursive(st.none() | st.booleans() | st.integers(-2**70, 2**70) | st.floats() | st.text(max_size=8),
+                     lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+                     max_leaves=8)
+_commands = ["ping", "status", "drop", "delay", "wkc", "break", "repair", "al_error", "drive_fault", "device",
+             "dc", "eeprom_busy", "power_cycle", "clear", "reset_counters", "op_delay", "hide_objects", "nope"]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(_commands), st.dictionaries(
+    st.sampled_from(["slave", "code", "ms", "count", "prob", "where", "delta", "scope", "supported", "indices",
+                     "load", "fault", "power_on_fault", "position", "pattern", "quat"]), _json, max_size=4))
+def test_every_control_command_answers_whatever_its_fields(cmd, fields):
+    seg = _FUZZ_BUS.seg
+    answer = control.apply(seg, {"cmd": cmd, **fields})
+    assert isinstance(answer["ok"], bool)
+    json.loads(control.apply_line(seg, json.dumps({"cmd": cmd, **fields}, allow_nan=True)))
+    control.apply(seg, {"cmd": "clear"})
+    control.apply(seg, {"cmd": "power_cycle"})
+
+
+_FUZZ_BUS = Bus("drive,imu,ft,dio")
+
+
+def test_an_interface_name_longer_than_linux_allows_is_refused_at_once():
+    proc = subprocess.run([sys.executable, "-m", "aiohal.drivers.ethercat.sim", "--ifname", "a" * 16, "--wait-s", "30"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "is not a Linux interface name (1..15 bytes" in proc.stderr
+
+
+def test_safeop_to_op_takes_the_configured_delay_and_a_repeated_request_does_not_restart_it():
+    bus = Bus("drive,imu")
+    assert control.apply(bus.seg, {"cmd": "op_delay", "ms": 30})["ok"]
+    bus.up(to=SAFEOP)
+    bus.lrw(bytes(bus.iomap))
+    bus.bwr(0x0120, u16(OP))
+    for _ in range(5):  # 25 ms of cycles and repeated requests: still SAFEOP
+        bus.clock.advance(5)
+        bus.lrw(bytes(bus.iomap))
+        bus.bwr(0x0120, u16(OP))
+        assert bus.brd(0x0130, 2)[0] == u16(SAFEOP)
+    bus.clock.advance(6)
+    bus.lrw(bytes(bus.iomap))  # the drive with outputs and the IMU without: both at the next cycle
+    assert [bus.al(0x1001 + i) for i in range(2)] == [(OP, 0), (OP, 0)]
+    control.apply(bus.seg, {"cmd": "clear"})
+    assert all(esc.op_delay_ns == 0 for esc in bus.seg.slaves)
+
+
+def test_a_drive_with_a_power_on_fault_is_in_fault_from_its_first_exchange_at_every_power_cycle():
+    bus = Bus("drive")
+    assert control.apply(bus.seg, {"cmd": "device", "slave": 0, "power_on_fault": "0x7500"})["ok"]
+    control.apply(bus.seg, {"cmd": "power_cycle"})
+    bus.up(to=SAFEOP)
+    for _ in range(3):
+        bus.clock.advance(1)
+        bus.lrw(bytes(bus.iomap))
+    drive = bus.seg.slaves[0].device.status()
+    assert drive["state"] == "fault" and drive["error_code"] == 0x7500
+    control.apply(bus.seg, {"cmd": "clear"})
+    control.apply(bus.seg, {"cmd": "power_cycle"})
+    assert bus.seg.slaves[0].device.power_on_fault is None
+
+
+def test_hidden_objects_are_answered_as_missing_and_clear_shows_them_again():
+    bus = Bus("drive")
+    od = bus.seg.slaves[0].device.od
+    assert control.apply(bus.seg, {"cmd": "hide_objects", "slave": 0, "indices": ["0x1C12", 0x1C13]})["ok"]
+    with pytest.raises(SdoAbort) as missing:
+        od.read(0x1C12, 0)
+    assert missing.value.code == ABORT_NO_OBJECT and od.read(0x1C00, 0)  # the others are there
+    control.apply(bus.seg, {"cmd": "clear"})
+    assert od.read(0x1C12, 0) == b"\x01"

@@ -14,14 +14,18 @@ loop included. They are used at bring-up, shutdown and after a bus error only.
 
 from __future__ import annotations
 
+import fcntl
 import functools
 import logging
+import os
 import socket
 import struct
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from aiohal.fieldbus.busvar import LayoutError, PdoLayout, names_for
@@ -36,6 +40,8 @@ INIT, PREOP, BOOT, SAFEOP, OP = 0x01, 0x02, 0x03, 0x04, 0x08
 STATE_ERROR, STATE_ACK = 0x10, 0x10
 IDENTITY_READS = 3  # bus scans at most, while a slave's vendor id or product code reads as zero
 _STATE_NAMES = {0: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP", OP: "OP"}
+#: where the lock files that keep a second master off an interface live (one per interface)
+LOCK_DIR = Path(os.environ.get("AIOHAL_LOCK_DIR", "/run/lock"))
 
 
 class EthercatError(AiohalError, RuntimeError):
@@ -44,6 +50,16 @@ class EthercatError(AiohalError, RuntimeError):
 
 class BringUpError(EthercatError):
     """The bus did not come up as configured; the message names the slave and the reason."""
+
+
+class TransientBringUpError(BringUpError):
+    """The bus did not answer in time (a frame lost, a wait run out: a stall of the host does
+    that): a fresh bring-up may get through, where a configuration error would fail again."""
+
+
+class SlaveDataError(BringUpError):
+    """A value read from a slave does not fit what it stands for (too short, out of range);
+    the message names the slave and the object."""
 
 
 class SdoAbortError(EthercatError):
@@ -83,15 +99,21 @@ class SlaveInfo:
 class Bus:
     """A pysoem ``Master`` opened on exactly one named interface."""
 
-    def __init__(self, pysoem: Any, ifname: str, *, overlap: bool = False) -> None:
+    def __init__(self, pysoem: Any, ifname: str, *, overlap: bool = False, take_over: bool = False) -> None:
         self.pysoem = pysoem
         self.ifname = ifname
         self.overlap = overlap
+        self.take_over = take_over  # bring up a bus whose slaves another master runs in OP
+        self._lock_fd: int | None = None
+        self.sii_mapped: set[int] = set()  # CoE slaves without 0x1C12/0x1C13: PDOs from their SII
         self.master: Any = None
         self.slaves: list[Any] = []  # pysoem slave objects, made once (each access makes a new one)
         #: pysoem's errors for a mailbox or datagram frame that did not come back (not a refusal)
         self.lost_frame = (pysoem.MailboxError, pysoem.PacketError, pysoem.WkcError)
         self.is_open = False
+        #: the AL states are read from the tick (after a bus error) and off it (the periodic
+        #: check): one at a time, so that a read never sees another's half-written states
+        self._states_lock = threading.Lock()
 
     # ------------------------------------------------------------ bring-up
 
@@ -101,16 +123,19 @@ class Bus:
             socket.if_nametoindex(self.ifname)
         except OSError:
             raise BringUpError(f"network interface {self.ifname!r} does not exist (options.interface)") from None
+        self._hold_interface()
         self.master = self.pysoem.Master()
         try:
             self.master.open(self.ifname)
         except Exception as exc:  # pysoem raises ConnectionError without root or CAP_NET_RAW
+            self._release_interface()
             raise BringUpError(f"cannot open {self.ifname!r} for EtherCAT (root or CAP_NET_RAW needed): {exc}") from exc
         self.is_open = True
+        self._refuse_a_running_bus()
         for attempt in range(1, IDENTITY_READS + 1):
             found = self.master.config_init(release_gil=True)
             if found < 0:
-                raise BringUpError(f"no EtherCAT frame came back on {self.ifname!r}: nothing connected, or the link is down")
+                raise TransientBringUpError(f"no EtherCAT frame came back on {self.ifname!r}: nothing connected, or the link is down")
             self.slaves = list(self.master.slaves)
             # vendor id 0 is no vendor's, and no product is numbered 0 in practice: SOEM reads a
             # zero when an EEPROM read does not finish in time (a stall of the host), so the bus
@@ -121,6 +146,54 @@ class Bus:
             log.warning("ethercat %s: the identity of slave(s) %s read as zero; scanning the bus again (%d of %d)",
                         self.ifname, ", ".join(map(str, unread)), attempt + 1, IDENTITY_READS)
         return len(self.slaves)
+
+    def _hold_interface(self) -> None:
+        """An exclusive lock on the interface for as long as the bus is open: a second master
+        on it would reset every slave (``config_init``) under the first one's feet."""
+        path = LOCK_DIR / f"aiohal-ethercat-{self.ifname}.lock"
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise BringUpError(f"cannot create the interface lock {path} ({exc}); AIOHAL_LOCK_DIR names "
+                               "another directory") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise BringUpError(f"interface {self.ifname!r} is held by another aiohal process (pid {holder}, lock "
+                               f"{path}): a second master would knock it off the bus; stop that one first") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._lock_fd = fd
+
+    def _release_interface(self) -> None:
+        fd, self._lock_fd = self._lock_fd, None
+        if fd is not None:
+            os.close(fd)  # (releases the lock)
+
+    def _refuse_a_running_bus(self) -> None:
+        """Before anything is written: a slave in OP means another master runs this bus (one
+        that is not aiohal, or on another host). SOEM's state check of "slave 0" before
+        ``config_init`` is one broadcast read of the AL status, whose data is the OR of every
+        slave's state: the OP bit is there if any slave is in OP."""
+        if self.take_over:
+            return
+        # Three reads: SOEM takes any frame on the interface whose index matches the one it
+        # waits for, and another master's frames are there too, so one read may be another's
+        # frame. 0 is no state (no reply in time, a busy host): asked again, five reads at most.
+        seen, answered = 0, 0
+        for _ in range(5):
+            state = self.master.state_check(OP, 2000)
+            seen |= state
+            answered += state != 0
+            if seen & OP or answered == 3:
+                break
+        if seen & OP:
+            self.close()
+            raise BringUpError(f"slaves on {self.ifname!r} are in OP (AL states ORed: 0x{seen:02X}): another master "
+                               "is running this bus, and bringing it up would knock that one off; stop it, or set "
+                               "options.take_over = true")
 
     def read_layout(self, position: int, names_overrides: dict | None = None) -> PdoLayout:
         """The slave's PDO layout, named from its name table; in PREOP, before the master maps
@@ -134,25 +207,37 @@ class Bus:
             # device type 0: no object 0x1000 to say CiA 402, so no drive names are assumed
             names = names_for(slave.man, slave.id, device_type=0, overrides=names_overrides, known=KNOWN_DEVICES)
             return PdoLayout.from_sii(rx, tx, names)
-        try:
-            rx_assign = self._assignment(slave, 0x1C12)
-            tx_assign = self._assignment(slave, 0x1C13)
-            mappings = {pdo: self._mapping(slave, pdo) for pdo in (*rx_assign, *tx_assign)}
-        except self.pysoem.SdoError as exc:
-            raise LayoutError(f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}") from exc
-        except self.lost_frame as exc:
-            raise LayoutError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc})") from exc
         names = names_for(slave.man, slave.id, device_type=self.device_type(position), overrides=names_overrides,
                           known=KNOWN_DEVICES)
-        return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
+        try:
+            rx_assign = self._assignment(slave, where, 0x1C12)
+            tx_assign = self._assignment(slave, where, 0x1C13)
+            mappings = {pdo: self._mapping(slave, where, pdo) for pdo in (*rx_assign, *tx_assign)}
+        except self.pysoem.SdoError as exc:
+            if exc.abort_code == ABORT_NO_OBJECT:
+                # no 0x1C12/0x1C13: SOEM then maps the PDOs its SII describes, and so do we
+                rx, tx = sii_layout.read_pdos(sii)
+                if rx or tx:
+                    self.sii_mapped.add(position)
+                    log.info("ethercat %s: %s has no PDO assignment object (0x1C12/0x1C13); its PDOs are "
+                             "read from its SII", self.ifname, where)
+                    return PdoLayout.from_sii(rx, tx, names)
+            raise LayoutError(f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}") from exc
+        except self.lost_frame as exc:
+            raise TransientBringUpError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc})") from exc
+        try:
+            return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
+        except LayoutError as exc:
+            raise LayoutError(f"{where}: {exc}") from exc
 
     def device_type(self, position: int) -> int | None:
         """Object 0x1000 of a slave with CoE (its profile in the low 16 bits, 402 for a drive),
         or None when it does not answer it."""
         try:
-            return struct.unpack("<I", self.slaves[position].sdo_read(0x1000, 0, release_gil=True)[:4])[0]
+            data = self.slaves[position].sdo_read(0x1000, 0, release_gil=True)
         except Exception:  # optional to answer: the name table then falls back to CiA 402's
             return None
+        return struct.unpack_from("<I", data)[0] if len(data) >= 4 else None
 
     def sii(self, position: int) -> sii_layout.SiiReader:
         """The slave's SII EEPROM, read on demand (blocking; each read is a few frames)."""
@@ -162,8 +247,8 @@ class Bus:
             try:
                 return slave.eeprom_read(word)
             except Exception as exc:
-                raise LayoutError(f"slave {position} ({slave.name}): reading SII word 0x{word:04X} failed "
-                                  f"({type(exc).__name__}: {exc})") from exc
+                raise TransientBringUpError(f"slave {position} ({slave.name}): reading SII word 0x{word:04X} failed "
+                                            f"({type(exc).__name__}: {exc})") from exc
         return sii_layout.SiiReader(read)
 
     def _sdo_retried(self, slave: Any, index: int, subindex: int, size: int = 0) -> bytes:
@@ -214,30 +299,47 @@ class Bus:
         log.info("ethercat %s: slave %d (%s) 0x%04X = %s", self.ifname, position, slave.name, assign,
                  ", ".join(f"0x{pdo:04X}" for pdo, _ in pdos))
 
-    def _assignment(self, slave: Any, index: int) -> list[int]:
-        count = self._sdo_retried(slave, index, 0)[0]
-        return [struct.unpack("<H", self._sdo_retried(slave, index, sub)[:2])[0] for sub in range(1, count + 1)]
+    def _assignment(self, slave: Any, where: str, index: int) -> list[int]:
+        """A PDO assignment (0x1C12 outputs, 0x1C13 inputs): the PDO mapping objects, in order."""
+        count = sdo_count(where, index, self._sdo_retried(slave, index, 0))
+        return [pdo_index(where, index, sub, self._sdo_retried(slave, index, sub)) for sub in range(1, count + 1)]
 
-    def _mapping(self, slave: Any, index: int) -> list[int]:
-        count = self._sdo_retried(slave, index, 0)[0]
-        return [struct.unpack("<I", self._sdo_retried(slave, index, sub)[:4])[0] for sub in range(1, count + 1)]
+    def _mapping(self, slave: Any, where: str, index: int) -> list[int]:
+        """A PDO's mapping entries (index << 16 | subindex << 8 | bits)."""
+        count = sdo_count(where, index, self._sdo_retried(slave, index, 0))
+        return [mapping_entry(where, index, sub, self._sdo_retried(slave, index, sub)) for sub in range(1, count + 1)]
 
     def map(self, dc: bool, sync0: Sequence[int] = (), cycle_ns: int = 0, shift_ns: int = 0,
             safeop_timeout_s: float = 2.0) -> int:
         """Map the process data (the masters's IO map), set DC up (SYNC0 on the slaves at
         ``sync0``), reach SAFEOP; the map's size."""
+        size = 0
         try:
             size = self.master.config_overlap_map() if self.overlap else self.master.config_map()
         except self.pysoem.ConfigMapError as exc:
-            raise BringUpError(f"mapping process data failed: {exc}") from exc
+            errors = list(getattr(exc, "error_list", []))
+            if not errors or not all(self._missing_assignment(e) for e in errors):
+                aborts = all(isinstance(e, self.pysoem.SdoError) for e in errors)
+                error = BringUpError if errors and aborts else TransientBringUpError  # (aborts come again)
+                raise error(f"mapping process data failed: {exc}") from exc
+            # SOEM logs the aborts of the slaves without 0x1C12/0x1C13 and maps them from their
+            # SII; pysoem raises them after the map is complete. Their sizes are checked below.
+            log.info("ethercat %s: mapped slave(s) %s from the SII", self.ifname,
+                     ", ".join(sorted({str(e.slave_pos - 1) for e in errors})))
         if dc:
             self.master.config_dc()
             for position in sync0:
                 self._activate_sync0(position, cycle_ns, shift_ns)
         if not reach_safeop(self.master, safeop_timeout_s):
-            raise BringUpError(f"slaves did not reach SAFEOP within {safeop_timeout_s:g} s: "
-                               + self.describe_not_in(SAFEOP))
+            error = BringUpError if in_error(self.slaves) else TransientBringUpError
+            raise error(f"slaves did not reach SAFEOP within {safeop_timeout_s:g} s: " + self.describe_not_in(SAFEOP))
         return size
+
+    def _missing_assignment(self, error: Any) -> bool:
+        """A ConfigMapError item that is SOEM finding no 0x1C12/0x1C13 on a slave whose PDOs
+        this bus read from its SII (SOEM's ``slave_pos`` counts from 1)."""
+        return (isinstance(error, self.pysoem.SdoError) and error.abort_code == ABORT_NO_OBJECT
+                and error.index in (0x1C12, 0x1C13) and error.slave_pos - 1 in self.sii_mapped)
 
     def _activate_sync0(self, position: int, cycle_ns: int, shift_ns: int) -> None:
         """SYNC0 every ``cycle_ns`` (SOEM starts it about 100 ms ahead), read back: pysoem's
@@ -269,8 +371,9 @@ class Bus:
     def request_op(self, exchange: Any, timeout_s: float, period_s: float, again_s: float = 0.1) -> None:
         """SAFEOP → OP (:func:`reach_op`), or a :class:`BringUpError` naming the slaves short of it."""
         if not reach_op(self.master, exchange, timeout_s, period_s, again_s):
-            why = "" if in_error(self.slaves) else f" within {timeout_s:g} s"
-            raise BringUpError(f"slaves did not reach OP{why}: " + self.describe_not_in(OP))
+            if in_error(self.slaves):
+                raise BringUpError("slaves did not reach OP: " + self.describe_not_in(OP))
+            raise TransientBringUpError(f"slaves did not reach OP within {timeout_s:g} s: " + self.describe_not_in(OP))
 
     def describe_not_in(self, state: int) -> str:
         """The slaves not in ``state`` with their state and AL status code (after read_state)."""
@@ -304,8 +407,9 @@ class Bus:
 
     def states(self) -> list[int]:
         """Every slave's AL state, read now (holds the GIL for a frame or two)."""
-        self.master.read_state()
-        return [s.state for s in self.slaves]
+        with self._states_lock:
+            self.master.read_state()
+            return [s.state for s in self.slaves]
 
     def recover_steps(self, positions: Sequence[int]) -> list[int]:
         """One quick step toward OP for each slave that dropped out: acknowledge an error, or
@@ -313,14 +417,15 @@ class Bus:
         (gone, or back after losing power) would need SOEM's reconfig / recover, which wait
         up to seconds holding the GIL: that is not done here. Returns every slave's state."""
         states = self.states()
-        for position in positions:
-            slave, state = self.slaves[position], states[position]
-            if state == SAFEOP | STATE_ERROR:
-                slave.state = SAFEOP | STATE_ACK
-                slave.write_state()
-            elif state == SAFEOP:
-                slave.state = OP
-                slave.write_state()
+        with self._states_lock:
+            for position in positions:
+                slave, state = self.slaves[position], states[position]
+                if state == SAFEOP | STATE_ERROR:
+                    slave.state = SAFEOP | STATE_ACK
+                    slave.write_state()
+                elif state == SAFEOP:
+                    slave.state = OP
+                    slave.write_state()
         return states
 
     def watch_emergencies(self, on_emergency: Any) -> None:
@@ -356,6 +461,7 @@ class Bus:
     def close(self) -> None:
         """Every slave to INIT (best effort), then release the interface. Idempotent."""
         if not self.is_open:
+            self._release_interface()
             return
         self.is_open = False
         try:
@@ -365,6 +471,46 @@ class Bus:
         except Exception as exc:  # the bus may be gone: closing must still release the socket
             log.warning("ethercat %s: writing INIT failed: %s", self.ifname, exc)
         self.master.close()
+        self._release_interface()
+
+
+ABORT_NO_OBJECT = 0x06020000  # SDO abort: the object does not exist in the object dictionary
+RX_PDO_RANGE, TX_PDO_RANGE = (0x1600, 0x17FF), (0x1A00, 0x1BFF)  # CiA 301's PDO mapping objects
+
+
+def sdo_count(where: str, index: int, data: bytes) -> int:
+    """Subindex 0 of an assignment or a mapping object: its number of entries (u8, 0..254)."""
+    if len(data) < 1:
+        raise SlaveDataError(f"{where}: 0x{index:04X}:00 (number of entries) came back empty")
+    if data[0] > 254:
+        raise SlaveDataError(f"{where}: 0x{index:04X}:00 = {data[0]} entries, at most 254")
+    return data[0]
+
+
+def pdo_index(where: str, index: int, subindex: int, data: bytes) -> int:
+    """Subindex n of 0x1C12 / 0x1C13: a PDO mapping object in the range of its direction."""
+    if len(data) < 2:
+        raise SlaveDataError(f"{where}: 0x{index:04X}:{subindex:02X} came back with {len(data)} byte(s), "
+                             "a PDO index needs 2")
+    pdo = struct.unpack_from("<H", data)[0]
+    low, high = RX_PDO_RANGE if index == 0x1C12 else TX_PDO_RANGE
+    if not low <= pdo <= high:
+        raise SlaveDataError(f"{where}: 0x{index:04X}:{subindex:02X} = 0x{pdo:04X}, not a PDO of this "
+                             f"direction (0x{low:04X}..0x{high:04X})")
+    return pdo
+
+
+def mapping_entry(where: str, index: int, subindex: int, data: bytes) -> int:
+    """Subindex n of a PDO mapping object: index << 16 | subindex << 8 | bit length (1..64;
+    index 0 pads)."""
+    if len(data) < 4:
+        raise SlaveDataError(f"{where}: 0x{index:04X}:{subindex:02X} came back with {len(data)} byte(s), "
+                             "a mapping entry needs 4")
+    entry = struct.unpack_from("<I", data)[0]
+    if not 1 <= entry & 0xFF <= 64:
+        raise SlaveDataError(f"{where}: 0x{index:04X}:{subindex:02X} = 0x{entry:08X}, a bit length of "
+                             f"{entry & 0xFF} (1..64)")
+    return entry
 
 
 def in_error(slaves: Sequence[Any]) -> bool:
@@ -431,7 +577,8 @@ def check_identity(position: int, device_name: str, name: str, vendor_id: int, p
         if want is not None and want != got:
             why = (f" (read as zero in {IDENTITY_READS} scans of the bus: its EEPROM did not answer in time)"
                    if got == 0 else "")
-            raise BringUpError(f"slave {position} ({device_name}): {what} 0x{got:08X}, "
+            error = TransientBringUpError if got == 0 else BringUpError
+            raise error(f"slave {position} ({device_name}): {what} 0x{got:08X}, "
                                f"but the config expects 0x{want:08X} for {name!r}{why}")
 
 

@@ -49,9 +49,19 @@ from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 
-from .bus import OP, SAFEOP, BringUpError, Bus, EthercatError, SlaveInfo, check_identity, expected_wkc, state_name
+from .bus import (
+    OP,
+    SAFEOP,
+    BringUpError,
+    Bus,
+    EthercatError,
+    SlaveInfo,
+    TransientBringUpError,
+    check_identity,
+    expected_wkc,
+    state_name,
+)
 from aiohal.fieldbus.drives import respond_to_event
-
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 
 log = logging.getLogger(__name__)
@@ -122,12 +132,17 @@ class EthercatOptions(Options):
     bringup_receive_timeout_us: int = Field(50_000, ge=1000, le=1_000_000)
     frame_timeout_us: int | None = Field(None, ge=500, le=100_000,
                                          description="pysoem.settings.timeouts.ret (process-wide) for bring-up frames.")
+    take_over: bool = Field(False, description="Bring up a bus whose slaves are in OP under another master (not "
+                                               "aiohal), knocking that one off; refused otherwise.")
     overlap_map: bool = Field(False, description="config_overlap_map (inputs and outputs share logical addresses).")
     dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
     sync0: bool = Field(False, description="Activate SYNC0 at the loop's period on every cia402 drive (DC-synchronous "
                                            "drives need it, e.g. in CSP); needs dc.")
     sync0_shift_us: FiniteFloat = Field(0.0, ge=0, description="SYNC0 pulses this long after the period's DC time.")
     wkc_error_limit: int = Field(10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read.")
+    al_check_interval_ms: FiniteFloat = Field(
+        20.0, ge=1, le=10_000, description="Every slave's AL state is read this often, off the tick: a slave in SAFEOP "
+                                           "(+ERROR) keeps its working counter, so only its state tells.")
     recover_interval_s: FiniteFloat = Field(1.0, gt=0, description="Between two recovery steps of a lost sensor.")
     bringup_attempts: int = Field(2, ge=1, le=10, description="A bring-up that fails is tried again from scratch.")
     enable_on_open: bool = Field(True, description="Enable the drives at bring-up; else enable_drives() does.")
@@ -136,7 +151,8 @@ class EthercatOptions(Options):
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
     safeop_timeout_s: FiniteFloat = Field(2.0, gt=0, description="Mapped slaves reach SAFEOP within this (a request "
                                                                    "lost in a stall is sent again).")
-    op_timeout_s: FiniteFloat = Field(5.0, gt=0)
+    op_timeout_s: FiniteFloat = Field(10.0, gt=0, description="SAFEOP -> OP within this (a slave's ESI gives its "
+                                                               "SafeopOpTimeout; drives can take seconds).")
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
     sm_watchdog_ms: FiniteFloat | None = Field(
         None, ge=0.1, le=6000, description="The process-data (SM) watchdog time written to every slave with "
@@ -213,9 +229,10 @@ class EthercatDriver(Driver):
         self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"ethercat-{self.name}")
         loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
+        first: BaseException | None = None
         for attempt in range(1, opts.bringup_attempts + 1):
             self._init_state()
-            self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map)
+            self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map, take_over=opts.take_over)
             try:
                 await loop.run_in_executor(self._executor, self._bring_up)
                 return
@@ -223,10 +240,15 @@ class EthercatDriver(Driver):
                 self._stop_keepalive(raise_error=False)
                 await loop.run_in_executor(self._executor, self._shutdown)
                 # a frame lost in a stall (an SII or mailbox read, a state change) fails a
-                # bring-up that works the next time; a wrong config fails every attempt
-                retry = attempt < opts.bringup_attempts and not self._estop_requested and isinstance(
-                    exc, (EthercatError, LayoutError, *self.bus.lost_frame))
-                if not retry:
+                # bring-up that works the next time; a configuration error fails every attempt,
+                # and the first error is the one that says why
+                if first is None:
+                    first = exc
+                elif exc is not first:
+                    log.warning("ethercat %s: bring-up attempt %d failed too: %s", self.name, attempt, exc)
+                    raise first  # (chained to this one)
+                if not (attempt < opts.bringup_attempts and not self._estop_requested
+                        and isinstance(exc, (TransientBringUpError, *self.bus.lost_frame))):
                     raise
                 log.warning("ethercat %s: bring-up attempt %d failed (%s), trying again", self.name, attempt, exc)
 
@@ -234,6 +256,7 @@ class EthercatDriver(Driver):
         period_ns = self.view.clock.period_ns
         self._lock = threading.Lock()  # one thread at a time on the cyclic frame and the device state
         self._activated = False  # the first read (activation) was done
+        self._in_op = False  # every slave reached OP: the drives apply outputs, their machines run
         self._estop_requested = False
         self._estop_sent = False
         self._outstanding = False  # a cyclic frame was sent and not yet received
@@ -244,6 +267,14 @@ class EthercatDriver(Driver):
         self._keepalive_stop = threading.Event()
         self._keepalive_error: BaseException | None = None
         self._keepalive_cycles = 0
+        self._wake = threading.Event()  # the keep-alive thread: stop, or an AL state check is due
+        self._al_every = max(1, round(self.options.al_check_interval_ms * 1e6 / period_ns))  # in bus cycles
+        self._al_next = 0  # the bus cycle at which write() asks for the next AL state check
+        self._al_due = False
+        self._al_found: tuple[int, list[int]] | None = None  # (generation, states) read off the tick, one not OP
+        self._states_generation = 0  # the tick's own state reads: a check read before one of them is stale
+        self.al_checks = 0
+        self.al_checks_unanswered = 0  # of which some slave did not answer in time (a busy host): not judged
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
         self.infos: list[SlaveInfo] = []
         self.image: ProcessImage | None = None
@@ -322,6 +353,7 @@ class EthercatDriver(Driver):
         self._on_event = self._on_drive_event  # bound once, not on every read
         period_s = self.view.clock.period_ns * 1e-9
         bus.request_op(self._bringup_cycle, opts.op_timeout_s, period_s)
+        self._in_op = True
         log.info("ethercat %s: %d slave(s) in OP on %s, %d B out / %d B in", self.name, len(self.infos),
                  opts.interface, len(image.outputs), len(image.inputs))
         self._start_keepalive(period_s)
@@ -374,7 +406,8 @@ class EthercatDriver(Driver):
             self._load_inputs()
             if self.drives is not None:
                 self.drives.decode(0, 0, into_state=False)  # the robot's state is the loop's
-                self.drives.update_machines(self._on_drive_event)
+                if self._in_op:  # before OP a drive ignores its outputs: a fault reset would be spent
+                    self.drives.update_machines(self._on_drive_event)
         return wkc
 
     def _pack_outputs_holding(self) -> None:
@@ -391,19 +424,29 @@ class EthercatDriver(Driver):
         check_s = self._keepalive_after_ns / 2e9
         running_timeout_us = max(2 * self.view.clock.period_ns // 1000, self.options.receive_timeout_us)
 
+        al_every_s = self.options.al_check_interval_ms / 1e3
+        wake = self._wake
+
         def run() -> None:
             try:
-                deadline = time.monotonic()
+                deadline = next_al = time.monotonic()
                 while not self._keepalive_stop.is_set():
                     if time.monotonic_ns() - self._last_tick_ns < self._keepalive_after_ns:
                         ready.set()
-                        self._keepalive_stop.wait(check_s)
-                        deadline = time.monotonic()
+                        wake.wait(check_s)  # set by write() when an AL state check is due
+                        wake.clear()
+                        if self._al_due:
+                            self._al_due = False
+                            self._check_al_states()
+                        deadline = next_al = time.monotonic()
                         continue
                     with self._lock:
                         self._bringup_cycle(running_timeout_us if self._activated else None)
                         self._keepalive_cycles += 1
                     ready.set()
+                    if self._activated and time.monotonic() >= next_al:
+                        next_al = time.monotonic() + al_every_s
+                        self._check_al_states()
                     deadline += period_s
                     time.sleep(max(0.0, deadline - time.monotonic()))
             except BaseException as exc:  # reported by the next read, or by open
@@ -418,6 +461,7 @@ class EthercatDriver(Driver):
         thread, self._keepalive = self._keepalive, None
         if thread is not None:
             self._keepalive_stop.set()
+            self._wake.set()
             thread.join(2.0)
         self._raise_keepalive_error(raise_error)
 
@@ -439,7 +483,9 @@ class EthercatDriver(Driver):
         self._stop_keepalive()
         if self._estop_requested:
             raise BringUpError("emergency stop during bring-up: the drives were not enabled")
-        raise BringUpError(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
+        # a drive still in Fault after its reset would be in Fault again; a slow one may not be
+        error = BringUpError if any(m.faulted for m in self.drives.machines) else TransientBringUpError
+        raise error(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
 
     def _not_enabled(self) -> str:
         return ", ".join(f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")
@@ -502,6 +548,10 @@ class EthercatDriver(Driver):
             if self._check_states:  # a slave in SAFEOP still counts in the working counter
                 self._check_states = False
                 self._diagnose(wkc)
+            if self._al_found is not None:
+                (generation, states), self._al_found = self._al_found, None
+                if generation == self._states_generation:
+                    self._judge(states, f"AL state check (working counter {wkc}/{self._expected})")
             if self.lost and time.monotonic() >= self._next_recover:
                 self._recover_lost()
         self._read_cpu = (perf() - t0) - (received - sent)
@@ -556,6 +606,10 @@ class EthercatDriver(Driver):
             if self._split and not self._outstanding:
                 self._send_now()
                 self._outstanding = True
+            if self.cycles >= self._al_next:  # the AL states, read while the loop waits for its next tick
+                self._al_next = self.cycles + self._al_every
+                self._al_due = True
+                self._wake.set()
         self._cpu_ns[self.cycles & (RING - 1)] = self._read_cpu + perf() - t0
 
     def _advance_tares(self) -> None:
@@ -599,30 +653,58 @@ class EthercatDriver(Driver):
         """``wkc_error_limit`` bad cycles in a row: which slaves are not in OP?"""
         self.diagnoses += 1
         self._bad_run = 0
+        expected = self._expected  # the failing cycle's, before the states change it
         states = self.bus.states()  # holds the GIL for a frame or two
+        if wkc != expected and all(st == OP for st in states):
+            self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
+                               self.name, wkc, expected)
+        self._judge(states, f"working counter {wkc}/{expected}")
+
+    def _check_al_states(self) -> None:
+        """Off the tick (the keep-alive thread): every slave's AL state. A slave that dropped to
+        SAFEOP (+ERROR) keeps its SyncManagers, so the working counter does not show it; the
+        loop's next read() judges what this finds. ``read_state`` holds the GIL for one frame
+        (two when states differ), so it runs right after write(), while the loop waits."""
+        generation = self._states_generation
+        try:
+            states = self.bus.states()
+        except Exception as exc:  # a frame lost: the next check reads again
+            self._warn.warning("alcheck", "ethercat %s: reading the AL states failed: %s", self.name, exc)
+            return
+        self.al_checks += 1
+        if 0 in states:  # no answer in time (SOEM then reads NONE): a slave really gone shows in the working counter
+            self.al_checks_unanswered += 1
+            return
+        if any(st != OP for st in states) or self.lost:
+            self._al_found = (generation, states)
+
+    def _judge(self, states: list[int], why: str) -> None:
+        """States read: a drive out of OP fails the driver, another slave is lost (reported
+        with its AL status code, recovered step by step)."""
         lost = {i for i, st in enumerate(states) if st != OP}
         self._update_lost(states, lost)
         if not lost:
-            if wkc != self._expected:
-                self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
-                                   self.name, wkc, self._expected)
             return
+        slaves = self.bus.slaves
         describe = {i: f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
-                       f"{self.bus.slaves[i].al_status:04X}" for i in sorted(lost)}
+                       f"{slaves[i].al_status:04X} ({pysoem.al_status_code_to_string(slaves[i].al_status)})"
+                    for i in sorted(lost)}
         drives_lost = [i for i in sorted(lost) if self.options.slaves[i].kind == "cia402"]
         if drives_lost:
             joints = ", ".join(self.options.slaves[i].joint or "?" for i in drives_lost)
-            raise EthercatError(f"working counter {wkc}/{self._expected}: drive(s) of joint(s) {joints} "
-                                f"out of OP: " + "; ".join(describe.values()))
-        for i in sorted(lost - self._reported):
+            raise EthercatError(f"{why}: drive(s) of joint(s) {joints} out of OP: " + "; ".join(describe.values()))
+        new = lost - self._reported
+        for i in sorted(new):
             self.view.report_fault("read", f"{describe[i]}: lost; the run goes on without it, "
                                    f"recovery every {self.options.recover_interval_s:g} s")
         self._reported = set(lost)
-        self._next_recover = time.monotonic() + self.options.recover_interval_s
+        if new:  # (a check finding it still lost does not put its recovery off)
+            self._next_recover = time.monotonic() + self.options.recover_interval_s
 
     def _update_lost(self, states: list[int], lost: set[int]) -> None:
         """New states read: who is lost, who came back, and the working counter to expect (a
         slave in SAFEOP still counts: its SyncManagers work, only its application ignores outputs)."""
+        self._states_generation += 1
         for i in sorted(self.lost - lost):
             self._recovered(i)
         self.lost = set(lost)
@@ -787,6 +869,9 @@ class EthercatDriver(Driver):
             out["cpu_us"] = [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
         if self._keepalive_cycles:
             out["keepalive_cycles"] = self._keepalive_cycles
+        out["al_checks"] = self.al_checks
+        if self.al_checks_unanswered:
+            out["al_checks_unanswered"] = self.al_checks_unanswered
         if self.drives is not None:
             enabled = self._enabled_at_close
             if enabled is None:

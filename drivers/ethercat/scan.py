@@ -28,6 +28,7 @@ import json
 import logging
 import socket
 import sys
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -170,6 +171,14 @@ def config_names(slaves: Sequence[ScannedSlave]) -> list[tuple[str, str | None]]
     return names
 
 
+NO_JOINT = (
+    "This bus has no cia402 drive, so its driver moves no joint, and a config needs at least one "
+    "(check says: joints: required section is missing). Add this [[driver]] (and its [devices.*]) "
+    "to the config of the robot it is a part of, whose [joints] another driver moves; the slaves' "
+    "bus variables are then reached through this driver (driver.image.link)."
+)
+
+
 def to_toml(ifname: str, slaves: Sequence[ScannedSlave]) -> str:
     """The ``[[driver]]`` table for these slaves, with a joint per drive and a device per sensor."""
     names = config_names(slaves)
@@ -183,6 +192,8 @@ def to_toml(ifname: str, slaves: Sequence[ScannedSlave]) -> str:
         "# have to match between the joints, the devices and the slaves.",
         "",
     ]
+    if not joints:
+        lines[-1:] = ["#", *textwrap.wrap(NO_JOINT, 92, initial_indent="# ", subsequent_indent="# "), ""]
     for joint in joints:
         lines += [f"[joints.{joint}]", "# position = [min, max]  velocity = ...  acceleration = ...  effort = ..."]
     for device, kind in devices:
@@ -245,6 +256,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     if args.toml:
         print(to_toml(args.interface, slaves), end="")
+        if not any(s.kind == "cia402" for s in slaves):
+            print(f"note: {NO_JOINT}", file=sys.stderr)
     elif args.json:
         print(to_json(args.interface, slaves))
     else:

@@ -25,11 +25,14 @@ from .net import Runner, disable_ipv6, set_up, wait_for_interface
 from .segment import Segment
 
 
-def _ifname(name: str) -> str:
-    # Linux interface names are 1..15 bytes (IFNAMSIZ 16); a longer one would be waited for in vain
-    if not 0 < len(name.encode()) <= 15 or "/" in name or any(c.isspace() for c in name):
-        raise argparse.ArgumentTypeError(f"{name!r} is not an interface name (1-15 characters, no / or space)")
-    return name
+IFNAMSIZ = 16  # Linux: an interface name is at most 15 bytes and a NUL
+
+
+def _ifname(text: str) -> str:
+    """Refused at once rather than after the wait for an interface that cannot exist."""
+    if not text or len(text.encode()) >= IFNAMSIZ or "/" in text or text.strip() != text or text in (".", ".."):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a Linux interface name (1..15 bytes, no '/' or spaces)")
+    return text
 
 
 def _parser() -> argparse.ArgumentParser:

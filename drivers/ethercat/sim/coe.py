@@ -222,7 +222,7 @@ class CoeServer:
         if not ca:
             e = self.od.entry(index, sub)
             self.od.check_writable(e)
-        elif index not in self.od.objects:
+        elif self.od.visible(index) is None:
             raise SdoAbort(ABORT_NO_OBJECT)
         self._download = {"index": index, "sub": sub, "ca": ca, "total": total,
                           "buf": bytearray(body[10:10 + present]), "toggle": 0}
@@ -281,7 +281,7 @@ class CoeServer:
                 return self._info_fragments(0x02, data)
             if opcode == 0x03:
                 index = struct.unpack_from("<H", body, 6)[0]
-                obj = self.od.objects.get(index)
+                obj = self.od.visible(index)
                 if obj is None:
                     raise SdoAbort(ABORT_NO_OBJECT)
                 first = obj.entries.get(1, obj.entries[0]) if obj.code in (ARRAY, RECORD) else obj.entries[0]

@@ -17,9 +17,12 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
 ``repair``         - (undo ``break``)
 ``al_error``       ``slave``, ``code`` (AL status code): SAFEOP (from OP) + error flag
 ``drive_fault``    ``slave``, ``code`` (CiA 402 error code, e.g. 0x2310 over-current)
+``hide_objects``   ``slave``, ``indices`` (list): its SDO server says these objects do not
+                   exist (e.g. 0x1C12/0x1C13: its PDOs are then in its SII only)
+``op_delay``       ``ms`` (0 = off); ``slave`` (default: all): SAFEOP -> OP takes that long
 ``device``         ``slave`` + device settings (imu: quat/gyro/acc/noise/valid; ft: wrench/
                    noise/force_limit/torque_limit; dio: pattern; drive: load/inertia/viscous/
-                   coulomb/csp_hz/csv_tau/max_speed/position/fault)
+                   coulomb/csp_hz/csv_tau/max_speed/position/fault/power_on_fault)
 ``dc``             ``slave``, ``supported`` (bool): the slave's ESC has a distributed clock
                    or not (features register, DC registers); power-cycles that slave
 ``eeprom_busy``    ``slave``, ``ms`` (default 50): the slave's next EEPROM read leaves its
@@ -27,7 +30,8 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
 ``power_cycle``    ``slave`` (default: all): back to the power-on state (registers, SII,
                    object dictionary values, device model)
 ``clear``          - (drop, delay, wkc faults off; cable repaired; no EEPROM busy; every
-                   slave has DC again)
+                   slave has DC again, no op_delay, no drive faulted at power-on, no
+                   hidden objects)
 ``reset_counters`` -
 =================  ==========================================================================
 
@@ -56,7 +60,7 @@ def apply(segment: Segment, command: dict[str, Any]) -> dict[str, Any]:
     """Run one command; never raises for a bad command (the error goes into the answer)."""
     try:
         return {"ok": True, **(_apply(segment, dict(command)) or {})}
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, IndexError, OverflowError, RecursionError) as exc:
         return {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
 
 
@@ -107,6 +111,22 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
     if cmd == "drive_fault":
         seg.drive_fault(_int(c["slave"], "slave"), _int(c.get("code", 0x2310), "code"))
         return None
+    if cmd == "hide_objects":
+        od = seg.slave(_int(c["slave"], "slave")).device.od
+        if od is None:
+            raise ValueError("this slave has no object dictionary")
+        indices = c["indices"]
+        if not isinstance(indices, list):
+            raise ValueError("indices: expected a list")
+        od.hidden = {_int(i, "indices") for i in indices}
+        return None
+    if cmd == "op_delay":
+        ms = float(c.get("ms", 0))
+        if not 0 <= ms <= 60_000:
+            raise ValueError("ms must be within 0..60000")
+        for esc in [seg.slave(_int(c["slave"], "slave"))] if "slave" in c else seg.slaves:
+            esc.op_delay_ns = int(ms * 1e6)
+        return None
     if cmd == "device":
         k = _int(c.pop("slave"), "slave")
         return {"device": seg.slave(k).device.configure(**c)}
@@ -136,6 +156,11 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
         seg.break_before(None)
         seg.eeprom_busy_off()
         for k, esc in enumerate(seg.slaves):
+            esc.op_delay_ns = 0
+            if esc.device.od is not None:
+                esc.device.od.hidden = set()
+            if getattr(esc.device, "power_on_fault", None) is not None:
+                esc.device.power_on_fault = None
             if not esc.has_dc:
                 esc.has_dc = True
                 seg.power_cycle(k)
@@ -152,8 +177,11 @@ def apply_line(segment: Segment, line: bytes | str) -> bytes:
         command = json.loads(line)
         if not isinstance(command, dict):
             raise ValueError("a JSON object is expected")
-    except ValueError as exc:
-        answer: dict[str, Any] = {"ok": False, "error": f"bad request: {exc}"}
+    except (ValueError, RecursionError) as exc:  # (deeply nested arrays exhaust the parser's stack)
+        answer: dict[str, Any] = {"ok": False, "error": f"bad request: {type(exc).__name__}: {str(exc)[:200]}"}
     else:
         answer = apply(segment, command)
-    return (json.dumps(answer) + "\n").encode()
+    try:
+        return (json.dumps(answer) + "\n").encode()
+    except (ValueError, TypeError, RecursionError):  # a command echoing back what cannot be encoded
+        return (json.dumps({"ok": False, "error": "the answer could not be encoded"}) + "\n").encode()

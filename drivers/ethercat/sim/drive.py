@@ -149,6 +149,10 @@ class Drive(Device):
         for e in (self.e_encoder[0], self.e_encoder[1], self.e_rated_torque):
             e.on_write = self._mark_params
 
+    #: a fault the drive finds in its self-test at every power-on (e.g. 0x7500, a brake or
+    #: encoder error stored from before): it comes up in Fault; set through configure()
+    power_on_fault: int | None = None
+
     def power_on(self) -> None:
         self.state = NOT_READY
         self.pos = 0.0  # counts
@@ -170,6 +174,8 @@ class Drive(Device):
         self.e_error_code.value = 0
         self.e_error_register.value = 0
         self.e_cw.value = 0
+        if self.power_on_fault is not None:
+            self._fault_pending = self.power_on_fault  # entered with the first exchange (SAFEOP)
         self._publish()
 
     # ------------------------------------------------------------------ control interface
@@ -219,6 +225,9 @@ class Drive(Device):
         for key, value in kw.items():
             if key == "fault":
                 self.inject_fault(int(value, 0) if isinstance(value, str) else int(value))
+            elif key == "power_on_fault":  # null: none; applies from the next power cycle
+                self.power_on_fault = None if value is None else (
+                    int(value, 0) if isinstance(value, str) else int(value)) & 0xFFFF
             elif key == "load":
                 self.load = float(value)
             elif key in ("inertia", "viscous", "coulomb", "csp_hz", "csv_tau", "max_speed"):

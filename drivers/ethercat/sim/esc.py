@@ -120,6 +120,9 @@ class Esc:
         #: False: an ESC without a distributed clock (its features say so, its DC registers
         #: read 0 and ignore writes); set through the control command ``dc``
         self.has_dc = True
+        #: SAFEOP -> OP takes this long (a slave whose application starts slowly, e.g. a drive
+        #: that checks its motor first); set through the control command ``op_delay``
+        self.op_delay_ns = 0
         self.power_on()
 
     # ================================================================ power-on reset
@@ -176,6 +179,7 @@ class Esc:
         self.last_output_ns: int | None = None
         self.outputs_fresh = False
         self.op_pending = False
+        self.op_due: int | None = None  # with op_delay_ns: OP not before this (clock time)
         self.touched = False
         self.wd_ns = 0
         self._wd_enabled = False
@@ -523,13 +527,14 @@ class Esc:
         self.outputs_fresh = True
         if not self.mem[0x0440] & 1:
             self.mem[0x0440] |= 1
-        if self.op_pending:
-            self.op_pending = False
+        if self.op_pending and (self.op_due is None or now >= self.op_due):
             self._set_state(OP, now)
 
     def pd_cycle(self, now: int) -> None:
         """After a frame that carried this slave's process data: the device consumes outputs
         (valid only in OP) and produces inputs for the next frame."""
+        if self.op_pending and not self.device.out_size and now >= (self.op_due or 0):
+            self._set_state(OP, now)  # a slave without outputs, at the end of its op_delay
         st = self.al_state
         if st == OP or st == SAFEOP:
             valid = st == OP and self.outputs_fresh
@@ -565,6 +570,8 @@ class Esc:
         ack = value & 0x10
         if self.al_error and not ack:
             return  # an error must be acknowledged before any other request
+        if req == OP and self.op_pending:
+            return  # the same request again: the transition under way goes on
         self.op_pending = False
         if ack and self.al_error:
             self.al_error = False
@@ -594,8 +601,13 @@ class Esc:
             if code:
                 self._al_refuse(code)
                 return
+        elif req == OP and self.op_delay_ns:
+            self.op_pending = True  # OP once the delay is over (and valid outputs arrived)
+            self.op_due = now + self.op_delay_ns
+            return
         elif req == OP and self.device.out_size and not self._outputs_recent(now):
             self.op_pending = True  # go to OP once valid outputs arrive
+            self.op_due = None
             return
         self._set_state(req, now)
 
@@ -626,6 +638,7 @@ class Esc:
         old = self.al_state
         self.al_state = new
         self.op_pending = False
+        self.op_due = None
         if old == OP and new != OP:
             self.device.outputs_lost(now)
         if new in (INIT, BOOT):

@@ -260,7 +260,10 @@ class Runner:
         pending += chunk
         if b"\n" in pending or (done and pending):
             line = bytes(pending.split(b"\n", 1)[0])
-            answer = apply_line(self.segment, line)
+            try:
+                answer = apply_line(self.segment, line)
+            except Exception as exc:  # a control request never takes the segment down
+                answer = f'{{"ok": false, "error": "internal error: {type(exc).__name__}"}}\n'.encode()
             conn.setblocking(True)
             conn.settimeout(1.0)
             try:

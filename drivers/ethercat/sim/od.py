@@ -190,6 +190,9 @@ class ObjectDictionary:
 
     def __init__(self) -> None:
         self.objects: dict[int, Obj] = {}
+        #: objects the SDO server says do not exist (a slave without them, e.g. one without
+        #: 0x1C12/0x1C13 whose PDOs are in its SII only); the device model still uses them
+        self.hidden: set[int] = set()
         self.state_getter: Callable[[], int] = lambda: 2  # AL state, set by the ESC
 
     # ---- building
@@ -221,8 +224,12 @@ class ObjectDictionary:
         return obj
 
     # ---- access
+    def visible(self, index: int) -> Obj | None:
+        """The object as the SDO server shows it (None: it does not exist)."""
+        return None if index in self.hidden else self.objects.get(index)
+
     def entry(self, index: int, sub: int) -> Entry:
-        obj = self.objects.get(index)
+        obj = self.visible(index)
         if obj is None:
             raise SdoAbort(ABORT_NO_OBJECT)
         e = obj.entries.get(sub)
@@ -252,7 +259,7 @@ class ObjectDictionary:
 
     def read_complete(self, index: int, sub: int) -> bytes:
         """Complete access upload starting at sub 0 or 1. Sub 0 (u8) is sent padded to 16 bits."""
-        obj = self.objects.get(index)
+        obj = self.visible(index)
         if obj is None:
             raise SdoAbort(ABORT_NO_OBJECT)
         if obj.code == VAR:
@@ -273,7 +280,7 @@ class ObjectDictionary:
 
     def write_complete(self, index: int, sub: int, data: bytes) -> None:
         """Complete access download starting at sub 0 (sub 0 value padded to 16 bits) or 1."""
-        obj = self.objects.get(index)
+        obj = self.visible(index)
         if obj is None:
             raise SdoAbort(ABORT_NO_OBJECT)
         if obj.code == VAR:
