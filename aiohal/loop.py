@@ -25,6 +25,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -48,6 +49,30 @@ from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
 log = logging.getLogger(__name__)
 
 
+class LoopState(StrEnum):
+    """The loop's lifecycle: ``created`` -> ``configured`` (drivers and controller built) ->
+    ``active`` (drivers open, controller started) <-> ``running`` (inside :meth:`ControlLoop.run`)
+    -> ``closed``. The values are the words the report and the errors use."""
+
+    CREATED = "created"
+    CONFIGURED = "configured"
+    ACTIVE = "active"
+    RUNNING = "running"
+    CLOSED = "closed"
+
+
+class DriverStatus(StrEnum):
+    """A driver's lifecycle in the loop: ``created`` -> ``open`` -> ``closed``; ``failed``
+    once it raised (isolated, never read or written again); ``abandoned`` when its
+    ``close()`` did not return in time (after its estop)."""
+
+    CREATED = "created"
+    OPEN = "open"
+    FAILED = "failed"
+    CLOSED = "closed"
+    ABANDONED = "abandoned"
+
+
 class DriverSlot:
     """A driver with its status and timing counters."""
 
@@ -57,7 +82,7 @@ class DriverSlot:
         self.driver = driver
         self.name = driver.name
         self.type = type_name
-        self.status = "created"  # created -> open -> failed | closed
+        self.status = DriverStatus.CREATED
         self.read_ns = 0
         self.write_ns = 0
         self.max_read_ns = 0
@@ -107,7 +132,7 @@ class ControlLoop:
         self._publishers: list[Callable[[ControlLoop], None]] = []
         self._stop = False
         self.stop_reason = ""
-        self.state = "created"
+        self.state = LoopState.CREATED
         self._k_start = 0
         self._last_update_k = 0
         self._stale_drivers: set[str] = set()
@@ -123,8 +148,8 @@ class ControlLoop:
 
     def configure(self) -> None:
         """Instantiate drivers and controllers from the config; touches no hardware."""
-        if self.state != "created":
-            raise LifecycleError(f"configure() in state {self.state!r}")
+        if self.state != LoopState.CREATED:
+            raise LifecycleError(f"configure() in state {self.state.value!r}")
         for dc in self.config.drivers:
             view = self.robot.driver_view(dc.joints, dc.devices)
             view.report_fault = functools.partial(self.record_fault, f"driver:{dc.name}")
@@ -151,14 +176,14 @@ class ControlLoop:
         except Exception as exc:
             raise ControllerError(self.controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
         self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.doors)
-        self.state = "configured"
+        self.state = LoopState.CONFIGURED
 
     async def activate(self) -> None:
         """Open every driver, read once, start from the measured state, start the controller."""
-        if self.state == "created":
+        if self.state == LoopState.CREATED:
             self.configure()
-        if self.state != "configured":
-            raise LifecycleError(f"activate() in state {self.state!r}")
+        if self.state != LoopState.CONFIGURED:
+            raise LifecycleError(f"activate() in state {self.state.value!r}")
         clock = self.robot.clock
         clock.kind = self.source.kind
         clock.tick = 0
@@ -174,7 +199,7 @@ class ControlLoop:
         except BaseException:
             self.estop()
             await self._close_drivers()
-            self.state = "closed"
+            self.state = LoopState.CLOSED
             raise
         state = self.robot.state
         for slot in self.slots:
@@ -184,7 +209,7 @@ class ControlLoop:
                 self.record_fault(f"driver:{slot.name}", "read", reason)
                 self.estop()
                 await self._close_drivers()
-                self.state = "closed"
+                self.state = LoopState.CLOSED
                 raise DriverError(slot.name, "read", reason)
         self._active = list(self.slots)
         cmd = self.robot.command
@@ -195,7 +220,7 @@ class ControlLoop:
         cmd.mode[cmd.mode == Mode.NONE] = Mode.POSITION
         self.limiter.reset(state.position)
         self.level = self.worst_level = SafetyLevel.RUN
-        self.state = "active"
+        self.state = LoopState.ACTIVE
         self._k_start = 0  # controller time counts from activation, across run() calls
         self._last_update_k = 0
         if self.multirate is not None:
@@ -211,17 +236,17 @@ class ControlLoop:
             await step()
         except Exception as exc:
             self.record_fault(f"driver:{slot.name}", phase, exc)
-            slot.status = "failed"
+            slot.status = DriverStatus.FAILED
             raise DriverError(slot.name, phase, f"{type(exc).__name__}: {exc}") from exc
         if phase == "open":
-            slot.status = "open"
+            slot.status = DriverStatus.OPEN
 
     async def deactivate(self) -> None:
         """Stop the controller and close every driver (also the failed ones)."""
-        if self.state in ("closed", "created", "configured"):
-            self.state = "closed"
+        if self.state in (LoopState.CLOSED, LoopState.CREATED, LoopState.CONFIGURED):
+            self.state = LoopState.CLOSED
             return
-        if self.state == "running":  # finish the tick in progress before closing anything
+        if self.state == LoopState.RUNNING:  # finish the tick in progress before closing anything
             self.request_stop("deactivated")
             await self._run_finished.wait()
         controller = self.controller
@@ -232,12 +257,12 @@ class ControlLoop:
             self.record_fault(f"controller:{self.controller_type}", "stop", exc)
         await self._close_drivers()
         self.level = SafetyLevel.OFF
-        self.state = "closed"
+        self.state = LoopState.CLOSED
 
     async def _close_drivers(self) -> None:
         timeout = self.config.loop.close_timeout_ms / 1e3
         for slot in reversed(self.slots):
-            if slot.status in ("closed", "abandoned"):
+            if slot.status in (DriverStatus.CLOSED, DriverStatus.ABANDONED):
                 continue
             try:
                 await asyncio.wait_for(slot.driver.close(), timeout)
@@ -249,9 +274,9 @@ class ControlLoop:
                     slot.driver.estop()
                 except Exception:
                     pass
-                slot.status = "abandoned" if isinstance(exc, TimeoutError) else slot.status
-            if slot.status not in ("failed", "abandoned"):
-                slot.status = "closed"
+                slot.status = DriverStatus.ABANDONED if isinstance(exc, TimeoutError) else slot.status
+            if slot.status not in (DriverStatus.FAILED, DriverStatus.ABANDONED):
+                slot.status = DriverStatus.CLOSED
         if self._heap_frozen:  # every path that closes the drivers ends the loop's freeze
             thaw_heap()
             self._heap_frozen = False
@@ -303,7 +328,7 @@ class ControlLoop:
 
     def _driver_failed(self, slot: DriverSlot, phase: str, exc: BaseException) -> None:
         self.record_fault(f"driver:{slot.name}", phase, exc)
-        slot.status = "failed"
+        slot.status = DriverStatus.FAILED
         try:
             slot.driver.estop()
         except Exception as estop_exc:
@@ -370,7 +395,7 @@ class ControlLoop:
         self.limiter.follow_measured(which, np.zeros(n))
         if self.multirate is not None:  # the controller sees the change this tick, not its old command
             self.multirate.force()
-        if self.controller is self._hold and self.state in ("active", "running"):
+        if self.controller is self._hold and self.state in (LoopState.ACTIVE, LoopState.RUNNING):
             self._hold.start((self.robot.clock.tick - self._k_start) * self.period_s)
 
     def _check_feedback(self, k: int, max_age: int) -> None:
@@ -405,8 +430,8 @@ class ControlLoop:
 
         Returns the report (see :meth:`report`).
         """
-        if self.state != "active":
-            raise LifecycleError(f"run() in state {self.state!r}; use activate() or 'async with'")
+        if self.state != LoopState.ACTIVE:
+            raise LifecycleError(f"run() in state {self.state.value!r}; use activate() or 'async with'")
         if duration is not None:
             if not (duration > 0 and math.isfinite(duration * 1e9)):
                 raise ValueError(f"duration must be a finite number of seconds more than 0 (got {duration})")
@@ -415,7 +440,7 @@ class ControlLoop:
         self.stop_reason = ""
         for slot in self.slots:
             slot.read_ns = slot.write_ns = slot.max_read_ns = slot.max_write_ns = 0
-        self.state = "running"
+        self.state = LoopState.RUNNING
         self.event_loop = type(asyncio.get_running_loop()).__module__.partition(".")[0]  # asyncio or uvloop
         self._run_finished.clear()
         self.realtime = RealtimeState()
@@ -443,8 +468,8 @@ class ControlLoop:
             self.stats.end()
             self.ticker.close()
             restore_realtime(self.realtime)
-            if self.state == "running":
-                self.state = "active"
+            if self.state == LoopState.RUNNING:
+                self.state = LoopState.ACTIVE
             self._run_finished.set()
         return self.report()
 
@@ -613,7 +638,7 @@ class ControlLoop:
                 health = {"health_error": str(exc)}
             drivers[slot.name] = {
                 "type": slot.type,
-                "status": slot.status,
+                "status": slot.status.value,
                 "joints": len(slot.driver.view.joint_names),
                 "read_us_mean": round(slot.read_ns / n / 1e3, 2) if n else None,
                 "write_us_mean": round(slot.write_ns / n / 1e3, 2) if n else None,
