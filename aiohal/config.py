@@ -14,6 +14,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
@@ -24,7 +25,7 @@ from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyErro
 from .hal import Options, did_you_mean
 from .realtime import RealtimeSection
 from .record.options import RecordSection
-from .robot import JointSpec, Robot
+from .robot import JointSpec, Mode, Robot
 from .shm import ClientSection, segment_name
 
 
@@ -357,9 +358,10 @@ def _expand(patterns: list[str], names: tuple[str, ...], path: str, issues: list
     return out
 
 
-def _load_plugin(kind: str, name: str, path: str, issues: list[ConfigIssue]) -> type | None:
+def _load_plugin(kind: str, name: str, path: str, issues: list[ConfigIssue], given: type | None = None) -> type | None:
+    """The plugin named ``name`` (or the class ``given`` from code), or None with the issue added."""
     try:
-        return plugins.load(kind, name)
+        return plugins.check_class(kind, given) if given is not None else plugins.load(kind, name)
     except MissingDependencyError as exc:
         issues.append(ConfigIssue(path, str(exc)))
     except PluginError as exc:
@@ -407,7 +409,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     """Validate a parsed TOML document; raises ConfigError listing every issue.
 
     Each section is parsed on its own, in the order of the file's description, so one bad
-    section does not hide the others' errors; the checks across sections come last.
+    section does not hide the others' errors; the checks across sections come last. From
+    code (:func:`from_parts`), a driver's or the controller's ``type`` may be the class itself.
     """
     if not isinstance(raw, dict):
         raise ConfigError([ConfigIssue("", "the document must be a table")], str(path) if path else None)
@@ -424,6 +427,8 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     client = doc.section(ClientSection, "client")
     bridge = doc.section(BridgeSection, "bridge")
     _cross_check(doc, robot, controller, client, bridge)
+    if controller is not None:
+        doc.issues += mode_issues(controller.cls, controller.params, drivers)
 
     if doc.issues:  # each once: a scalar that is wrong for every joint is one mistake
         raise ConfigError(list(dict.fromkeys(doc.issues)), str(path) if path else None)
@@ -526,16 +531,17 @@ def _parse_drivers(
         raw_drivers = []
     elif "driver" in doc.raw and not raw_drivers:
         doc.add("driver", "the robot needs at least one driver")
+    entries = [_given_class(body) for body in raw_drivers]
     drivers: list[DriverConfig] = []
     incomplete = False
     joint_owner: dict[str, int] = {}
     device_owner: dict[str, int] = {}
     names_seen: dict[str, int] = {}
     type_counts: dict[str, int] = {}
-    for d in raw_drivers:
+    for d, _ in entries:
         if isinstance(d, dict) and isinstance(d.get("type"), str):
             type_counts[d["type"]] = type_counts.get(d["type"], 0) + 1
-    for i, body in enumerate(raw_drivers):
+    for i, (body, given) in enumerate(entries):
         where = f"driver[{i}]"
         section = doc.validate(DriverSection, body, where)
         if section is None:
@@ -557,7 +563,7 @@ def _parse_drivers(
             doc.add(f"{where}.joints", "a driver's joints must be a contiguous run in the order of [joints] "
                     f"(got {', '.join(joints)})")
 
-        cls = _load_plugin("driver", section.type, f"{where}.type", doc.issues)
+        cls = _load_plugin("driver", section.type, f"{where}.type", doc.issues, given)
         dev_kinds: dict[str, str] = {}
         for dev_name in section.devices:
             if dev_name not in devices:
@@ -590,12 +596,20 @@ def _parse_drivers(
     return tuple(drivers)
 
 
+def _given_class(body: Any) -> tuple[Any, type | None]:
+    """A section whose ``type`` is a class (from code) as the section naming it, and the class."""
+    if isinstance(body, dict) and isinstance(body.get("type"), type):
+        return {**body, "type": body["type"].__name__}, body["type"]
+    return body, None
+
+
 def _parse_controller(doc: _Document, joints: tuple[JointSpec, ...], robot: RobotSection) -> ControllerConfig | None:
     """``[controller]``: its plugin, its parameters and the plugin's own checks of them."""
-    section = doc.section(ControllerSection, "controller")
+    body, given = _given_class(doc.raw.get("controller", {}))
+    section = doc.validate(ControllerSection, body, "controller")
     if section is None:
         return None
-    cls = _load_plugin("controller", section.type, "controller.type", doc.issues)
+    cls = _load_plugin("controller", section.type, "controller.type", doc.issues, given)
     if cls is None:
         return None
     params = doc.validate(cls.Params, section.params, "controller.params")
@@ -604,6 +618,36 @@ def _parse_controller(doc: _Document, joints: tuple[JointSpec, ...], robot: Robo
     for rel, msg in _plugin_checks(cls, "controller", params, joints, robot):
         doc.add(_plugin_path("controller", rel), msg)
     return ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
+
+
+def mode_issues(controller: type, params: Options, drivers: Sequence[DriverConfig]) -> list[ConfigIssue]:
+    """A mode the controller commands that a driver cannot apply to its joints, with the
+    driver named (as ros2_control refuses a controller whose command interfaces the hardware
+    does not export). Reported at ``controller.params.mode`` when a parameter chose it."""
+    where = "controller.params.mode" if "mode" in type(params).model_fields else "controller.type"
+    try:
+        commanded = controller.commanded_modes(params)
+    except Exception as exc:
+        return [ConfigIssue(where, f"{controller.__name__}.commanded_modes failed: {type(exc).__name__}: {exc}")]
+    issues = []
+    for driver in drivers:
+        if not driver.joints:
+            continue
+        try:
+            supported = driver.cls.supported_modes(driver.options)
+        except Exception as exc:
+            issues.append(ConfigIssue(where, f'driver "{driver.name}": {driver.cls.__name__}.supported_modes '
+                                      f"failed: {type(exc).__name__}: {exc}"))
+            continue
+        missing = commanded - supported
+        if missing:
+            issues.append(ConfigIssue(where, f"commands {_mode_names(missing)}, which driver \"{driver.name}\" "
+                                      f"({driver.type}) cannot apply (it takes {_mode_names(supported) or 'none'})"))
+    return issues
+
+
+def _mode_names(modes: Iterable[Mode]) -> str:
+    return ", ".join(m.name.lower() for m in sorted(modes))
 
 
 def _cross_check(
@@ -680,6 +724,55 @@ def load_config(path: str | Path) -> Config:
     if _depth_exceeds(raw, MAX_DEPTH):
         raise too_deep
     return parse_config(raw, base_dir=path.resolve().parent, path=path)
+
+
+def from_parts(
+    *,
+    joints: Mapping[str, Mapping[str, Any]] | Sequence[JointSpec],
+    drivers: Sequence[Mapping[str, Any] | tuple[str | type, Mapping[str, Any]]],
+    controller: str | type | Mapping[str, Any] = "hold",
+    params: Mapping[str, Any] | Options | None = None,
+    robot: str | Mapping[str, Any] = "robot",
+    devices: Mapping[str, Mapping[str, Any]] | None = None,
+    rate_hz: float | None = None,
+    clock: str | None = None,
+    base_dir: str | Path | None = None,
+    **sections: Any,
+) -> Config:
+    """A :class:`Config` from Python values instead of a TOML file, validated the same way
+    (the same errors, with the same key paths).
+
+    ``joints``: ``{name: {"position": [min, max], "velocity": ..., ...}}`` as ``[joints]``, or
+    :class:`JointSpec` objects in order. ``drivers``: ``[[driver]]`` tables, or ``(type,
+    {"joints": [...], "options": {...}})`` pairs; a type is a plugin name or a Driver class.
+    ``controller``: a name or Controller class with its ``params``, or a ``[controller]``
+    table. ``robot``: its name, or the ``[robot]`` table. ``rate_hz`` and ``clock`` go into
+    ``[loop]``; any other section (``loop``, ``realtime``, ``joint_defaults``, ``record``,
+    ``client``, ``bridge``) is given as its table. Relative paths are taken from ``base_dir``
+    (default: the working directory).
+    """
+    raw: dict[str, Any] = {key: dict(value) if isinstance(value, Mapping) else value for key, value in sections.items()}
+    raw["robot"] = {"name": robot} if isinstance(robot, str) else dict(robot)
+    loop = raw.setdefault("loop", {})
+    if isinstance(loop, dict):
+        loop.update({key: value for key, value in (("rate_hz", rate_hz), ("clock", clock)) if value is not None})
+    if isinstance(joints, Mapping):
+        raw["joints"] = {name: dict(body) if isinstance(body, Mapping) else body for name, body in joints.items()}
+    else:
+        raw["joints"] = {j.name: {"position": [j.position_min, j.position_max], "velocity": j.velocity,
+                                  "acceleration": j.acceleration, "effort": j.effort} for j in joints}
+    if devices is not None:
+        raw["devices"] = {name: dict(body) for name, body in devices.items()}
+    raw["driver"] = [{"type": entry[0], **entry[1]} if isinstance(entry, tuple) else dict(entry) for entry in drivers]
+    if isinstance(params, Options):
+        params = params.model_dump()
+    if isinstance(controller, Mapping):
+        if params is not None:
+            raise TypeError("give params inside the controller table, or a controller name or class with params")
+        raw["controller"] = dict(controller)
+    else:
+        raw["controller"] = {"type": controller, "params": dict(params or {})}
+    return parse_config(raw, base_dir=Path(base_dir) if base_dir is not None else None)
 
 
 # ---------------------------------------------------------------- JSON Schema

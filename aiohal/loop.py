@@ -31,9 +31,10 @@ from typing import Any
 import numpy as np
 
 from . import plugins
-from .config import Config
+from .config import Config, mode_issues
+from .config import from_parts as config_from_parts
 from .doors import Doors
-from .errors import ControllerError, DriverError, LifecycleError
+from .errors import ConfigError, ControllerError, DriverError, LifecycleError
 from .hal import Controller, Driver
 from .limits import CommandLimiter
 from .logutil import RateLimitedLogger
@@ -144,12 +145,44 @@ class ControlLoop:
         self.doors: Doors | None = None
         self.event_loop = ""  # the event loop's implementation, set by run()
 
+    @classmethod
+    def from_parts(
+        cls,
+        *,
+        controller: Controller | str | type | dict[str, Any] = "hold",
+        params: Any = None,
+        tick_source: TickSource | None = None,
+        **parts: Any,
+    ) -> ControlLoop:
+        """A loop built from code, with no config file: joints, drivers, ``rate_hz``, ``clock``
+        and the other sections as :func:`aiohal.config.from_parts` takes them, validated as a
+        file is (:class:`~aiohal.errors.ConfigError` with key paths). ``controller`` may also be
+        an instance, whose ``params`` are validated and checked like a configured one's::
+
+            loop = ControlLoop.from_parts(
+                joints={"q1": {"position": [-1, 1], "velocity": 1.0}},
+                drivers=[("mock", {"joints": ["q1"]})],
+                controller=SineController(), params={"amplitude": 0.2},
+                rate_hz=1000, clock="virtual",
+            )
+        """
+        instance = controller if isinstance(controller, Controller) else None
+        config = config_from_parts(controller=type(instance) if instance else controller, params=params, **parts)
+        return cls(config, tick_source=tick_source, controller=instance,
+                   controller_params=config.controller.params if instance else None)
+
     # ------------------------------------------------------------ lifecycle
 
     def configure(self) -> None:
         """Instantiate drivers and controllers from the config; touches no hardware."""
         if self.state != LoopState.CREATED:
             raise LifecycleError(f"configure() in state {self.state.value!r}")
+        if self._given_controller is not None:  # the config checked its own controller, not this one
+            given = type(self._given_controller)
+            params = self._given_params if self._given_params is not None else given.Params()
+            issues = mode_issues(given, params, self.config.drivers)
+            if issues:
+                raise ConfigError(issues, str(self.config.path) if self.config.path else None)
         for dc in self.config.drivers:
             view = self.robot.driver_view(dc.joints, dc.devices)
             view.report_fault = functools.partial(self.record_fault, f"driver:{dc.name}")

@@ -23,7 +23,7 @@ from pydantic import Field
 
 from aiohal.hal import Driver, Options
 from aiohal.pipe import NrtPeer
-from aiohal.robot import Fault
+from aiohal.robot import Fault, Mode
 
 from .hands.base import FAULT_NONE, describe_fault
 from .hands.messages import HandCommandMsg, HandStateMsg
@@ -49,6 +49,9 @@ class NrtHandDriver(Driver):
     Options = NrtHandOptions
     device_kinds = frozenset({"hand"})
     options: NrtHandOptions
+    #: its joint, if it has one, reads the hand's opening; the hand follows the grasp command
+    #: of its device record, so the joint takes position commands (hold's, a move's) and no other
+    command_modes = frozenset({Mode.POSITION})
 
     @classmethod
     def check_config(cls, options, joints, devices, robot):
