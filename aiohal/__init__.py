@@ -26,10 +26,15 @@ _EXPORTS = {
     "PluginError": ".errors",
     "Controller": ".hal",
     "Driver": ".hal",
+    "FiniteFloat": ".hal",
+    "JointValues": ".hal",
     "Options": ".hal",
     "ControlLoop": ".loop",
+    "DriverView": ".robot",
+    "JointSpec": ".robot",
     "Mode": ".robot",
     "Robot": ".robot",
+    "RobotView": ".robot",
     "SafetyLevel": ".safety",
 }
 
@@ -45,9 +50,9 @@ if TYPE_CHECKING:
         MissingDependencyError,
         PluginError,
     )
-    from .hal import Controller, Driver, Options
+    from .hal import Controller, Driver, FiniteFloat, JointValues, Options
     from .loop import ControlLoop
-    from .robot import Mode, Robot
+    from .robot import DriverView, JointSpec, Mode, Robot, RobotView
     from .safety import SafetyLevel
 
 
@@ -81,12 +86,17 @@ __all__ = [
     "ControllerError",
     "Driver",
     "DriverError",
+    "DriverView",
+    "FiniteFloat",
+    "JointSpec",
+    "JointValues",
     "LifecycleError",
     "MissingDependencyError",
     "Mode",
     "Options",
     "PluginError",
     "Robot",
+    "RobotView",
     "SafetyLevel",
     "__version__",
     "load_config",

@@ -240,7 +240,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: early.append(signal.Signals(signum)))
     try:
-        from .loop import ControlLoop
+        from .loop import ControlLoop, DriverStatus
         from .report import format_report, write_json
 
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -282,7 +282,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         except (asyncio.CancelledError, TimeoutError):
             control.record_fault("signal", "close", "drivers emergency-stopped, not all closed")
         stage = "reporting"
-        outcome.leave_now |= any(slot.status == "abandoned" for slot in control.slots)
+        outcome.leave_now |= any(slot.status == DriverStatus.ABANDONED for slot in control.slots)
         report = control.report()
         report.update(outputs.close())
         if not args.quiet:

@@ -14,6 +14,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
@@ -24,7 +25,7 @@ from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyErro
 from .hal import Options, did_you_mean
 from .realtime import RealtimeSection
 from .record.options import RecordSection
-from .robot import JointSpec, Robot
+from .robot import JointSpec, Mode, Robot
 from .shm import ClientSection, segment_name
 from .safety import SafetySection
 
@@ -366,9 +367,10 @@ def _expand(patterns: list[str], names: tuple[str, ...], path: str, issues: list
     return out
 
 
-def _load_plugin(kind: str, name: str, path: str, issues: list[ConfigIssue]) -> type | None:
+def _load_plugin(kind: str, name: str, path: str, issues: list[ConfigIssue], given: type | None = None) -> type | None:
+    """The plugin named ``name`` (or the class ``given`` from code), or None with the issue added."""
     try:
-        return plugins.load(kind, name)
+        return plugins.check_class(kind, given) if given is not None else plugins.load(kind, name)
     except MissingDependencyError as exc:
         issues.append(ConfigIssue(path, str(exc)))
     except PluginError as exc:
@@ -400,202 +402,67 @@ def _plugin_checks_rate(cls: type, options: Options, cycle_hz: float, every: int
         return [("", f"{cls.__name__}.check_rate failed: {type(exc).__name__}: {exc}")]
 
 
+class _Document:
+    """A parsed document on its way to a :class:`Config`: the raw tables, the validation
+    context and every issue found so far (each section adds its own and goes on)."""
+
+    def __init__(self, raw: dict[str, Any], base_dir: Path) -> None:
+        self.raw = raw
+        self.context = {"base_dir": base_dir}
+        self.issues: list[ConfigIssue] = []
+
+    def add(self, path: str, message: str) -> None:
+        self.issues.append(ConfigIssue(path, message))
+
+    def validate(self, schema: Any, data: Any, prefix: str) -> Any:
+        """``data`` validated against ``schema``, or None with its issues added."""
+        return _validate(schema, data, prefix, self.issues, self.context)
+
+    def section(self, schema: Any, key: str) -> Any:
+        """The top-level section ``key`` (empty when absent) validated against ``schema``."""
+        return self.validate(schema, self.raw.get(key, {}), key)
+
+
 def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Path | None = None) -> Config:
-    """Validate a parsed TOML document; raises ConfigError listing every issue."""
-    base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
-    context = {"base_dir": base_dir}
-    issues: list[ConfigIssue] = []
+    """Validate a parsed TOML document; raises ConfigError listing every issue.
+
+    Each section is parsed on its own, in the order of the file's description, so one bad
+    section does not hide the others' errors; the checks across sections come last. From
+    code (:func:`from_parts`), a driver's or the controller's ``type`` may be the class itself.
+    """
     if not isinstance(raw, dict):
         raise ConfigError([ConfigIssue("", "the document must be a table")], str(path) if path else None)
+    doc = _Document(raw, Path(base_dir) if base_dir is not None else Path.cwd())
+    _check_section_names(doc)
+    robot = doc.section(RobotSection, "robot")
+    loop, realtime = _parse_loop(doc)
+    safety = doc.section(SafetySection, "safety")
+    record = doc.section(RecordSection, "record")
+    joints = _parse_joints(doc)
+    joint_names = tuple(j.name for j in joints)
+    devices = _parse_devices(doc, joint_names)
+    drivers = _parse_drivers(doc, joint_names, devices, robot or RobotSection(), loop)
+    controller = _parse_controller(doc, joints, robot or RobotSection())
+    client = doc.section(ClientSection, "client")
+    bridge = doc.section(BridgeSection, "bridge")
+    _cross_check(doc, robot, controller, client, bridge, safety)
+    if controller is not None:
+        doc.issues += mode_issues(controller.cls, controller.params, drivers)
 
-    for key in raw:
-        if key not in SECTIONS:
-            issues.append(ConfigIssue(key, "unknown section" + did_you_mean(key, SECTIONS)))
-    for key in REQUIRED_SECTIONS:
-        if key not in raw:
-            issues.append(ConfigIssue(key, "required section is missing"))
-
-    robot = _validate(RobotSection, raw.get("robot", {}), "robot", issues, context)
-    loop = _validate(LoopSection, raw.get("loop", {}), "loop", issues, context)
-    realtime = _validate(RealtimeSection, raw.get("realtime", {}), "realtime", issues, context)
-    safety = _validate(SafetySection, raw.get("safety", {}), "safety", issues, context)
-    if loop is not None and realtime is not None:
-        period_us = 1e6 / loop.rate_hz
-        if realtime.spin_guard_us > period_us / 2:
-            issues.append(ConfigIssue(
-                "realtime.spin_guard_us",
-                f"{realtime.spin_guard_us:g} µs is more than half the period ({period_us / 2:g} µs): "
-                "the loop would spin most of the time",
-            ))
-    record = _validate(RecordSection, raw.get("record", {}), "record", issues, context)
-    defaults = _validate(_JointDefaults, raw.get("joint_defaults", {}), "joint_defaults", issues, context)
-    default_values = defaults.model_dump(exclude_none=True) if defaults else {}
-
-    # joints: each validated on its own, with [joint_defaults] filled in
-    joint_specs: list[JointSpec] = []
-    raw_joints = raw.get("joints", {})
-    if not isinstance(raw_joints, dict):
-        issues.append(ConfigIssue("joints", "must be a table of joints"))
-        raw_joints = {}
-    elif "joints" in raw and not raw_joints:
-        issues.append(ConfigIssue("joints", "the robot needs at least one joint"))
-    for name, body in raw_joints.items():
-        if not name.strip() or any(c in name for c in _GLOB):
-            issues.append(ConfigIssue(f'joints."{name}"', "a joint name must not be empty nor contain * ? [ "
-                                      "(drivers name their joints with those patterns)"))
-        if not isinstance(body, dict):
-            issues.append(ConfigIssue(f"joints.{name}", "must be a table"))
-            joint = None
-        else:
-            joint = _validate(JointSection, {**default_values, **body}, f"joints.{name}", issues, context)
-        if joint is not None:
-            lo, hi = joint.position
-            joint_specs.append(
-                JointSpec(name, len(joint_specs), lo, hi, joint.velocity, joint.acceleration, joint.effort)
-            )
-        else:  # reported above; the plugins still know its name, so nothing follows from it
-            joint_specs.append(JointSpec(name, len(joint_specs), -math.inf, math.inf, math.inf, math.inf, math.inf))
-    joint_names = tuple(raw_joints)
-
-    # devices
-    devices = _validate(dict[str, DeviceSection], raw.get("devices", {}), "devices", issues, context) or {}
-    for dev_name in devices:
-        if not dev_name.strip():
-            issues.append(ConfigIssue('devices.""', "a device name must not be empty"))
-    for dev_name, dev in devices.items():
-        if dev.type == "hand":
-            if dev.joint is None:
-                issues.append(ConfigIssue(f"devices.{dev_name}.joint", "a hand needs the joint that carries it"))
-            elif dev.joint not in joint_names:
-                issues.append(ConfigIssue(f"devices.{dev_name}.joint",
-                                          f'unknown joint "{dev.joint}"{did_you_mean(dev.joint, joint_names)}'))
-        elif dev.joint is not None:
-            issues.append(ConfigIssue(f"devices.{dev_name}.joint", f"only a hand is carried by a joint, not a {dev.type}"))
-
-    # drivers
-    drivers: list[DriverConfig] = []
-    raw_drivers = raw.get("driver", [])
-    if not isinstance(raw_drivers, list):
-        issues.append(ConfigIssue("driver", "must be an array of tables: write [[driver]]"))
-        raw_drivers = []
-    elif "driver" in raw and not raw_drivers:
-        issues.append(ConfigIssue("driver", "the robot needs at least one driver"))
-    drivers_incomplete = False
-    joint_owner: dict[str, int] = {}
-    device_owner: dict[str, int] = {}
-    names_seen: dict[str, int] = {}
-    type_counts: dict[str, int] = {}
-    for d in raw_drivers:
-        if isinstance(d, dict) and isinstance(d.get("type"), str):
-            type_counts[d["type"]] = type_counts.get(d["type"], 0) + 1
-    for i, body in enumerate(raw_drivers):
-        where = f"driver[{i}]"
-        section = _validate(DriverSection, body, where, issues, context)
-        if section is None:
-            drivers_incomplete = True  # its joints are unknown: do not call them unowned
-            continue
-        name = section.name or (section.type if type_counts.get(section.type, 0) == 1 else f"{section.type}{i}")
-        if name in names_seen:
-            issues.append(ConfigIssue(f"{where}.name", f'"{name}" is already the name of driver[{names_seen[name]}]'))
-        names_seen.setdefault(name, i)
-
-        joints = _expand(section.joints, joint_names, f"{where}.joints", issues)
-        for j in joints:
-            if j in joint_owner:
-                issues.append(ConfigIssue(f"{where}.joints", f'joint "{j}" is already owned by driver[{joint_owner[j]}]'))
-            else:
-                joint_owner[j] = i
-        idx = [joint_names.index(j) for j in joints]
-        if idx and idx != list(range(idx[0], idx[0] + len(idx))):
-            issues.append(
-                ConfigIssue(
-                    f"{where}.joints",
-                    "a driver's joints must be a contiguous run in the order of [joints] "
-                    f"(got {', '.join(joints)})",
-                )
-            )
-
-        cls = _load_plugin("driver", section.type, f"{where}.type", issues)
-        dev_kinds: dict[str, str] = {}
-        for dev_name in section.devices:
-            if dev_name not in devices:
-                issues.append(ConfigIssue(f"{where}.devices",
-                                          f'unknown device "{dev_name}"{did_you_mean(dev_name, devices)}'))
-                continue
-            kind = devices[dev_name].type
-            dev_kinds[dev_name] = kind
-            if dev_name in device_owner:
-                issues.append(ConfigIssue(f"{where}.devices", f'device "{dev_name}" is already owned by driver[{device_owner[dev_name]}]'))
-            else:
-                device_owner[dev_name] = i
-            if cls is not None and kind not in getattr(cls, "device_kinds", frozenset()):
-                issues.append(ConfigIssue(f"{where}.devices", f'driver "{section.type}" cannot serve a {kind} ("{dev_name}")'))
-        if cls is None:
-            continue
-        options = _validate(cls.Options, section.options, f"{where}.options", issues, context)
-        if options is None:
-            continue
-        for rel, msg in _plugin_checks(cls, where, options, joints, dev_kinds, robot or RobotSection()):
-            issues.append(ConfigIssue(_plugin_path(where, rel), msg))
-        # checks that depend on the rate the driver is cycled at (e.g. a CAN bus's load)
-        if loop is not None:
-            for rel, msg in _plugin_checks_rate(cls, options, loop.rate_hz / section.every, section.every):
-                issues.append(ConfigIssue(_plugin_path(where, rel), msg))
-        drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options,
-                                    section.every))
-
-    if isinstance(raw.get("driver"), list) and not drivers_incomplete:  # raw_drivers is [] after a malformed section
-        for j in joint_names:
-            if j not in joint_owner:
-                issues.append(ConfigIssue(f"joints.{j}", "no driver owns this joint"))
-        for dev_name in devices:
-            if dev_name not in device_owner:
-                issues.append(ConfigIssue(f"devices.{dev_name}", "no driver owns this device"))
-
-    # controller
-    controller = None
-    section = _validate(ControllerSection, raw.get("controller", {}), "controller", issues, context)
-    if section is not None:
-        cls = _load_plugin("controller", section.type, "controller.type", issues)
-        if cls is not None:
-            params = _validate(cls.Params, section.params, "controller.params", issues, context)
-            if params is not None:
-                for rel, msg in _plugin_checks(cls, "controller", params, tuple(joint_specs), robot or RobotSection()):
-                    issues.append(ConfigIssue(_plugin_path("controller", rel), msg))
-                controller = ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
-
-    client = _validate(ClientSection, raw.get("client", {}), "client", issues, context)
-    bridge = _validate(BridgeSection, raw.get("bridge", {}), "bridge", issues, context)
-    zenoh = bridge.zenoh if bridge is not None else None
-    if zenoh is not None and zenoh.accept_setpoints and (client is None or not client.shm or
-                                                         (controller is not None and controller.type != "stream")):
-        issues.append(ConfigIssue("bridge.zenoh.accept_setpoints", "setpoints go through the shared-memory ring "
-                                  "to the stream controller: set [client] shm = true and [controller] type = \"stream\""))
-    if client is not None and client.shm and robot is not None:
-        try:
-            segment_name(robot.name)
-        except AiohalError as exc:
-            issues.append(ConfigIssue("robot.name", str(exc)))
-    if controller is not None and client is not None and controller.type == "stream" and not client.shm:
-        issues.append(ConfigIssue("controller.type", "the stream controller reads setpoints from shared memory: "
-                                  "set [client] shm = true"))
-
-    if safety is not None and safety.workspace and robot is not None:
-        issues += _workspace_issues(robot, safety)
-    if issues:  # each once: a scalar that is wrong for every joint is one mistake
-        raise ConfigError(list(dict.fromkeys(issues)), str(path) if path else None)
+    if doc.issues:  # each once: a scalar that is wrong for every joint is one mistake
+        raise ConfigError(list(dict.fromkeys(doc.issues)), str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
     assert safety is not None
     return Config(
         robot=robot,
         loop=loop,
         realtime=realtime,
-        joints=tuple(joint_specs),
+        joints=joints,
         devices=tuple((n, d.type, d.joint) for n, d in devices.items()),
-        drivers=tuple(drivers),
+        drivers=drivers,
         controller=controller,
         path=path,
-        base_dir=base_dir,
+        base_dir=doc.context["base_dir"],
         record=record,
         client=client,
         bridge=bridge,
@@ -615,6 +482,240 @@ def _workspace_issues(robot: RobotSection, safety: Any) -> list[ConfigIssue]:
         return [ConfigIssue("safety.workspace", f"workspace limits need MuJoCo (the 'sim' extra): {exc}")]
     except ValueError as exc:
         return [ConfigIssue("robot.model", str(exc))]
+
+
+def _check_section_names(doc: _Document) -> None:
+    for key in doc.raw:
+        if key not in SECTIONS:
+            doc.add(key, "unknown section" + did_you_mean(key, SECTIONS))
+    for key in REQUIRED_SECTIONS:
+        if key not in doc.raw:
+            doc.add(key, "required section is missing")
+
+
+def _parse_loop(doc: _Document) -> tuple[LoopSection | None, RealtimeSection | None]:
+    """``[loop]`` and ``[realtime]``, whose spin guard must leave most of the period free."""
+    loop = doc.section(LoopSection, "loop")
+    realtime = doc.section(RealtimeSection, "realtime")
+    if loop is not None and realtime is not None:
+        period_us = 1e6 / loop.rate_hz
+        if realtime.spin_guard_us > period_us / 2:
+            doc.add("realtime.spin_guard_us",
+                    f"{realtime.spin_guard_us:g} µs is more than half the period ({period_us / 2:g} µs): "
+                    "the loop would spin most of the time")
+    return loop, realtime
+
+
+def _parse_joints(doc: _Document) -> tuple[JointSpec, ...]:
+    """``[joints]``, each validated on its own with ``[joint_defaults]`` filled in. A joint
+    with errors still gets a spec (without limits): the plugins know its name, so nothing
+    follows from its errors but their own report."""
+    raw = doc.raw
+    defaults = doc.section(_JointDefaults, "joint_defaults")
+    default_values = defaults.model_dump(exclude_none=True) if defaults else {}
+    raw_joints = raw.get("joints", {})
+    if not isinstance(raw_joints, dict):
+        doc.add("joints", "must be a table of joints")
+        raw_joints = {}
+    elif "joints" in raw and not raw_joints:
+        doc.add("joints", "the robot needs at least one joint")
+    specs: list[JointSpec] = []
+    for name, body in raw_joints.items():
+        if not name.strip() or any(c in name for c in _GLOB):
+            doc.add(f'joints."{name}"', "a joint name must not be empty nor contain * ? [ "
+                    "(drivers name their joints with those patterns)")
+        if not isinstance(body, dict):
+            doc.add(f"joints.{name}", "must be a table")
+            joint = None
+        else:
+            joint = doc.validate(JointSection, {**default_values, **body}, f"joints.{name}")
+        if joint is not None:
+            lo, hi = joint.position
+            specs.append(JointSpec(name, len(specs), lo, hi, joint.velocity, joint.acceleration, joint.effort))
+        else:
+            specs.append(JointSpec(name, len(specs), -math.inf, math.inf, math.inf, math.inf, math.inf))
+    return tuple(specs)
+
+
+def _parse_devices(doc: _Document, joint_names: tuple[str, ...]) -> dict[str, DeviceSection]:
+    """``[devices]``; a hand names the joint that carries it, nothing else does."""
+    devices = doc.section(dict[str, DeviceSection], "devices") or {}
+    for dev_name in devices:
+        if not dev_name.strip():
+            doc.add('devices.""', "a device name must not be empty")
+    for dev_name, dev in devices.items():
+        where = f"devices.{dev_name}.joint"
+        if dev.type == "hand":
+            if dev.joint is None:
+                doc.add(where, "a hand needs the joint that carries it")
+            elif dev.joint not in joint_names:
+                doc.add(where, f'unknown joint "{dev.joint}"{did_you_mean(dev.joint, joint_names)}')
+        elif dev.joint is not None:
+            doc.add(where, f"only a hand is carried by a joint, not a {dev.type}")
+    return devices
+
+
+def _parse_drivers(
+    doc: _Document, joint_names: tuple[str, ...], devices: dict[str, DeviceSection], robot: RobotSection,
+    loop: LoopSection | None,
+) -> tuple[DriverConfig, ...]:
+    """``[[driver]]``: each entry with its joints (a contiguous run, each owned once), its
+    devices, its plugin and its options; then every joint and device must have an owner."""
+    raw_drivers = doc.raw.get("driver", [])
+    if not isinstance(raw_drivers, list):
+        doc.add("driver", "must be an array of tables: write [[driver]]")
+        raw_drivers = []
+    elif "driver" in doc.raw and not raw_drivers:
+        doc.add("driver", "the robot needs at least one driver")
+    entries = [_given_class(body) for body in raw_drivers]
+    drivers: list[DriverConfig] = []
+    incomplete = False
+    joint_owner: dict[str, int] = {}
+    device_owner: dict[str, int] = {}
+    names_seen: dict[str, int] = {}
+    type_counts: dict[str, int] = {}
+    for d, _ in entries:
+        if isinstance(d, dict) and isinstance(d.get("type"), str):
+            type_counts[d["type"]] = type_counts.get(d["type"], 0) + 1
+    for i, (body, given) in enumerate(entries):
+        where = f"driver[{i}]"
+        section = doc.validate(DriverSection, body, where)
+        if section is None:
+            incomplete = True  # its joints are unknown: do not call them unowned
+            continue
+        name = section.name or (section.type if type_counts.get(section.type, 0) == 1 else f"{section.type}{i}")
+        if name in names_seen:
+            doc.add(f"{where}.name", f'"{name}" is already the name of driver[{names_seen[name]}]')
+        names_seen.setdefault(name, i)
+
+        joints = _expand(section.joints, joint_names, f"{where}.joints", doc.issues)
+        for j in joints:
+            if j in joint_owner:
+                doc.add(f"{where}.joints", f'joint "{j}" is already owned by driver[{joint_owner[j]}]')
+            else:
+                joint_owner[j] = i
+        idx = [joint_names.index(j) for j in joints]
+        if idx and idx != list(range(idx[0], idx[0] + len(idx))):
+            doc.add(f"{where}.joints", "a driver's joints must be a contiguous run in the order of [joints] "
+                    f"(got {', '.join(joints)})")
+
+        cls = _load_plugin("driver", section.type, f"{where}.type", doc.issues, given)
+        dev_kinds: dict[str, str] = {}
+        for dev_name in section.devices:
+            if dev_name not in devices:
+                doc.add(f"{where}.devices", f'unknown device "{dev_name}"{did_you_mean(dev_name, devices)}')
+                continue
+            kind = devices[dev_name].type
+            dev_kinds[dev_name] = kind
+            if dev_name in device_owner:
+                doc.add(f"{where}.devices", f'device "{dev_name}" is already owned by driver[{device_owner[dev_name]}]')
+            else:
+                device_owner[dev_name] = i
+            if cls is not None and kind not in getattr(cls, "device_kinds", frozenset()):
+                doc.add(f"{where}.devices", f'driver "{section.type}" cannot serve a {kind} ("{dev_name}")')
+        if cls is None:
+            continue
+        options = doc.validate(cls.Options, section.options, f"{where}.options")
+        if options is None:
+            continue
+        for rel, msg in _plugin_checks(cls, where, options, joints, dev_kinds, robot):
+            doc.add(_plugin_path(where, rel), msg)
+        # checks that depend on the rate the driver is cycled at (e.g. a CAN bus's load)
+        if loop is not None:
+            for rel, msg in _plugin_checks_rate(cls, options, loop.rate_hz / section.every, section.every):
+                doc.add(_plugin_path(where, rel), msg)
+        drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options,
+                                    section.every))
+
+    if isinstance(doc.raw.get("driver"), list) and not incomplete:  # raw_drivers is [] after a malformed section
+        for j in joint_names:
+            if j not in joint_owner:
+                doc.add(f"joints.{j}", "no driver owns this joint")
+        for dev_name in devices:
+            if dev_name not in device_owner:
+                doc.add(f"devices.{dev_name}", "no driver owns this device")
+    return tuple(drivers)
+
+
+def _given_class(body: Any) -> tuple[Any, type | None]:
+    """A section whose ``type`` is a class (from code) as the section naming it, and the class."""
+    if isinstance(body, dict) and isinstance(body.get("type"), type):
+        return {**body, "type": body["type"].__name__}, body["type"]
+    return body, None
+
+
+def _parse_controller(doc: _Document, joints: tuple[JointSpec, ...], robot: RobotSection) -> ControllerConfig | None:
+    """``[controller]``: its plugin, its parameters and the plugin's own checks of them."""
+    body, given = _given_class(doc.raw.get("controller", {}))
+    section = doc.validate(ControllerSection, body, "controller")
+    if section is None:
+        return None
+    cls = _load_plugin("controller", section.type, "controller.type", doc.issues, given)
+    if cls is None:
+        return None
+    params = doc.validate(cls.Params, section.params, "controller.params")
+    if params is None:
+        return None
+    for rel, msg in _plugin_checks(cls, "controller", params, joints, robot):
+        doc.add(_plugin_path("controller", rel), msg)
+    return ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
+
+
+def mode_issues(controller: type, params: Options, drivers: Sequence[DriverConfig]) -> list[ConfigIssue]:
+    """A mode the controller commands that a driver cannot apply to its joints, with the
+    driver named (as ros2_control refuses a controller whose command interfaces the hardware
+    does not export). Reported at ``controller.params.mode`` when a parameter chose it."""
+    where = "controller.params.mode" if "mode" in type(params).model_fields else "controller.type"
+    try:
+        commanded = controller.commanded_modes(params)
+    except Exception as exc:
+        return [ConfigIssue(where, f"{controller.__name__}.commanded_modes failed: {type(exc).__name__}: {exc}")]
+    issues = []
+    for driver in drivers:
+        if not driver.joints:
+            continue
+        try:
+            supported = driver.cls.supported_modes(driver.options)
+        except Exception as exc:
+            issues.append(ConfigIssue(where, f'driver "{driver.name}": {driver.cls.__name__}.supported_modes '
+                                      f"failed: {type(exc).__name__}: {exc}"))
+            continue
+        missing = commanded - supported
+        if missing:
+            issues.append(ConfigIssue(where, f"commands {_mode_names(missing)}, which driver \"{driver.name}\" "
+                                      f"({driver.type}) cannot apply (it takes {_mode_names(supported) or 'none'})"))
+    return issues
+
+
+def _mode_names(modes: Iterable[Mode]) -> str:
+    return ", ".join(m.name.lower() for m in sorted(modes))
+
+
+def _cross_check(
+    doc: _Document,
+    robot: RobotSection | None,
+    controller: ControllerConfig | None,
+    client: ClientSection | None,
+    bridge: BridgeSection | None,
+    safety: SafetySection | None,
+) -> None:
+    """What no section can check alone: the doors to other processes against the controller
+    and the robot's name; workspace limits against the robot's model."""
+    if safety is not None and safety.workspace and robot is not None:
+        doc.issues += _workspace_issues(robot, safety)
+    zenoh = bridge.zenoh if bridge is not None else None
+    if zenoh is not None and zenoh.accept_setpoints and (client is None or not client.shm or
+                                                         (controller is not None and controller.type != "stream")):
+        doc.add("bridge.zenoh.accept_setpoints", "setpoints go through the shared-memory ring "
+                "to the stream controller: set [client] shm = true and [controller] type = \"stream\"")
+    if client is not None and client.shm and robot is not None:
+        try:
+            segment_name(robot.name)
+        except AiohalError as exc:
+            doc.add("robot.name", str(exc))
+    if controller is not None and client is not None and controller.type == "stream" and not client.shm:
+        doc.add("controller.type", "the stream controller reads setpoints from shared memory: "
+                "set [client] shm = true")
 
 
 #: the largest config file read (the largest shipped config is about 10 KiB); a device or a
@@ -667,6 +768,55 @@ def load_config(path: str | Path) -> Config:
     if _depth_exceeds(raw, MAX_DEPTH):
         raise too_deep
     return parse_config(raw, base_dir=path.resolve().parent, path=path)
+
+
+def from_parts(
+    *,
+    joints: Mapping[str, Mapping[str, Any]] | Sequence[JointSpec],
+    drivers: Sequence[Mapping[str, Any] | tuple[str | type, Mapping[str, Any]]],
+    controller: str | type | Mapping[str, Any] = "hold",
+    params: Mapping[str, Any] | Options | None = None,
+    robot: str | Mapping[str, Any] = "robot",
+    devices: Mapping[str, Mapping[str, Any]] | None = None,
+    rate_hz: float | None = None,
+    clock: str | None = None,
+    base_dir: str | Path | None = None,
+    **sections: Any,
+) -> Config:
+    """A :class:`Config` from Python values instead of a TOML file, validated the same way
+    (the same errors, with the same key paths).
+
+    ``joints``: ``{name: {"position": [min, max], "velocity": ..., ...}}`` as ``[joints]``, or
+    :class:`JointSpec` objects in order. ``drivers``: ``[[driver]]`` tables, or ``(type,
+    {"joints": [...], "options": {...}})`` pairs; a type is a plugin name or a Driver class.
+    ``controller``: a name or Controller class with its ``params``, or a ``[controller]``
+    table. ``robot``: its name, or the ``[robot]`` table. ``rate_hz`` and ``clock`` go into
+    ``[loop]``; any other section (``loop``, ``realtime``, ``joint_defaults``, ``record``,
+    ``client``, ``bridge``) is given as its table. Relative paths are taken from ``base_dir``
+    (default: the working directory).
+    """
+    raw: dict[str, Any] = {key: dict(value) if isinstance(value, Mapping) else value for key, value in sections.items()}
+    raw["robot"] = {"name": robot} if isinstance(robot, str) else dict(robot)
+    loop = raw.setdefault("loop", {})
+    if isinstance(loop, dict):
+        loop.update({key: value for key, value in (("rate_hz", rate_hz), ("clock", clock)) if value is not None})
+    if isinstance(joints, Mapping):
+        raw["joints"] = {name: dict(body) if isinstance(body, Mapping) else body for name, body in joints.items()}
+    else:
+        raw["joints"] = {j.name: {"position": [j.position_min, j.position_max], "velocity": j.velocity,
+                                  "acceleration": j.acceleration, "effort": j.effort} for j in joints}
+    if devices is not None:
+        raw["devices"] = {name: dict(body) for name, body in devices.items()}
+    raw["driver"] = [{"type": entry[0], **entry[1]} if isinstance(entry, tuple) else dict(entry) for entry in drivers]
+    if isinstance(params, Options):
+        params = params.model_dump()
+    if isinstance(controller, Mapping):
+        if params is not None:
+            raise TypeError("give params inside the controller table, or a controller name or class with params")
+        raw["controller"] = dict(controller)
+    else:
+        raw["controller"] = {"type": controller, "params": dict(params or {})}
+    return parse_config(raw, base_dir=Path(base_dir) if base_dir is not None else None)
 
 
 # ---------------------------------------------------------------- JSON Schema

@@ -16,13 +16,16 @@ from typing import Annotated, Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from .robot import DriverView, JointSpec, RobotView
+from .robot import DriverView, JointSpec, Mode, RobotView
 
 #: A finite number (NaN and inf are refused at validation).
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
 #: A per-joint value in options: one number for every joint, or a {joint name: number} table.
 JointValues = FiniteFloat | dict[str, FiniteFloat]
+
+#: Every command mode a joint can be given (``Mode.NONE`` is no command at all).
+ALL_MODES: frozenset[Mode] = frozenset({Mode.POSITION, Mode.VELOCITY, Mode.EFFORT, Mode.IMPEDANCE})
 
 
 class Options(BaseModel):
@@ -79,6 +82,9 @@ class Driver(abc.ABC):
     Options: ClassVar[type[Options]] = NoOptions
     #: Device kinds ("imu", "force_torque", "hand") this driver can serve.
     device_kinds: ClassVar[frozenset[str]] = frozenset()
+    #: The command modes this driver applies to its joints (ros2_control's command
+    #: interfaces): a controller that commands another mode is refused before anything starts.
+    command_modes: ClassVar[frozenset[Mode]] = ALL_MODES
 
     def __init__(self, name: str, view: DriverView, options: Options) -> None:
         self.name = name
@@ -104,6 +110,12 @@ class Driver(abc.ABC):
         ``[[driver]] every`` given (e.g. whether a bus carries the frames). Same pairs as
         :meth:`check_config`."""
         return []
+
+    @classmethod
+    def supported_modes(cls, options: Options) -> frozenset[Mode]:
+        """The command modes with these options: ``command_modes`` unless the options narrow
+        them (the KUKA's position strategy takes no impedance)."""
+        return cls.command_modes
 
     async def open(self) -> None:
         """Bring the hardware up; may take long, runs before the first tick."""
@@ -145,6 +157,8 @@ class Controller(abc.ABC):
     """Turns state into commands. ``update`` is synchronous, runs in the tick, must not block."""
 
     Params: ClassVar[type[Options]] = NoOptions
+    #: The command modes this controller writes to ``command.mode``.
+    command_modes: ClassVar[frozenset[Mode]] = frozenset({Mode.POSITION})
 
     robot: RobotView
 
@@ -154,6 +168,12 @@ class Controller(abc.ABC):
         (path relative to ``[controller]``, e.g. ``params.pose``, or from the top of the file
         when it starts with ``/``, message) pairs."""
         return []
+
+    @classmethod
+    def commanded_modes(cls, params: Options) -> frozenset[Mode]:
+        """The command modes with these params: ``command_modes`` unless a parameter chooses
+        (a ``mode`` parameter: config errors then name ``controller.params.mode``)."""
+        return cls.command_modes
 
     def configure(self, robot: RobotView, params: Options) -> None:
         self.robot = robot

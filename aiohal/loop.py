@@ -25,14 +25,16 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
 
 from . import plugins
-from .config import Config
+from .config import Config, mode_issues
+from .config import from_parts as config_from_parts
 from .doors import Doors
-from .errors import ControllerError, DriverError, LifecycleError
+from .errors import ConfigError, ControllerError, DriverError, LifecycleError
 from .hal import Controller, Driver
 from .limits import CommandLimiter
 from .logutil import RateLimitedLogger
@@ -51,6 +53,30 @@ assert (TICK, STAMP) == (0, 1)  # the tick stores them as heartbeat[0] and heart
 log = logging.getLogger(__name__)
 
 
+class LoopState(StrEnum):
+    """The loop's lifecycle: ``created`` -> ``configured`` (drivers and controller built) ->
+    ``active`` (drivers open, controller started) <-> ``running`` (inside :meth:`ControlLoop.run`)
+    -> ``closed``. The values are the words the report and the errors use."""
+
+    CREATED = "created"
+    CONFIGURED = "configured"
+    ACTIVE = "active"
+    RUNNING = "running"
+    CLOSED = "closed"
+
+
+class DriverStatus(StrEnum):
+    """A driver's lifecycle in the loop: ``created`` -> ``open`` -> ``closed``; ``failed``
+    once it raised (isolated, never read or written again); ``abandoned`` when its
+    ``close()`` did not return in time (after its estop)."""
+
+    CREATED = "created"
+    OPEN = "open"
+    FAILED = "failed"
+    CLOSED = "closed"
+    ABANDONED = "abandoned"
+
+
 class DriverSlot:
     """A driver with its status and timing counters."""
 
@@ -63,7 +89,7 @@ class DriverSlot:
         self.max_age = max_age  # feedback older than this (ticks) is stale: max_feedback_age at its rate
         self.name = driver.name
         self.type = type_name
-        self.status = "created"  # created -> open -> failed | closed
+        self.status = DriverStatus.CREATED
         self.read_ns = 0
         self.write_ns = 0
         self.max_read_ns = 0
@@ -129,7 +155,7 @@ class ControlLoop:
         self._publishers: list[Callable[[ControlLoop], None]] = []
         self._stop = False
         self.stop_reason = ""
-        self.state = "created"
+        self.state = LoopState.CREATED
         self._k_start = 0
         self._last_update_k = 0
         self._stale_drivers: set[str] = set()
@@ -141,12 +167,44 @@ class ControlLoop:
         self.doors: Doors | None = None
         self.event_loop = ""  # the event loop's implementation, set by run()
 
+    @classmethod
+    def from_parts(
+        cls,
+        *,
+        controller: Controller | str | type | dict[str, Any] = "hold",
+        params: Any = None,
+        tick_source: TickSource | None = None,
+        **parts: Any,
+    ) -> ControlLoop:
+        """A loop built from code, with no config file: joints, drivers, ``rate_hz``, ``clock``
+        and the other sections as :func:`aiohal.config.from_parts` takes them, validated as a
+        file is (:class:`~aiohal.errors.ConfigError` with key paths). ``controller`` may also be
+        an instance, whose ``params`` are validated and checked like a configured one's::
+
+            loop = ControlLoop.from_parts(
+                joints={"q1": {"position": [-1, 1], "velocity": 1.0}},
+                drivers=[("mock", {"joints": ["q1"]})],
+                controller=SineController(), params={"amplitude": 0.2},
+                rate_hz=1000, clock="virtual",
+            )
+        """
+        instance = controller if isinstance(controller, Controller) else None
+        config = config_from_parts(controller=type(instance) if instance else controller, params=params, **parts)
+        return cls(config, tick_source=tick_source, controller=instance,
+                   controller_params=config.controller.params if instance else None)
+
     # ------------------------------------------------------------ lifecycle
 
     def configure(self) -> None:
         """Instantiate drivers and controllers from the config; touches no hardware."""
-        if self.state != "created":
-            raise LifecycleError(f"configure() in state {self.state!r}")
+        if self.state != LoopState.CREATED:
+            raise LifecycleError(f"configure() in state {self.state.value!r}")
+        if self._given_controller is not None:  # the config checked its own controller, not this one
+            given = type(self._given_controller)
+            params = self._given_params if self._given_params is not None else given.Params()
+            issues = mode_issues(given, params, self.config.drivers)
+            if issues:
+                raise ConfigError(issues, str(self.config.path) if self.config.path else None)
         for dc in self.config.drivers:
             view = self.robot.driver_view(dc.joints, dc.devices)
             view.report_fault = functools.partial(self.record_fault, f"driver:{dc.name}")
@@ -175,14 +233,14 @@ class ControlLoop:
             raise ControllerError(self.controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
         self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.doors)
         self._configured = (self.controller, self.controller_type)
-        self.state = "configured"
+        self.state = LoopState.CONFIGURED
 
     async def activate(self) -> None:
         """Open every driver, read once, start from the measured state, start the controller."""
-        if self.state == "created":
+        if self.state == LoopState.CREATED:
             self.configure()
-        if self.state != "configured":
-            raise LifecycleError(f"activate() in state {self.state!r}")
+        if self.state != LoopState.CONFIGURED:
+            raise LifecycleError(f"activate() in state {self.state.value!r}")
         clock = self.robot.clock
         clock.kind = self.source.kind
         clock.tick = 0
@@ -199,7 +257,7 @@ class ControlLoop:
         except BaseException:
             self.estop("bring-up failed", source="loop")
             await self._close_drivers()
-            self.state = "closed"
+            self.state = LoopState.CLOSED
             raise
         state = self.robot.state
         for slot in self.slots:
@@ -209,7 +267,7 @@ class ControlLoop:
                 self.record_fault(f"driver:{slot.name}", "read", reason)
                 self.estop(reason, source=f"driver:{slot.name}")
                 await self._close_drivers()
-                self.state = "closed"
+                self.state = LoopState.CLOSED
                 raise DriverError(slot.name, "read", reason)
         self._active = list(self.slots)
         cmd = self.robot.command
@@ -220,7 +278,7 @@ class ControlLoop:
         cmd.mode[cmd.mode == Mode.NONE] = Mode.POSITION
         self.limiter.reset(state.position)
         self._event(SafetyEvent.ACTIVATE, "loop", "drivers open, controller started")
-        self.state = "active"
+        self.state = LoopState.ACTIVE
         self._k_start = 0  # controller time counts from activation, across run() calls
         self._last_update_k = 0
         if self.multirate is not None:
@@ -236,17 +294,17 @@ class ControlLoop:
             await step()
         except Exception as exc:
             self.record_fault(f"driver:{slot.name}", phase, exc)
-            slot.status = "failed"
+            slot.status = DriverStatus.FAILED
             raise DriverError(slot.name, phase, f"{type(exc).__name__}: {exc}") from exc
         if phase == "open":
-            slot.status = "open"
+            slot.status = DriverStatus.OPEN
 
     async def deactivate(self) -> None:
         """Stop the controller and close every driver (also the failed ones)."""
-        if self.state in ("closed", "created", "configured"):
-            self.state = "closed"
+        if self.state in (LoopState.CLOSED, LoopState.CREATED, LoopState.CONFIGURED):
+            self.state = LoopState.CLOSED
             return
-        if self.state == "running":  # finish the tick in progress before closing anything
+        if self.state == LoopState.RUNNING:  # finish the tick in progress before closing anything
             self.request_stop("deactivated")
             await self._run_finished.wait()
         controller = self.controller
@@ -257,7 +315,7 @@ class ControlLoop:
             self.record_fault(f"controller:{self.controller_type}", "stop", exc)
         await self._close_drivers()
         self._event(SafetyEvent.DEACTIVATE, "loop", "drivers closed")
-        self.state = "closed"
+        self.state = LoopState.CLOSED
 
     def _start_watchdog(self) -> None:
         """The watchdog process, when some driver declares a safe action and time is real."""
@@ -280,7 +338,7 @@ class ControlLoop:
         self._stop_watchdog()
         timeout = self.config.loop.close_timeout_ms / 1e3
         for slot in reversed(self.slots):
-            if slot.status in ("closed", "abandoned"):
+            if slot.status in (DriverStatus.CLOSED, DriverStatus.ABANDONED):
                 continue
             try:
                 await asyncio.wait_for(slot.driver.close(), timeout)
@@ -292,9 +350,9 @@ class ControlLoop:
                     slot.driver.estop()
                 except Exception:
                     pass
-                slot.status = "abandoned" if isinstance(exc, TimeoutError) else slot.status
-            if slot.status not in ("failed", "abandoned"):
-                slot.status = "closed"
+                slot.status = DriverStatus.ABANDONED if isinstance(exc, TimeoutError) else slot.status
+            if slot.status not in (DriverStatus.FAILED, DriverStatus.ABANDONED):
+                slot.status = DriverStatus.CLOSED
         if self._heap_frozen:  # every path that closes the drivers ends the loop's freeze
             thaw_heap()
             self._heap_frozen = False
@@ -391,7 +449,7 @@ class ControlLoop:
     def active_faults(self) -> list[str]:
         """Why :meth:`rearm` would be refused now (empty: it would not)."""
         reasons = []
-        failed = [s.name for s in self.slots if s.status in ("failed", "abandoned")]
+        failed = [s.name for s in self.slots if s.status in (DriverStatus.FAILED, DriverStatus.ABANDONED)]
         if failed:
             reasons.append(f"driver(s) {', '.join(failed)} failed (isolated until the loop is started again)")
         if len(self.faults) > self._faults_reset_at:
@@ -461,7 +519,7 @@ class ControlLoop:
 
     def _driver_failed(self, slot: DriverSlot, phase: str, exc: BaseException) -> None:
         self.record_fault(f"driver:{slot.name}", phase, exc)
-        slot.status = "failed"
+        slot.status = DriverStatus.FAILED
         try:
             slot.driver.estop()
         except Exception as estop_exc:
@@ -536,7 +594,7 @@ class ControlLoop:
         self.limiter.follow_measured(which, np.zeros(n))
         if self.multirate is not None:  # the controller sees the change this tick, not its old command
             self.multirate.force()
-        if self.controller is self._hold and self.state in ("active", "running"):
+        if self.controller is self._hold and self.state in (LoopState.ACTIVE, LoopState.RUNNING):
             self._hold.start((self.robot.clock.tick - self._k_start) * self.period_s)
 
     def _check_feedback(self, k: int) -> None:
@@ -587,8 +645,8 @@ class ControlLoop:
 
         Returns the report (see :meth:`report`).
         """
-        if self.state != "active":
-            raise LifecycleError(f"run() in state {self.state!r}; use activate() or 'async with'")
+        if self.state != LoopState.ACTIVE:
+            raise LifecycleError(f"run() in state {self.state.value!r}; use activate() or 'async with'")
         if duration is not None:
             if not (duration > 0 and math.isfinite(duration * 1e9)):
                 raise ValueError(f"duration must be a finite number of seconds more than 0 (got {duration})")
@@ -597,7 +655,7 @@ class ControlLoop:
         self.stop_reason = ""
         for slot in self.slots:
             slot.read_ns = slot.write_ns = slot.max_read_ns = slot.max_write_ns = 0
-        self.state = "running"
+        self.state = LoopState.RUNNING
         self.event_loop = type(asyncio.get_running_loop()).__module__.partition(".")[0]  # asyncio or uvloop
         self._run_finished.clear()
         self.realtime = RealtimeState()
@@ -631,8 +689,8 @@ class ControlLoop:
             self.stats.end()
             self.ticker.close()
             restore_realtime(self.realtime)
-            if self.state == "running":
-                self.state = "active"
+            if self.state == LoopState.RUNNING:
+                self.state = LoopState.ACTIVE
             self._run_finished.set()
         return self.report()
 
@@ -818,7 +876,7 @@ class ControlLoop:
                 health = {"health_error": str(exc)}
             drivers[slot.name] = {
                 "type": slot.type,
-                "status": slot.status,
+                "status": slot.status.value,
                 "joints": len(slot.driver.view.joint_names),
                 "read_us_mean": round(slot.read_ns / n / 1e3, 2) if n else None,
                 "write_us_mean": round(slot.write_ns / n / 1e3, 2) if n else None,

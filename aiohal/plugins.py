@@ -1,14 +1,16 @@
-"""Find drivers and controllers: a built-in table merged with entry points, imported lazily.
+"""Find drivers and controllers: a built-in table, plugins registered in the process and
+entry points, imported lazily.
 
 Nothing is imported until a plugin is asked for by name, so a missing optional dependency
 (MuJoCo, pysoem, python-can) only matters to the configs that use it, and then gives one
-clear error naming the extra to install.
+clear error naming the extra to install. Every ``"package.module:attribute"`` target is
+resolved by :func:`pkgutil.resolve_name`.
 """
 
 from __future__ import annotations
 
-import importlib
-from dataclasses import dataclass
+import pkgutil
+from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib.metadata import entry_points
 from typing import Literal
@@ -47,7 +49,46 @@ class PluginSpec:
     name: str
     target: str
     extra: str | None
-    source: str  # "built-in" or "entry point (distribution)"
+    source: str  # "built-in", "registered" or "entry point (distribution)"
+    obj: type | None = field(default=None, compare=False)  # a class registered as itself
+
+
+#: plugins registered in this process by register(): kind -> name -> spec
+_REGISTERED: dict[str, dict[str, PluginSpec]] = {"driver": {}, "controller": {}}
+
+
+def register(kind: Kind, name: str, plugin: type | str) -> None:
+    """Make a driver or controller class (or its ``"package.module:Class"`` target, imported
+    when first used) known by ``name`` in this process, as an entry point would make it known
+    to every process: for scripts, notebooks and tests. A built-in name cannot be taken; a
+    name registered again is replaced."""
+    if kind not in GROUPS:
+        raise ValueError(f"kind must be one of {', '.join(GROUPS)}, not {kind!r}")
+    if name in BUILTIN[kind]:
+        raise PluginError(f'{kind} "{name}" is built in and cannot be replaced')
+    if isinstance(plugin, str):
+        spec = PluginSpec(kind, name, plugin, None, "registered")
+    else:
+        spec = _class_spec(kind, name, plugin, "registered")
+        _check_class(spec, plugin)
+    _REGISTERED[kind][name] = spec
+    load.cache_clear()
+
+
+def check_class(kind: Kind, cls: object) -> type:
+    """``cls`` given from code in place of a plugin name: checked as a loaded plugin is."""
+    return _check_class(_class_spec(kind, getattr(cls, "__name__", repr(cls)), cls, "given"), cls)
+
+
+def _class_spec(kind: str, name: str, cls: object, source: str) -> PluginSpec:
+    target = f"{getattr(cls, '__module__', '?')}:{getattr(cls, '__qualname__', cls)!s}"
+    return PluginSpec(kind, name, target, None, source, cls)  # type: ignore[arg-type]
+
+
+def unregister(kind: Kind, name: str) -> None:
+    """Forget a plugin given to :func:`register` (nothing happens for an unknown name)."""
+    if _REGISTERED[kind].pop(name, None) is not None:
+        load.cache_clear()
 
 
 def _entry_point_specs(kind: str) -> list[PluginSpec]:
@@ -60,11 +101,14 @@ def _entry_point_specs(kind: str) -> list[PluginSpec]:
 
 
 def available(kind: str) -> dict[str, PluginSpec]:
-    """Every known plugin of a kind; a built-in name cannot be taken over by an entry point."""
+    """Every known plugin of a kind; a built-in name cannot be taken over, and a registered
+    one goes before an entry point of the same name."""
     found = {
         name: PluginSpec(kind, name, target, extra, "built-in")
         for name, (target, extra) in BUILTIN[kind].items()
     }
+    for name, spec in _REGISTERED[kind].items():
+        found.setdefault(name, spec)
     for spec in _entry_point_specs(kind):
         found.setdefault(spec.name, spec)
     return found
@@ -76,9 +120,11 @@ def shadowed(kind: str) -> list[PluginSpec]:
 
 
 def _import_target(spec: PluginSpec) -> type:
-    module_name, _, attr = spec.target.partition(":")
+    if spec.obj is not None:
+        return spec.obj
+    module_name = spec.target.partition(":")[0]
     try:
-        module = importlib.import_module(module_name)
+        return pkgutil.resolve_name(spec.target)
     except ModuleNotFoundError as exc:
         missing = exc.name or "?"
         if missing == module_name or module_name.startswith(missing + "."):
@@ -90,17 +136,17 @@ def _import_target(spec: PluginSpec) -> type:
         raise MissingDependencyError(
             f'{spec.kind} "{spec.name}" needs the optional dependency {missing!r}: {hint}'
         ) from exc
+    except AttributeError as exc:
+        if exc.name not in spec.target.replace(":", ".").split("."):  # raised by the module's own code
+            raise PluginError(f'{spec.kind} "{spec.name}": importing {module_name} failed: '
+                              f"AttributeError: {exc}") from exc
+        raise PluginError(f'{spec.kind} "{spec.name}": {spec.target} does not exist') from exc
+    except ValueError as exc:  # not a name at all
+        raise PluginError(f'{spec.kind} "{spec.name}": {spec.target!r} is not a "package.module:Class" name') from exc
     except Exception as exc:  # a plugin module that fails while importing
         raise PluginError(
             f'{spec.kind} "{spec.name}": importing {module_name} failed: {type(exc).__name__}: {exc}'
         ) from exc
-    try:
-        obj = module
-        for part in attr.split("."):
-            obj = getattr(obj, part)
-    except AttributeError as exc:
-        raise PluginError(f'{spec.kind} "{spec.name}": {spec.target} does not exist') from exc
-    return obj
 
 
 def _check_class(spec: PluginSpec, obj: object) -> type:

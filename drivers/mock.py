@@ -71,6 +71,16 @@ class MockDriver(Driver):
     def check_config(cls, options, joints, devices, robot):
         return unknown_joint_issues("options.initial_position", options.initial_position, joints)
 
+    def __init__(self, name, view, options) -> None:
+        super().__init__(name, view, options)
+        # counted from here: estop() and health() may come before open() or after it failed
+        self.reads = 0
+        self.writes = 0
+        self.estops = 0
+        self.feedback_lost = 0
+        self.closed = False
+        self.stopped = False
+
     async def open(self) -> None:
         opts = self.options
         if opts.faults.open_error:
@@ -100,12 +110,6 @@ class MockDriver(Driver):
         self._history[:, StateRow.POSITION, :] = start
         self._slot = 0
         self._last_tick = view.clock.tick
-        self.reads = 0
-        self.writes = 0
-        self.estops = 0
-        self.closed = False
-        self.stopped = False
-        self.feedback_lost = 0
         for imu in view.devices_of("imu"):
             imu.quaternion[:] = (1.0, 0.0, 0.0, 0.0)
             imu.linear_acceleration[:] = (0.0, 0.0, 9.81)  # at rest, the accelerometer reads +g up
@@ -227,7 +231,7 @@ class MockDriver(Driver):
         self.writes += 1
 
     def estop(self) -> None:
-        self.estops = getattr(self, "estops", 0) + 1
+        self.estops += 1
         self.stopped = True  # the simulated joints freeze, as braked drives would
         for action in self.safe_actions():
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
@@ -257,8 +261,8 @@ class MockDriver(Driver):
 
     def health(self) -> dict:
         return {
-            "reads": getattr(self, "reads", 0),
-            "writes": getattr(self, "writes", 0),
-            "estops": getattr(self, "estops", 0),
-            "feedback_lost_ticks": getattr(self, "feedback_lost", 0),
+            "reads": self.reads,
+            "writes": self.writes,
+            "estops": self.estops,
+            "feedback_lost_ticks": self.feedback_lost,
         }

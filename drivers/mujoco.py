@@ -95,10 +95,6 @@ class MujocoDriver(Driver):
     Options = MujocoOptions
     device_kinds = frozenset({"imu", "force_torque"})
     options: MujocoOptions
-    # what close() and estop() look at, set before open() can fail half-way
-    _pending: asyncio.Future | None = None
-    _executor: ThreadPoolExecutor | None = None
-    _viewer = None
 
     @classmethod
     def check_config(cls, options, joints, devices, robot):
@@ -137,6 +133,19 @@ class MujocoDriver(Driver):
                     issues.append((f"options.sensors.{device}", f'{kind} "{device}" needs sensor "{sensor}" with {dim} values ({found})'))
         return issues
 
+    def __init__(self, name, view, options) -> None:
+        super().__init__(name, view, options)
+        # what estop(), close() and health() look at, whether open() ran, failed half-way or not at all
+        self.data: mujoco.MjData | None = None
+        self.actuators = np.zeros(0, dtype=np.intp)
+        self.time_mode: str | None = None  # lockstep or realtime, once open
+        self.steps = 0
+        self.step_ns = 0
+        self._estopped = False
+        self._pending: asyncio.Future | None = None
+        self._executor: ThreadPoolExecutor | None = None
+        self._viewer = None
+
     async def open(self) -> None:
         opts, view = self.options, self.view
         path = opts.model or view.model_path
@@ -173,10 +182,6 @@ class MujocoDriver(Driver):
         self.time_mode = "lockstep" if view.clock.kind == "virtual" else "realtime"
         threaded = opts.step == "thread"
         self._executor = ThreadPoolExecutor(1, thread_name_prefix="mujoco-step") if threaded else None
-        self._pending: asyncio.Future | None = None
-        self.steps = 0
-        self.step_ns = 0
-        self._estopped = False
         self._viewer = self._open_viewer() if opts.viewer else None
 
     def _bind_kernels(self) -> None:
@@ -266,7 +271,7 @@ class MujocoDriver(Driver):
     def estop(self) -> None:
         # drives off: no torque from now on, the simulated robot goes limp
         self._estopped = True
-        if hasattr(self, "data"):
+        if self.data is not None:
             self.data.ctrl[self.actuators] = 0.0
 
     def release_estop(self) -> bool:
@@ -284,11 +289,11 @@ class MujocoDriver(Driver):
             self._viewer.close()
 
     def health(self) -> dict:
-        steps = getattr(self, "steps", 0)
+        steps = self.steps
         return {
-            "time_mode": getattr(self, "time_mode", None),
+            "time_mode": self.time_mode,
             "step": self.options.step,
-            "sim_time_s": round(float(self.data.time), 6) if hasattr(self, "data") else 0.0,
+            "sim_time_s": round(float(self.data.time), 6) if self.data is not None else 0.0,
             "sim_steps": steps,
-            "sim_steps_per_s": round(steps / (self.step_ns * 1e-9)) if getattr(self, "step_ns", 0) else None,
+            "sim_steps_per_s": round(steps / (self.step_ns * 1e-9)) if self.step_ns else None,
         }

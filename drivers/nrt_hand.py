@@ -23,7 +23,7 @@ from pydantic import Field
 
 from aiohal.hal import Driver, Options
 from aiohal.pipe import NrtPeer
-from aiohal.robot import Fault
+from aiohal.robot import Fault, Mode
 
 from .hands.base import FAULT_NONE, describe_fault
 from .hands.messages import HandCommandMsg, HandStateMsg
@@ -49,6 +49,9 @@ class NrtHandDriver(Driver):
     Options = NrtHandOptions
     device_kinds = frozenset({"hand"})
     options: NrtHandOptions
+    #: its joint, if it has one, reads the hand's opening; the hand follows the grasp command
+    #: of its device record, so the joint takes position commands (hold's, a move's) and no other
+    command_modes = frozenset({Mode.POSITION})
 
     @classmethod
     def check_config(cls, options, joints, devices, robot):
@@ -60,6 +63,14 @@ class NrtHandDriver(Driver):
         if options.dead_after_ms < options.stale_after_ms:
             issues.append(("options.dead_after_ms", "must not be shorter than stale_after_ms"))
         return issues
+
+    def __init__(self, name, view, options) -> None:
+        super().__init__(name, view, options)
+        self.peer: NrtPeer | None = None  # the hand's side, once open() started it
+        self.state_msg: HandStateMsg | None = None
+        self.lost_reason = ""
+        self.was_lost = ""  # the last loss, kept after the hand came back: the report says so
+        self.faults_seen: list[int] = []  # every fault code the hand reported, in order
 
     async def open(self) -> None:
         opts = self.options
@@ -77,11 +88,7 @@ class NrtHandDriver(Driver):
         self.pipe = self.peer.fast
         self._sent: tuple[float, float, float] | None = None
         self._sent_ns = 0
-        self.lost_reason = ""
-        self.was_lost = ""  # the last loss, kept after the hand came back: the report says so
-        self.faults_seen: list[int] = []  # every fault code the hand reported, in order
         self._reported_code = FAULT_NONE
-        self.state_msg: HandStateMsg | None = None
         deadline = time.monotonic() + opts.start_timeout_s
         while self.state_msg is None:  # bounded: start_timeout_s, polling off the tick
             self._take_state()
@@ -163,9 +170,8 @@ class NrtHandDriver(Driver):
                 self._sent, self._sent_ns = command, now
 
     async def close(self) -> None:
-        peer = getattr(self, "peer", None)
-        if peer is not None:
-            await asyncio.to_thread(peer.stop, 1.0)
+        if self.peer is not None:
+            await asyncio.to_thread(self.peer.stop, 1.0)
 
     def _hand_summary(self) -> str:
         """"ok" only for a hand that never faulted nor went silent during the run."""
@@ -179,7 +185,7 @@ class NrtHandDriver(Driver):
         return "; ".join(said) or "ok"
 
     def health(self) -> dict:
-        peer = getattr(self, "peer", None)
+        peer = self.peer
         if peer is None:
             return {}
         msg = self.state_msg

@@ -10,7 +10,8 @@ Register it in your package's pyproject:
     [project.entry-points."aiohal.drivers"]
     echo = "mypackage.driver:EchoDriver"
 
-Here the plugin table is extended in-process so that a config can name it.
+Here it is registered in this process (``aiohal.plugins.register``) so that a config can
+name it; ``ControlLoop.from_parts`` also takes the class itself (examples/from_code.py).
 
     python examples/custom_driver.py
 """
@@ -58,11 +59,10 @@ CONFIG = {
 
 
 async def main() -> dict:
-    plugins.BUILTIN["driver"]["echo"] = (f"{__name__}:EchoDriver", None)
-    plugins.load.cache_clear()
-    async with ControlLoop(parse_config(CONFIG)) as robot:
-        report = await robot.run(duration=1.5)
-    print("measured:", robot.robot.state.position, "controller:", report["controller"])
+    plugins.register("driver", "echo", EchoDriver)
+    async with ControlLoop(parse_config(CONFIG)) as loop:
+        report = await loop.run(duration=1.5)
+    print("measured:", loop.robot.state.position, "controller:", report["controller"])
     return report
 
 

@@ -15,9 +15,9 @@ CONFIG = Path(__file__).resolve().parent.parent / "configs" / "mock_arm.toml"
 
 async def main() -> dict:
     config = load_config(CONFIG).with_loop(clock="virtual")  # as fast as possible, deterministic
-    async with ControlLoop(config) as robot:
-        report = await robot.run(duration=1.0)
-        print("joint positions after 1 s:", robot.robot.state.position.round(3))
+    async with ControlLoop(config) as loop:
+        report = await loop.run(duration=1.0)
+        print("joint positions after 1 s:", loop.robot.state.position.round(3))
     print(f"{report['ticks']} ticks, work p50 {report['work_us']['p50']} µs, controller {report['controller']}")
     return report
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib
 import inspect
 import json
 import os
+import pkgutil
 import signal
 import socket
 import subprocess
@@ -25,10 +25,7 @@ def _load_target(target: str) -> Callable[..., Any]:
     module_name, sep, attr = target.partition(":")
     if not sep or not module_name or not attr:
         raise ValueError(f"target {target!r} is not 'package.module:function'")
-    obj: Any = importlib.import_module(module_name)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
+    return pkgutil.resolve_name(target)
 
 
 def _run_target(fn: Callable[..., Any], end: NrtEnd, options: dict[str, Any]) -> None:

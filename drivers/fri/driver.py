@@ -91,6 +91,13 @@ class _Endpoint(asyncio.DatagramProtocol):
 class FriDriver(Driver):
     Options = FriOptions
     options: FriOptions
+    #: the KRC tracks a position target; its joint impedance strategy also takes the command's
+    #: stiffness, damping and added torque (velocity and pure effort commands it has not)
+    command_modes = frozenset({Mode.POSITION, Mode.IMPEDANCE})
+
+    @classmethod
+    def supported_modes(cls, options: FriOptions) -> frozenset[Mode]:
+        return cls.command_modes if options.control == "joint_impedance" else frozenset({Mode.POSITION})
 
     @classmethod
     def check_config(cls, options, joints, devices, robot):

@@ -8,8 +8,8 @@ sent, and the backend is reopened after ``reopen_s``. It returns when the fast e
 
 from __future__ import annotations
 
-import importlib
 import logging
+import pkgutil
 import time
 
 from aiohal.logutil import RateLimitedLogger
@@ -31,8 +31,7 @@ BACKENDS = {
 
 def make_backend(name: str, options: dict) -> HandBackend:
     """A backend by short name (``sim``, ``robotiq``) or ``package.module:Class``."""
-    module_name, _, class_name = BACKENDS.get(name, name).partition(":")
-    cls = getattr(importlib.import_module(module_name), class_name)
+    cls = pkgutil.resolve_name(BACKENDS.get(name, name))
     return cls(**options)
 
 
