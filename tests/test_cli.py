@@ -383,8 +383,8 @@ def test_quiet_prints_nothing_when_nothing_is_wrong(tmp_path):
         ("aiohal.drivers.hands.robotiq_sim", ["--object", "nan"], "argument --object: must be from 0 to 1 (got nan)"),
         ("aiohal.drivers.hands.robotiq_sim", ["--activation-time", "-1"], "argument --activation-time: must be from 0"),
         ("aiohal.drivers.ethercat.sim", ["--ifname", "an-interface-name-too-long"],
-         "argument --ifname: 'an-interface-name-too-long' is not an interface name"),
-        ("aiohal.drivers.ethercat.sim", ["--ifname", ""], "argument --ifname: '' is not an interface name"),
+         "argument --ifname: 'an-interface-name-too-long' is not a Linux interface name"),
+        ("aiohal.drivers.ethercat.sim", ["--ifname", ""], "argument --ifname: '' is not a Linux interface name"),
     ],
     ids=lambda v: " ".join(v) if isinstance(v, list) else None,
 )
