@@ -574,6 +574,7 @@ async def test_poll_leaves_a_look_at_the_loop_and_a_real_wait_to_next():
         timer.start()
         try:
             assert timer.poll() == 0 and timer.k == 0  # a deadline is waited for, never polled
-            assert await timer.next() == 1
+            # the next deadline, or a later one if the host stalled us past it (skipped, counted)
+            assert await timer.next() == 1 + timer.missed
         finally:
             timer.close()
