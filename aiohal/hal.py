@@ -55,7 +55,7 @@ def did_you_mean(name: str, choices: Iterable[str]) -> str:
         return f' (did you mean "{same_case[0]}"?)'
     close = difflib.get_close_matches(name, choices, n=1)
     # short names: one character off (a8 -> a3) is below difflib's cutoff; the first declared
-    typo = [c for c in choices if len(c) == len(name) and sum(a != b for a, b in zip(c, name)) == 1]
+    typo = [c for c in choices if len(c) == len(name) and sum(a != b for a, b in zip(c, name, strict=True)) == 1]
     best = close or typo
     return f' (did you mean "{best[0]}"?)' if best else ""
 
