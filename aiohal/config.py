@@ -8,6 +8,7 @@ errors. Paths in a config are relative to the config file.
 
 from __future__ import annotations
 
+import builtins
 import fnmatch
 import math
 import re
@@ -170,7 +171,7 @@ _GLOB = "*?["  # a driver's joints are names or fnmatch patterns
 class DriverConfig:
     name: str
     type: str
-    cls: type
+    cls: builtins.type  # the field "type" shadows the builtin here
     joints: tuple[str, ...]
     devices: tuple[str, ...]
     options: Options
@@ -180,7 +181,7 @@ class DriverConfig:
 @dataclass(frozen=True)
 class ControllerConfig:
     type: str
-    cls: type
+    cls: builtins.type  # the field "type" shadows the builtin here
     params: Options
     every: int = 1
     extrapolate: bool = True

@@ -118,6 +118,7 @@ class Entry:
         self.on_write = on_write
         self.low = low
         self.high = high
+        self.value: Any  # bytes for a string type, else a number
         if dtype in STRINGS:
             raw = value.encode("latin-1") if isinstance(value, str) else bytes(value)
             self.size = size if size is not None else len(raw)
