@@ -5,21 +5,28 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-dev
 CONFIG ?= configs/kuka_lwr_sim.toml
 ARGS ?= --duration 10
+# the extras `make test` installs (.ci/run installs the same in its other Pythons' venvs)
+EXTRAS := dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh
 
-.PHONY: run test check figures bench bench-quick clean
+.PHONY: run lint test check figures bench bench-quick clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 
 $(STAMP): $(PY) pyproject.toml
-	$(PY) -m pip install -q -e '.[dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh]'
+	$(PY) -m pip install -q -e '.[$(EXTRAS)]'
 	touch $@
 
 run: $(STAMP)
 	$(PY) -m aiohal $(CONFIG) $(ARGS)
 
-test: $(STAMP)
+# lint only: formatting (ruff format) is not checked here
+lint: $(STAMP)
+	$(VENV)/bin/ruff check aiohal drivers controllers
+	$(VENV)/bin/mypy aiohal drivers controllers
+
+test: lint
 	$(PY) -m pytest
 
 check: $(STAMP)
@@ -61,4 +68,4 @@ figures: $(STAMP)
 	$(PY) examples/plot_circles.py docs/img/circles.png
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) .venv3?? build *.egg-info

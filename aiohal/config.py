@@ -8,13 +8,14 @@ errors. Paths in a config are relative to the config file.
 
 from __future__ import annotations
 
+import builtins
 import fnmatch
 import math
 import re
 import tomllib
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from collections.abc import Iterable, Mapping, Sequence
 from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
@@ -26,8 +27,8 @@ from .hal import Options, did_you_mean
 from .realtime import RealtimeSection
 from .record.options import RecordSection
 from .robot import JointSpec, Mode, Robot
-from .shm import ClientSection, segment_name
 from .safety import SafetySection
+from .shm import ClientSection, segment_name
 
 
 def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
@@ -170,7 +171,7 @@ _GLOB = "*?["  # a driver's joints are names or fnmatch patterns
 class DriverConfig:
     name: str
     type: str
-    cls: type
+    cls: builtins.type  # the field "type" shadows the builtin here
     joints: tuple[str, ...]
     devices: tuple[str, ...]
     options: Options
@@ -180,7 +181,7 @@ class DriverConfig:
 @dataclass(frozen=True)
 class ControllerConfig:
     type: str
-    cls: type
+    cls: builtins.type  # the field "type" shadows the builtin here
     params: Options
     every: int = 1
     extrapolate: bool = True
@@ -843,7 +844,7 @@ def json_schema() -> dict[str, Any]:
             model = cls.Options if kind == "driver" else cls.Params
             try:
                 sub = model.model_json_schema(ref_template="#/$defs/{model}")
-            except Exception:  # noqa: BLE001 - a plugin whose options have no JSON Schema: left out
+            except Exception:  # a plugin whose options have no JSON Schema: left out
                 continue
             names.append(name)
             defs.update(sub.pop("$defs", {}))

@@ -42,6 +42,11 @@ class Options(BaseModel):
         return value
 
 
+#: The base class under another name, for annotations inside Driver, whose ``Options`` is
+#: the driver's own options class.
+AnyOptions = Options
+
+
 class NoOptions(Options):
     pass
 
@@ -55,7 +60,7 @@ def did_you_mean(name: str, choices: Iterable[str]) -> str:
         return f' (did you mean "{same_case[0]}"?)'
     close = difflib.get_close_matches(name, choices, n=1)
     # short names: one character off (a8 -> a3) is below difflib's cutoff; the first declared
-    typo = [c for c in choices if len(c) == len(name) and sum(a != b for a, b in zip(c, name)) == 1]
+    typo = [c for c in choices if len(c) == len(name) and sum(a != b for a, b in zip(c, name, strict=True)) == 1]
     best = close or typo
     return f' (did you mean "{best[0]}"?)' if best else ""
 
@@ -86,14 +91,14 @@ class Driver(abc.ABC):
     #: interfaces): a controller that commands another mode is refused before anything starts.
     command_modes: ClassVar[frozenset[Mode]] = ALL_MODES
 
-    def __init__(self, name: str, view: DriverView, options: Options) -> None:
+    def __init__(self, name: str, view: DriverView, options: AnyOptions) -> None:
         self.name = name
         self.view = view
         self.options = options
 
     @classmethod
     def check_config(
-        cls, options: Options, joints: list[str], devices: dict[str, str], robot: Any
+        cls, options: AnyOptions, joints: list[str], devices: dict[str, str], robot: Any
     ) -> list[tuple[str, str]]:
         """Extra checks of options against the joints and devices given to this driver and
         the ``[robot]`` section (its ``model`` path, resolved).
@@ -105,14 +110,14 @@ class Driver(abc.ABC):
         return []
 
     @classmethod
-    def check_rate(cls, options: Options, cycle_hz: float, every: int) -> list[tuple[str, str]]:
+    def check_rate(cls, options: AnyOptions, cycle_hz: float, every: int) -> list[tuple[str, str]]:
         """Checks at the rate this driver will be cycled at: the loop's rate divided by the
         ``[[driver]] every`` given (e.g. whether a bus carries the frames). Same pairs as
         :meth:`check_config`."""
         return []
 
     @classmethod
-    def supported_modes(cls, options: Options) -> frozenset[Mode]:
+    def supported_modes(cls, options: AnyOptions) -> frozenset[Mode]:
         """The command modes with these options: ``command_modes`` unless the options narrow
         them (the KUKA's position strategy takes no impedance)."""
         return cls.command_modes

@@ -94,7 +94,7 @@ def limit_commands(block, mode, position, table, outside):
             if not velocity:
                 still_outside |= x < p_min[j] or x > p_max[j]
     for r in range(rows):  # the other rows: fixed bounds, never NaN (the config refuses NaN limits)
-        if r == POSITION_ROW or r == VELOCITY_ROW:
+        if r == POSITION_ROW or r == VELOCITY_ROW:  # noqa: SIM109 - numba kernel: two integer tests
             continue
         x_row, lower, upper = block[r], table[LOWER + r], table[UPPER + r]
         for j in range(n):

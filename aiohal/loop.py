@@ -39,10 +39,10 @@ from .hal import Controller, Driver
 from .limits import CommandLimiter
 from .logutil import RateLimitedLogger
 from .multirate import TargetExtrapolator
-from .robot import Fault, Mode
 from .realtime import RealtimeState, freeze_heap, freeze_young, thaw_heap
 from .realtime import apply as apply_realtime
 from .realtime import restore as restore_realtime
+from .robot import Fault, Mode
 from .safety import FaultRecord, SafetyEvent, SafetyLevel, SafetyMachine, SafetyRequestRefused
 from .stats import TickStats
 from .ticker import Ticker, TickSource, TimerfdTickSource, make_source

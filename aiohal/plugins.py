@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pkgutil
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache
 from importlib.metadata import entry_points
 from typing import Literal
 
@@ -168,7 +168,7 @@ def _check_class(spec: PluginSpec, obj: object) -> type:
     return obj
 
 
-@lru_cache(maxsize=None)
+@cache
 def load(kind: str, name: str) -> type:
     """The driver or controller class registered under ``name``."""
     specs = available(kind)

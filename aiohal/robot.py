@@ -472,7 +472,7 @@ class DriverView:
         for group, indices in by_group.values():
             indices.sort()
             start = indices[0]
-            for previous, row in zip(indices, [*indices[1:], None]):
+            for previous, row in zip(indices, [*indices[1:], None], strict=True):
                 if row != previous + 1:  # the run ends at ``previous`` (None: the last row)
                     runs.append((group, slice(start, previous + 1)))
                     start = row

@@ -52,7 +52,7 @@ class SafetyLevel(IntEnum):
     RUN = 4  # the configured controller is in charge
 
 
-class SafetyEvent(str, Enum):
+class SafetyEvent(str, Enum):  # noqa: UP042 - StrEnum would change str() of a member
     ACTIVATE = "activate"
     FAULT = "fault"
     HOLD = "hold"
@@ -143,7 +143,7 @@ class BoxSection(Options):
 
     @model_validator(mode="after")
     def _ordered(self) -> BoxSection:
-        if not all(lo < hi for lo, hi in zip(self.min, self.max)):
+        if not all(lo < hi for lo, hi in zip(self.min, self.max, strict=True)):
             raise ValueError(f"min must be below max on every axis (got {list(self.min)}, {list(self.max)})")
         return self
 

@@ -252,7 +252,7 @@ def _untrack(shm: shared_memory.SharedMemory) -> None:
     """Python < 3.13 registers a segment it attaches to with this process's resource tracker,
     which would unlink it when this process ends: the robot's, not ours to remove."""
     try:
-        resource_tracker.unregister(shm._name, "shared_memory")  # noqa: SLF001
+        resource_tracker.unregister(shm._name, "shared_memory")
     except Exception:
         pass
 

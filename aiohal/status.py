@@ -61,7 +61,7 @@ def render(figures: dict[str, Any]) -> Any:
         extra = ", ".join(f"{k} {_short(v)}" for k, v in d.items() if k != "status" and not isinstance(v, (dict, list)))
         table.add_row(f"driver {name}", d["status"] + (f"  {extra}" if extra else ""))
     ctrl = figures["controller"]
-    table.add_row(f"controller", ctrl.get("type", "?") + "  " + ", ".join(
+    table.add_row("controller", ctrl.get("type", "?") + "  " + ", ".join(
         f"{k} {_short(v)}" for k, v in ctrl.items() if k != "type" and not isinstance(v, (dict, list))))
     from rich.panel import Panel
 

@@ -248,9 +248,11 @@ class IdleWait:
     the same poll and gets one loop iteration right after the wait, so it runs just after the
     tick's wake instead of just before it.
 
-    It reads asyncio's ready queue, timer heap and stop flag, so it attaches only to asyncio's
-    own epoll loop, and not in debug mode (there a task step that spans many ticks would be
-    reported as a slow callback); on any other loop (uvloop) every wait goes through the loop.
+    It reads asyncio's ready queue, timer heap and stop flag, private attributes that may
+    change in any release, so it attaches only to asyncio's own epoll loop on the CPython
+    versions it is tested on (``TESTED_PYTHONS``), and not in debug mode (there a task step
+    that spans many ticks would be reported as a slow callback); on any other loop (uvloop)
+    or Python every wait goes through the loop.
     With no ``asyncio.Runner`` and Python's default SIGINT handler, Ctrl-C raises
     KeyboardInterrupt inside the tick's task rather than in the loop's select.
     """
@@ -261,10 +263,17 @@ class IdleWait:
     #: select timeout at a day; epoll refuses more than about 24.8 days)
     MAX_TIMEOUT_S = 86_400.0
 
+    #: the Pythons whose event loop internals (``_selector``, ``_ready``, ``_scheduled``,
+    #: ``_stopping``) CI has run this against: [first, last)
+    TESTED_PYTHONS = ((3, 11), (3, 14))
+
     @classmethod
     def attach(cls, loop: asyncio.AbstractEventLoop, fd: int = -1) -> IdleWait | None:
         """For ``loop`` and the timerfd ``fd`` (-1: none, only :meth:`loop_has_work`), or None
-        if ``loop`` is not asyncio's epoll loop or runs in debug mode."""
+        if ``loop`` is not asyncio's epoll loop, runs in debug mode or on an untested Python."""
+        first, last = cls.TESTED_PYTHONS
+        if not first <= sys.version_info[:2] < last or sys.implementation.name != "cpython":
+            return None
         selector = getattr(loop, "_selector", None)
         if not isinstance(selector, selectors.EpollSelector) or loop.get_debug():
             return None

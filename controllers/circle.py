@@ -23,6 +23,7 @@ ramp are reported as ``rms_error_m`` and ``max_error_m``.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import os
@@ -34,9 +35,8 @@ from pydantic import Field, model_validator
 
 from aiohal.config import ConfigPath
 from aiohal.hal import Controller, Options
-from aiohal.robot import Mode
-
 from aiohal.mjcf import joint_addresses, load_model, model_names
+from aiohal.robot import Mode
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +203,7 @@ def _check_start(c: CircleController) -> str:
     angles = np.linspace(0.0, 2.0 * math.pi, 73)
     a, b = PLANES[p.plane]
     warnings = []
-    for i, (name, sid) in enumerate(zip(p.sites, c.site_ids)):
+    for i, (name, sid) in enumerate(zip(p.sites, c.site_ids, strict=True)):
         chain = []  # moving joints from the site's body to the root
         body = int(model.site_bodyid[sid])
         while body > 0:
@@ -213,7 +213,7 @@ def _check_start(c: CircleController) -> str:
         if not chain:
             raise ValueError(f'site "{name}": no joint the circle may move carries it')
         anchors = [data.xanchor[j] for j in reversed(chain)] + [data.site_xpos[sid]]
-        reach = sum(float(np.linalg.norm(q - r)) for r, q in zip(anchors, anchors[1:]))
+        reach = sum(float(np.linalg.norm(q - r)) for r, q in itertools.pairwise(anchors))
         reach += sum(float(np.ptp(model.jnt_range[j])) for j in chain if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE)
         points = np.repeat(c.center[3 * i : 3 * i + 3][None, :], len(angles), axis=0)
         points[:, a] += p.radius * np.cos(angles)

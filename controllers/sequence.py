@@ -64,7 +64,7 @@ class SequenceController(Controller):
 
     def configure(self, robot, params) -> None:
         super().configure(robot, params)
-        for i, step in enumerate(params.steps):
+        for step in params.steps:
             if step.hand is not None:
                 robot.hand_for_joint(step.hand)  # KeyError with the reason if no hand is there
 

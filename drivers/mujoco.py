@@ -38,7 +38,6 @@ from pydantic import Field
 from aiohal import kernel_call
 from aiohal.config import ConfigPath
 from aiohal.hal import Driver, JointValues, Options, did_you_mean, unknown_joint_issues
-
 from aiohal.mjcf import actuator_for_joints, joint_addresses, load_model, model_names, sensor_slice
 
 log = logging.getLogger(__name__)
@@ -105,13 +104,13 @@ class MujocoDriver(Driver):
         path = options.model or robot.model
         where = "options.model" if options.model else "/robot.model"  # the key that named the file
         if path is None:
-            return issues + [("options.model", "no model: set options.model or [robot] model")]
+            return [*issues, ("options.model", "no model: set options.model or [robot] model")]
         if not os.path.exists(path):
-            return issues + [(where, f"file not found: {path}")]
+            return [*issues, (where, f"file not found: {path}")]
         try:
             names = model_names(str(path))
         except ValueError as exc:
-            return issues + [(where, str(exc))]
+            return [*issues, (where, str(exc))]
         if options.keyframe is not None:
             keys = _keyframes(str(path))
             if options.keyframe not in keys:

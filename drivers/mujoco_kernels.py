@@ -69,7 +69,7 @@ def drive_torque(command, mode, state, table, index, bias, compensate, tau, ctrl
         else:
             # a gain times 1.0 or 0.0, as numpy's gain × mode mask
             kp = table[KP, j] * (1.0 if m == POSITION else 0.0)
-            kd = table[KD, j] * (1.0 if m == POSITION or m == VELOCITY else 0.0)
+            kd = table[KD, j] * (1.0 if m == POSITION or m == VELOCITY else 0.0)  # noqa: SIM109 - numba kernel
         t = (command[C_POSITION, j] - state[S_POSITION, j]) * kp
         t += (command[C_VELOCITY, j] - state[S_VELOCITY, j]) * kd
         t += command[C_EFFORT, j]

@@ -165,7 +165,7 @@ class NrtHandDriver(Driver):
         if not all(map(math.isfinite, command)):
             return  # keep the last command: never send NaN to a hand
         now = time.monotonic_ns()  # the hand lives in real time, also under a virtual clock
-        if command != self._sent or now - self._sent_ns >= self._resend_ns:
+        if command != self._sent or now - self._sent_ns >= self._resend_ns:  # noqa: SIM102 - send() has an effect
             if self.pipe.send(HandCommandMsg(grasp=command[0], speed=command[1], force=command[2])):
                 self._sent, self._sent_ns = command, now
 

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from aiohal.ticker import (
     KERNEL_TICK_GRID_NS,
+    IdleWait,
     SleepTickSource,
     Ticker,
     TimerfdTickSource,
@@ -257,8 +258,14 @@ async def test_precision_mode_spins_to_the_deadline_and_never_early():
 
 
 def _on_asyncio_epoll_loop() -> bool:
+    """On asyncio's epoll loop, on a Python whose loop internals IdleWait was tested against."""
     loop = asyncio.get_running_loop()
-    return isinstance(loop, asyncio.SelectorEventLoop) and type(loop._selector).__name__ == "EpollSelector"
+    first, last = IdleWait.TESTED_PYTHONS
+    return (
+        first <= sys.version_info[:2] < last
+        and isinstance(loop, asyncio.SelectorEventLoop)
+        and type(loop._selector).__name__ == "EpollSelector"
+    )
 
 
 @contextlib.contextmanager
@@ -301,6 +308,32 @@ async def test_an_idle_wait_blocks_on_the_timer_on_asyncio_and_goes_round_the_lo
         assert source.idle_waits > 0
     else:
         assert source.idle_waits == 0 and source.loop_waits > 0
+
+
+@pytest.mark.asyncio
+async def test_on_an_untested_python_every_wait_goes_round_the_loop(monkeypatch):
+    """The loop's private attributes may change in any release: outside the tested versions
+    IdleWait does not attach, and the ticks still come, through the loop."""
+    if not timerfd_available():
+        pytest.skip("timerfd is Linux only")
+    loop = asyncio.get_running_loop()
+    if _on_asyncio_epoll_loop():
+        idle = IdleWait.attach(loop)
+        assert idle is not None
+        idle.close()
+    here = sys.version_info[:2]
+    monkeypatch.setattr(IdleWait, "TESTED_PYTHONS", ((here[0], here[1] + 1), (here[0], here[1] + 2)))
+    assert IdleWait.attach(loop) is None
+    source = TimerfdTickSource()
+    ticker = Ticker(source, PERIOD)
+    ticker.start()
+    try:
+        ks = [await ticker.next() for _ in range(5)]
+        on_timer = source.waits_on_timer
+    finally:
+        ticker.close()
+    assert all(b > a for a, b in zip(ks, ks[1:]))
+    assert not on_timer and source.idle_waits == 0 and source.loop_waits > 0
 
 
 @pytest.mark.asyncio

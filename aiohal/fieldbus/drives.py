@@ -96,7 +96,7 @@ class DriveGroup:
         self.specs = list(specs)
         self._inputs, self._outputs = inputs, outputs
         self.rows = [s.row for s in specs]
-        self._layout = np.array([list(o) + [s.row] for o, s in zip(offsets, specs, strict=True)], dtype=np.int64)
+        self._layout = np.array([[*list(o), s.row] for o, s in zip(offsets, specs, strict=True)], dtype=np.int64)
         constants = np.zeros((len(specs), 6))
         for i, s in enumerate(specs):
             u = s.units

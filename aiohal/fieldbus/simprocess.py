@@ -20,7 +20,7 @@ async def start(args: list[str], timeout_s: float) -> tuple[asyncio.subprocess.P
     try:
         line = await asyncio.wait_for(process.stdout.readline(), timeout_s)
         return process, json.loads(line)
-    except (asyncio.TimeoutError, ValueError) as exc:
+    except (TimeoutError, ValueError) as exc:
         process.kill()
         _out, err = await process.communicate()
         raise SimulatorStartError(f"{exc!r}: {err.decode(errors='replace')[-500:]}") from exc
@@ -33,7 +33,7 @@ async def stop(process: asyncio.subprocess.Process, key: str, timeout_s: float =
     process.terminate()
     try:
         _out, err = await asyncio.wait_for(process.communicate(), timeout_s)
-    except asyncio.TimeoutError:
+    except TimeoutError:
         process.kill()
         await process.wait()
         return None

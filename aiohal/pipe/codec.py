@@ -121,7 +121,7 @@ class Message:
         fields = msg.__dict__
         fields["seq"] = seq
         fields["stamp_ns"] = stamp_ns
-        fields.update(zip(cls._names, values))
+        fields.update(zip(cls._names, values, strict=True))
         return msg
 
     def __eq__(self, other: object) -> bool:

@@ -15,7 +15,7 @@ import termios
 import time
 from collections.abc import Iterator
 
-from .codec import HEADER, MAX_MESSAGE, Message, PipeError, _HALF_SEQ, _PREFIX, _SEQ, _SEQ_MASK, _check
+from .codec import _HALF_SEQ, _PREFIX, _SEQ, _SEQ_MASK, HEADER, MAX_MESSAGE, Message, PipeError, _check
 
 COUNTERS = ("sent", "dropped_full", "received", "superseded", "malformed", "lost", "out_of_order")
 DRAIN_LIMIT = 64  # datagrams read per receive call at least: bounded time, more than a full pipe holds
@@ -151,7 +151,7 @@ class _End:
         """Read up to ``limit`` pending datagrams: the newest valid one and how many were valid.
         Only the newest is decoded (by the caller)."""
         newest, valid = None, 0
-        for newest in self._pending(limit):
+        for newest in self._pending(limit):  # noqa: B007 - the loop leaves the newest in ``newest``
             valid += 1
         return newest, valid
 

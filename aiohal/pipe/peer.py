@@ -15,10 +15,12 @@ import socket
 import subprocess
 import sys
 import threading
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from .codec import PipeError
-from .ends import PeerGone, FastEnd, NrtEnd, pipe_pair
+from .ends import FastEnd, NrtEnd, PeerGone, pipe_pair
+
 
 def _load_target(target: str) -> Callable[..., Any]:
     """The function named by ``"package.module:function"``."""

@@ -136,7 +136,7 @@ class Recorder:
         self._file = None
         self._writer = None
         if self.path is not None:
-            self._file = open(self.path, "wb")
+            self._file = open(self.path, "wb")  # noqa: SIM115 - open for the recorder's life, closed in close()
             compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                            "none": CompressionType.NONE}[self.options.compression]
             # chunks are closed by time (flush_ms), not by size: the size bound is only a backstop
@@ -240,7 +240,7 @@ class Recorder:
 
         self.channels.append(TickChannel("/timing", "timing", timing_layout, timing_fields, timing=True))
 
-        safety_layout = Layout(SCHEMA_PACKAGE + "Safety", tick_field + [("level", np.uint8, None)])
+        safety_layout = Layout(SCHEMA_PACKAGE + "Safety", [*tick_field, ("level", np.uint8, None)])
         self.channels.append(TickChannel("/safety", "safety", safety_layout,
                                          lambda meta, data: {"level": meta[:, R.LEVEL]}))
 

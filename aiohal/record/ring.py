@@ -15,6 +15,8 @@ drops its copy and counts it (``dropped``): the tick never waits.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from numba import carray, njit, types
 from numba.extending import intrinsic
@@ -97,7 +99,7 @@ class TickRing:
         self.mask = self.slots - 1
         sizes = [a.nbytes for a in arrays]
         starts = np.cumsum([META_BYTES, *sizes])
-        self.columns = [slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
+        self.columns = [slice(int(a), int(b)) for a, b in itertools.pairwise(starts)]
         # np.full touches every page now, not on the tick's first write to it
         self.data = np.full((self.slots, int(starts[-1])), 0, dtype=np.uint8)
         self.sources = np.array([[a.ctypes.data, a.nbytes] for a in arrays], dtype=np.int64).reshape(-1, 2)

@@ -34,9 +34,9 @@ from pydantic import Field
 
 from aiohal.config import ConfigPath
 from aiohal.errors import AiohalError
+from aiohal.fieldbus.busvar import decode_mapping
 from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec, respond_to_event
-from aiohal.fieldbus.busvar import decode_mapping
 from aiohal.fieldbus.pdo_options import parse_number, parse_pdo_entry, pdo_issues
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger

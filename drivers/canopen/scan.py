@@ -151,7 +151,7 @@ def to_toml(nodes: list[NodeInfo], interface: str, channel: str, bitrate: int) -
              "", "[driver.options]", f'interface = "{interface}"', f'channel = "{channel}"', f"bitrate = {bitrate}",
              "nodes = ["]
     for n, joint in zip(drives, joints, strict=True):
-        used, missing = n.drive_mapping()
+        _used, missing = n.drive_mapping()
         note = f"  # missing: {', '.join(missing)}" if missing else ""
         lines.append(f'    {{ node_id = {n.node_id}, joint = "{joint}", vendor_id = 0x{n.vendor_id:08X}, '
                      f"product_code = 0x{n.product_code:08X} }},{note}")

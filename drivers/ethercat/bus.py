@@ -28,8 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from aiohal.fieldbus.busvar import LayoutError, PdoLayout, names_for
 from aiohal.errors import AiohalError
+from aiohal.fieldbus.busvar import LayoutError, PdoLayout, names_for
 
 from . import sii as sii_layout
 from .names import KNOWN_DEVICES

@@ -40,11 +40,12 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 from pydantic import Field
 
-from aiohal.fieldbus.busvar import LayoutError, PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError
+from aiohal.fieldbus.busvar import PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError
+from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
+from aiohal.fieldbus.drives import respond_to_event
 from aiohal.fieldbus.pdo_options import parse_number as _number
 from aiohal.fieldbus.pdo_options import parse_pdo_entry
 from aiohal.fieldbus.pdo_options import pdo_issues as _pdo_issues
-from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.hal import Driver, FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
@@ -61,7 +62,6 @@ from .bus import (
     expected_wkc,
     state_name,
 )
-from aiohal.fieldbus.drives import respond_to_event
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 
 log = logging.getLogger(__name__)
@@ -246,7 +246,7 @@ class EthercatDriver(Driver):
                     first = exc
                 elif exc is not first:
                     log.warning("ethercat %s: bring-up attempt %d failed too: %s", self.name, attempt, exc)
-                    raise first  # (chained to this one)
+                    raise first  # noqa: B904 - the first failure is the one to report (chained to this one)
                 if not (attempt < opts.bringup_attempts and not self._estop_requested
                         and isinstance(exc, (TransientBringUpError, *self.bus.lost_frame))):
                     raise

@@ -35,8 +35,22 @@ from aiohal.fieldbus import simprocess
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.robot import Fault, Mode
 
-from .protocol import (DEFAULT_PORT, FLAGS, JOINTS, MSR, MSR_ID, MSR_SIZE, STRATEGY, Control, FriError, Quality, State,
-                       check, new_cmd, seq16_newer)
+from .protocol import (
+    DEFAULT_PORT,
+    FLAGS,
+    JOINTS,
+    MSR,
+    MSR_ID,
+    MSR_SIZE,
+    STRATEGY,
+    Control,
+    FriError,
+    Quality,
+    State,
+    check,
+    new_cmd,
+    seq16_newer,
+)
 
 log = logging.getLogger(__name__)
 STATE_CMD = int(State.CMD)

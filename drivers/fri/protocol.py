@@ -20,7 +20,7 @@ DEFAULT_PORT = 49938
 
 
 def _struct(fields: list[tuple[str, str, int]], size: int) -> np.dtype:
-    names, formats, offsets = zip(*fields)
+    names, formats, offsets = zip(*fields, strict=True)
     return np.dtype({"names": list(names), "formats": list(formats), "offsets": list(offsets), "itemsize": size})
 
 
@@ -31,7 +31,8 @@ _HEAD_AND_KRL = [
 ]
 
 #: tFriMsrData, KRC -> remote.
-MSR = _struct(_HEAD_AND_KRL + [
+MSR = _struct([
+    *_HEAD_AND_KRL,
     ("timestamp", "<f4", 140), ("state", "<u2", 144), ("quality", "<u2", 146),
     ("desired_msr_sample_time", "<f4", 148), ("desired_cmd_sample_time", "<f4", 152), ("safety_limits", "<f4", 156),
     ("answer_rate", "<f4", 160), ("latency", "<f4", 164), ("jitter", "<f4", 168), ("miss_rate", "<f4", 172),
@@ -47,7 +48,8 @@ MSR = _struct(_HEAD_AND_KRL + [
 ], MSR_SIZE)
 
 #: tFriCmdData, remote -> KRC.
-CMD = _struct(_HEAD_AND_KRL + [
+CMD = _struct([
+    *_HEAD_AND_KRL,
     ("cmd_flags", "<u4", 140), ("jnt_pos", ("<f4", JOINTS), 144), ("cart_pos", ("<f4", 12), 172),
     ("add_jnt_trq", ("<f4", JOINTS), 220), ("add_tcp_ft", ("<f4", 6), 248),
     ("jnt_stiffness", ("<f4", JOINTS), 272), ("jnt_damping", ("<f4", JOINTS), 300),

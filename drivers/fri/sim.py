@@ -39,8 +39,21 @@ import numpy as np
 from aiohal.fieldbus.servo import ServoModel
 from aiohal.robot import Mode
 
-from .protocol import (CMD, CMD_ID, CMD_SIZE, CONTROL_OF_STRATEGY, JOINTS, Control, Flags, FriError, Quality, State,
-                       check, new_msr, seq16_newer)
+from .protocol import (
+    CMD,
+    CMD_ID,
+    CMD_SIZE,
+    CONTROL_OF_STRATEGY,
+    JOINTS,
+    Control,
+    Flags,
+    FriError,
+    Quality,
+    State,
+    check,
+    new_msr,
+    seq16_newer,
+)
 
 WINDOW = 100  # packets in FRI's statistics
 

@@ -35,8 +35,23 @@ from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault, Mode
 
-from .protocol import (COMMAND_RECORD, FLAG_MAC, HEADER, HEADER_SIZE, MAGIC, MAX_JOINTS, STATE_RECORD, VERSION,
-                       ZERO_MAC, Kind, ProtocolError, check, encode, seal_parts, seq_newer)
+from .protocol import (
+    COMMAND_RECORD,
+    FLAG_MAC,
+    HEADER,
+    HEADER_SIZE,
+    MAGIC,
+    MAX_JOINTS,
+    STATE_RECORD,
+    VERSION,
+    ZERO_MAC,
+    Kind,
+    ProtocolError,
+    check,
+    encode,
+    seal_parts,
+    seq_newer,
+)
 
 log = logging.getLogger(__name__)
 

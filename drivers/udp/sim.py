@@ -32,8 +32,22 @@ import numpy as np
 
 from aiohal.fieldbus.servo import ServoModel
 
-from .protocol import (COMMAND_RECORD, FLAG_MAC, HEADER, HEADER_SIZE, MAGIC, STATE_RECORD, VERSION, ZERO_MAC,
-                       BoardFault, Kind, ProtocolError, check, seal_parts, seq_newer)
+from .protocol import (
+    COMMAND_RECORD,
+    FLAG_MAC,
+    HEADER,
+    HEADER_SIZE,
+    MAGIC,
+    STATE_RECORD,
+    VERSION,
+    ZERO_MAC,
+    BoardFault,
+    Kind,
+    ProtocolError,
+    check,
+    seal_parts,
+    seq_newer,
+)
 
 RECV_SIZE = 2048
 
@@ -89,7 +103,6 @@ class BoardSimulator:
         self._delayed: list[tuple[float, int, SimBoard, tuple, tuple]] = []  # heap of (due, n, board, bytes, addr)
         self._n_delayed = 0
         self._rx = bytearray(RECV_SIZE)
-        n_boards = len(layout)
         self.commands = np.zeros(n, dtype=COMMAND_RECORD)  # the last command of every joint
         self.states = np.zeros(n, dtype=STATE_RECORD)  # every board's reply records, in joint order
         self._commanded = np.zeros(n, dtype=bool)  # joints whose board got a command in this wake

@@ -33,21 +33,37 @@ gather accessors), ``codec`` (:class:`RecordCodec`), ``errors``; everything is i
 
 from __future__ import annotations
 
-from .access import BitVar, BitsVar, Gather
+from .access import BitsVar, BitVar, Gather
 from .codec import STRUCT_CODES, RecordCodec
 from .errors import BusVarError, LayoutError, ReadOnlyVariableError, UnknownVariableError, VariableTypeError
 from .image import ProcessImage, SlaveImage
 from .layout import PdoEntry, PdoLayout, PdoList, RawEntry, Variable
-from .names import CIA402_NAMES, NUMPY_TYPES, TYPE_BITS, NameTable, address, canonical_type, decode_mapping, encode_mapping, names_for, normalise, object_entries, parse_address, parse_names
+from .names import (
+    CIA402_NAMES,
+    NUMPY_TYPES,
+    TYPE_BITS,
+    NameTable,
+    address,
+    canonical_type,
+    decode_mapping,
+    encode_mapping,
+    names_for,
+    normalise,
+    object_entries,
+    parse_address,
+    parse_names,
+)
 
 __all__ = [
+    "CIA402_NAMES",
+    "NUMPY_TYPES",
+    "STRUCT_CODES",
+    "TYPE_BITS",
     "BitVar",
     "BitsVar",
     "BusVarError",
-    "CIA402_NAMES",
     "Gather",
     "LayoutError",
-    "NUMPY_TYPES",
     "NameTable",
     "PdoEntry",
     "PdoLayout",
@@ -56,9 +72,7 @@ __all__ = [
     "RawEntry",
     "ReadOnlyVariableError",
     "RecordCodec",
-    "STRUCT_CODES",
     "SlaveImage",
-    "TYPE_BITS",
     "UnknownVariableError",
     "Variable",
     "VariableTypeError",

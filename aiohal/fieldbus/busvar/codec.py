@@ -12,7 +12,6 @@ import numpy as np
 from .errors import VariableTypeError
 from .layout import Variable
 
-
 STRUCT_CODES = {"i8": "b", "u8": "B", "i16": "h", "u16": "H", "i32": "i", "u32": "I", "i64": "q", "u64": "Q",
                 "f32": "f", "f64": "d"}
 

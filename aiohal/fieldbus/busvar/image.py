@@ -18,7 +18,6 @@ from .errors import LayoutError, ReadOnlyVariableError, UnknownVariableError, Va
 from .layout import PdoEntry, PdoLayout, Variable, _kind
 from .names import NUMPY_TYPES, address, normalise, parse_address
 
-
 _MEMBER = re.compile(r"(.+)\.(\d+)")
 
 

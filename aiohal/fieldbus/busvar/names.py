@@ -11,7 +11,6 @@ import numpy as np
 
 from .errors import LayoutError
 
-
 TYPE_BITS = {"bool": 1, "i8": 8, "u8": 8, "i16": 16, "u16": 16, "i32": 32, "u32": 32,
              "i64": 64, "u64": 64, "f32": 32, "f64": 64}
 NUMPY_TYPES = {name: np.dtype(f"<{name[0]}{TYPE_BITS[name] // 8}") for name in TYPE_BITS if name != "bool"}

@@ -25,8 +25,8 @@ from pathlib import Path
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from aiohal.drivers.ethercat.sim.drive import Drive
-from aiohal.drivers.ethercat.sim.od import PdoCodec, SdoAbort
+from ...ethercat.sim.drive import Drive
+from ...ethercat.sim.od import PdoCodec, SdoAbort
 
 log = logging.getLogger(__name__)
 

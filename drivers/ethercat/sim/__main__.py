@@ -24,7 +24,6 @@ from . import control
 from .net import Runner, disable_ipv6, set_up, wait_for_interface
 from .segment import Segment
 
-
 IFNAMSIZ = 16  # Linux: an interface name is at most 15 bytes and a NUL
 
 

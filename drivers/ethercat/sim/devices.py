@@ -298,11 +298,11 @@ class Imu(Device):
     def _publish(self, noise: bool = True) -> None:
         sigma = self.noise if noise else 0.0
         g = self.rng.gauss if sigma else None
-        for e, v in zip(self.e_quat, self.quat):
+        for e, v in zip(self.e_quat, self.quat, strict=True):
             e.value = v
-        for e, v in zip(self.e_gyro, self.gyro):
+        for e, v in zip(self.e_gyro, self.gyro, strict=True):
             e.value = v + (g(0.0, sigma) if g else 0.0)
-        for e, v in zip(self.e_acc, self.acc):
+        for e, v in zip(self.e_acc, self.acc, strict=True):
             e.value = v + (g(0.0, sigma) if g else 0.0)
         self.e_status.value = 1 if self.valid else 0
 
@@ -365,7 +365,7 @@ class ForceTorque(Device):
 
     def _publish(self, noise: bool = True) -> None:
         sigma = self.noise if noise else 0.0
-        for e, w, o in zip(self.e_wrench, self.wrench, self.offset):
+        for e, w, o in zip(self.e_wrench, self.wrench, self.offset, strict=True):
             e.value = w - o + (self.rng.gauss(0.0, sigma) if sigma else 0.0)
         over = (any(abs(x) > self.force_limit for x in self.wrench[:3])
                 or any(abs(x) > self.torque_limit for x in self.wrench[3:]))

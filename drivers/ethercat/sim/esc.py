@@ -536,7 +536,7 @@ class Esc:
         if self.op_pending and not self.device.out_size and now >= (self.op_due or 0):
             self._set_state(OP, now)  # a slave without outputs, at the end of its op_delay
         st = self.al_state
-        if st == OP or st == SAFEOP:
+        if st in (OP, SAFEOP):
             valid = st == OP and self.outputs_fresh
             self.outputs_fresh = False
             self.device.exchange(now, self.mem, valid)

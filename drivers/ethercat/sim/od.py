@@ -118,6 +118,7 @@ class Entry:
         self.on_write = on_write
         self.low = low
         self.high = high
+        self.value: Any  # bytes for a string type, else a number
         if dtype in STRINGS:
             raw = value.encode("latin-1") if isinstance(value, str) else bytes(value)
             self.size = size if size is not None else len(raw)
@@ -374,13 +375,13 @@ class PdoCodec:
                f"        _pack(buf, offset, {values})\n"
                f"    return decode, encode\n")
         scope: dict[str, Any] = {}
-        exec(compile(src, "<pdo codec>", "exec"), scope)  # noqa: S102 - generated from entry count only
+        exec(compile(src, "<pdo codec>", "exec"), scope)  # generated from the entry count only
         return scope["_make"](entries, st.unpack_from, st.pack_into)
 
     def decode(self, buf: Any, offset: int) -> None:
         st = self._struct
         if st is not None:
-            for e, v in zip(self.entries, st.unpack_from(buf, offset)):
+            for e, v in zip(self.entries, st.unpack_from(buf, offset), strict=True):
                 e.value = v
             return
         raw = int.from_bytes(buf[offset:offset + self.size], "little")

@@ -21,8 +21,8 @@ import time
 from collections.abc import Callable
 
 from .devices import Device
-from .spec import parse_spec
 from .esc import MASK64, OP, SAFEOP, Esc
+from .spec import parse_spec
 
 ETHERTYPE = b"\x88\xa4"
 DGRAM = struct.Struct("<BBHHHH")
