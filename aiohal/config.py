@@ -21,6 +21,7 @@ from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, Valida
 from . import plugins
 from .bridge import BridgeSection
 from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
+from .feedforward import FeedforwardSection, section_issues as feedforward_issues
 from .hal import Options, did_you_mean
 from .realtime import RealtimeSection
 from .record.options import RecordSection
@@ -157,6 +158,7 @@ SECTIONS: dict[str, Any] = {
     "client": ClientSection,
     "bridge": BridgeSection,
     "safety": SafetySection,
+    "feedforward": FeedforwardSection,
 }
 REQUIRED_SECTIONS = ("joints", "driver")
 _GLOB = "*?["  # a driver's joints are names or fnmatch patterns
@@ -202,6 +204,7 @@ class Config:
     client: ClientSection = field(default_factory=ClientSection)
     bridge: BridgeSection = field(default_factory=BridgeSection)
     safety: SafetySection = field(default_factory=SafetySection)
+    feedforward: FeedforwardSection = field(default_factory=FeedforwardSection)
 
     @property
     def period_ns(self) -> int:
@@ -582,6 +585,9 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
 
     if safety is not None and safety.workspace and robot is not None:
         issues += _workspace_issues(robot, safety)
+    feedforward = _validate(FeedforwardSection, raw.get("feedforward", {}), "feedforward", issues, context)
+    if feedforward is not None:
+        issues += [ConfigIssue(k, m) for k, m in feedforward_issues(feedforward, [j.name for j in joint_specs])]
     if issues:  # each once: a scalar that is wrong for every joint is one mistake
         raise ConfigError(list(dict.fromkeys(issues)), str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
@@ -600,6 +606,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         client=client,
         bridge=bridge,
         safety=safety,
+        feedforward=feedforward,
     )
 
 
