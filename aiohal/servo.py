@@ -58,16 +58,18 @@ class ServoParams(Options):
     current_rate_hz: float = Field(20_000.0, gt=0, description="Current loop rate; the mechanics step at it too.")
     velocity_every: int = Field(2, ge=1, description="The position and velocity loops run every n current steps "
                                 "(10 kHz at the defaults).")
+    velocity_filter_hz: float = Field(1000.0, gt=0, description="Low-pass (first order) of the measured motor "
+                                      "speed the velocity loop uses.")
 
 
 # columns of the parameter table (one row per joint), in ServoParams' order
 PARAM_FIELDS = tuple(ServoParams.model_fields)
 (GEAR, ROTOR_J, LOAD_J, VISCOUS, COULOMB, GRAVITY, KT, RES, IND, IMAX, VMAX, KP_POS, KP_VEL, TI_VEL, KP_CUR, TI_CUR,
- CUR_HZ, VEL_EVERY) = range(len(PARAM_FIELDS))
+ CUR_HZ, VEL_EVERY, VEL_FILTER_HZ) = range(len(PARAM_FIELDS))
 # columns of the state table (one row per joint)
 STATE_FIELDS = ("position", "velocity", "current", "velocity_integral", "current_integral", "current_command",
-                "previous_target", "target", "velocity_ff", "current_ff", "phase")
-(Q, W, I, VEL_INT, CUR_INT, I_CMD, PREV_TARGET, TARGET, VEL_FF, CUR_FF, PHASE) = range(len(STATE_FIELDS))
+                "previous_target", "target", "velocity_ff", "current_ff", "phase", "measured_speed")
+(Q, W, I, VEL_INT, CUR_INT, I_CMD, PREV_TARGET, TARGET, VEL_FF, CUR_FF, PHASE, W_MEAS) = range(len(STATE_FIELDS))
 
 
 def param_table(params: list[ServoParams] | ServoParams, n: int) -> np.ndarray:
@@ -108,6 +110,7 @@ class ReferenceServo:
         self.inertia = p.rotor_inertia + p.load_inertia / p.gear_ratio**2  # at the motor
         self.motor_angle = position * p.gear_ratio
         self.motor_speed = 0.0
+        self.measured_speed = 0.0  # filtered, as the velocity loop sees it
         self.current = 0.0
         self.current_command = 0.0
         self.previous_target = self.target = position
@@ -141,10 +144,13 @@ class ReferenceServo:
         h = cycle / n
         for k in range(n):
             if self.phase == 0:
+                hv = h * p.velocity_every
+                self.measured_speed += (self.motor_speed - self.measured_speed) * (
+                    1.0 - math.exp(-hv * 2.0 * math.pi * p.velocity_filter_hz))
                 setpoint = self.previous_target + (self.target - self.previous_target) * k / n
                 speed = p.position_gain * (setpoint - self.position) + self.velocity_ff  # joint rad/s
-                error = speed * p.gear_ratio - self.motor_speed
-                self.current_command = self.velocity_pi.output(error, h * p.velocity_every, self.current_ff)
+                error = speed * p.gear_ratio - self.measured_speed
+                self.current_command = self.velocity_pi.output(error, hv, self.current_ff)
             self.phase = (self.phase + 1) % p.velocity_every
             voltage = self.current_pi.output(self.current_command - self.current, h)
             self.winding(voltage, h)
@@ -194,6 +200,7 @@ def step_servos(state, params, cycle):
         h = cycle / n
         hv = h * every
         decay = math.exp(-h * p[RES] / p[IND])
+        smooth = 1.0 - math.exp(-hv * 2.0 * math.pi * p[VEL_FILTER_HZ])
         coulomb = p[COULOMB] / gear
         viscous = p[VISCOUS] / (gear * gear)
         imax, vmax = p[IMAX], p[VMAX]
@@ -201,9 +208,10 @@ def step_servos(state, params, cycle):
         phase = np.int64(s[PHASE])
         for k in range(n):
             if phase == 0:
+                s[W_MEAS] += (w - s[W_MEAS]) * smooth
                 setpoint = s[PREV_TARGET] + (s[TARGET] - s[PREV_TARGET]) * k / n
                 speed = p[KP_POS] * (setpoint - angle / gear) + s[VEL_FF]
-                error = speed * gear - w
+                error = speed * gear - s[W_MEAS]
                 integral = s[VEL_INT] + error * hv
                 u = p[KP_VEL] * (error + integral / p[TI_VEL]) + s[CUR_FF]
                 if -imax <= u <= imax:
