@@ -132,7 +132,6 @@ class ReferenceServo:
         return self.p.torque_constant * self.current * self.p.gear_ratio
 
     def command(self, target: float, velocity_ff: float, torque_ff: float) -> None:
-        self.previous_target = self.target
         self.target = target
         self.velocity_ff = velocity_ff
         self.current_ff = torque_ff / (self.p.gear_ratio * self.p.torque_constant)
@@ -155,6 +154,7 @@ class ReferenceServo:
             voltage = self.current_pi.output(self.current_command - self.current, h)
             self.winding(voltage, h)
             self.mechanics(h)
+        self.previous_target = self.target  # reached: a cycle without a new command holds it
 
     def winding(self, voltage: float, h: float) -> None:
         """The R-L winding against the back EMF, solved exactly over ``h`` for a held voltage."""
@@ -240,6 +240,7 @@ def step_servos(state, params, cycle):
             angle += w_new * h
         s[Q], s[W], s[I] = angle, w, i
         s[PHASE] = phase
+        s[PREV_TARGET] = s[TARGET]
 
 
 
@@ -258,7 +259,6 @@ class ServoBank:
 
     def command(self, target: np.ndarray, velocity_ff: np.ndarray, torque_ff: np.ndarray) -> None:
         s = self.state
-        s[:, PREV_TARGET] = s[:, TARGET]
         s[:, TARGET] = target
         s[:, VEL_FF] = velocity_ff
         np.divide(torque_ff, self._torque_per_amp, out=s[:, CUR_FF])
