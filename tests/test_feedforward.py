@@ -4,6 +4,8 @@ the learning command, and the mock's servo drive in the loop."""
 from __future__ import annotations
 
 import tomllib
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,10 +15,9 @@ from aiohal.errors import ConfigError
 from aiohal.feedforward import GainLearner, VelocityFeedforward, read_gains, write_gains
 from aiohal.hal import Controller
 from aiohal.learn_feedforward import main as learn_main
+from aiohal.loop import ControlLoop
 from aiohal.robot import JointCommand, Mode
 from helpers import arm_raw, virtual_loop
-
-from pathlib import Path
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "lola_hip_sim.toml"
 
@@ -126,12 +127,8 @@ def test_the_learning_command_writes_gains_a_config_loads(tmp_path, capsys):
     assert "RMS per window" in text
     tomllib.loads(text)
     config = load_config(CONFIG)
-    from dataclasses import replace
-
     section = config.feedforward.model_copy(update={"gains": out})
     loop_config = replace(config, feedforward=section)
-    from aiohal.loop import ControlLoop
-
     assert ControlLoop(loop_config).feedforward.k_e.tolist() == [gains["hip_flexion"]]
 
 
@@ -139,10 +136,6 @@ def test_the_learning_command_writes_gains_a_config_loads(tmp_path, capsys):
 async def test_the_learned_gain_lowers_the_tracking_error_on_the_servo_drive():
     """The gait on the mock's servo drive, in lockstep: with k_e = 0 the joint lags its
     target; with a gain the policy finds, the RMS error is much lower."""
-    from dataclasses import replace
-
-    from aiohal.loop import ControlLoop
-
     config = load_config(CONFIG)
 
     async def rms(k_e):
