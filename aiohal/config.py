@@ -23,6 +23,8 @@ from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, Valida
 from . import plugins
 from .bridge import BridgeSection
 from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
+from .feedforward import FeedforwardSection
+from .feedforward import section_issues as feedforward_issues
 from .hal import Options, did_you_mean
 from .realtime import RealtimeSection
 from .record.options import RecordSection
@@ -159,6 +161,7 @@ SECTIONS: dict[str, Any] = {
     "client": ClientSection,
     "bridge": BridgeSection,
     "safety": SafetySection,
+    "feedforward": FeedforwardSection,
 }
 REQUIRED_SECTIONS = ("joints", "driver")
 _GLOB = "*?["  # a driver's joints are names or fnmatch patterns
@@ -204,6 +207,7 @@ class Config:
     client: ClientSection = field(default_factory=ClientSection)
     bridge: BridgeSection = field(default_factory=BridgeSection)
     safety: SafetySection = field(default_factory=SafetySection)
+    feedforward: FeedforwardSection = field(default_factory=FeedforwardSection)
 
     @property
     def period_ns(self) -> int:
@@ -446,6 +450,10 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     controller = _parse_controller(doc, joints, robot or RobotSection())
     client = doc.section(ClientSection, "client")
     bridge = doc.section(BridgeSection, "bridge")
+    feedforward = doc.section(FeedforwardSection, "feedforward")
+    if feedforward is not None:
+        for key, message in feedforward_issues(feedforward, list(joint_names)):
+            doc.add(key, message)
     _cross_check(doc, robot, controller, client, bridge, safety)
     if controller is not None:
         doc.issues += mode_issues(controller.cls, controller.params, drivers)
@@ -453,7 +461,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
     if doc.issues:  # each once: a scalar that is wrong for every joint is one mistake
         raise ConfigError(list(dict.fromkeys(doc.issues)), str(path) if path else None)
     assert robot is not None and loop is not None and realtime is not None and controller is not None
-    assert safety is not None
+    assert safety is not None and feedforward is not None
     return Config(
         robot=robot,
         loop=loop,
@@ -468,6 +476,7 @@ def parse_config(raw: dict[str, Any], *, base_dir: Path | None = None, path: Pat
         client=client,
         bridge=bridge,
         safety=safety,
+        feedforward=feedforward,
     )
 
 

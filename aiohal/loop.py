@@ -35,6 +35,7 @@ from .config import Config, mode_issues
 from .config import from_parts as config_from_parts
 from .doors import Doors
 from .errors import ConfigError, ControllerError, DriverError, LifecycleError
+from .feedforward import VelocityFeedforward, gains_of
 from .hal import Controller, Driver
 from .limits import CommandLimiter
 from .logutil import RateLimitedLogger
@@ -125,6 +126,9 @@ class ControlLoop:
         #: a controller slower than the bus (None: it runs on every tick)
         self.multirate = (TargetExtrapolator(self.robot.command, self.period_s, every, config.controller.extrapolate)
                           if every > 1 else None)
+        #: learned velocity feed-forward, applied after the controller (None: not configured)
+        self.feedforward = (VelocityFeedforward(self.robot.command, gains_of(config.feedforward, list(self.robot.joint_names)))
+                            if config.feedforward.active else None)
         #: the safety state machine (:mod:`aiohal.safety`); ``level`` mirrors its level for the tick
         self.safety = SafetyMachine(SafetyLevel[config.safety.fault_level.upper()])
         self.level = SafetyLevel.OFF
@@ -717,6 +721,7 @@ class ControlLoop:
         multirate = self.multirate
         heartbeat = self._heartbeat
         workspace = self.workspace
+        feedforward = self.feedforward
 
         ticker.start(lead_ns=period_ns)
         self._missed_before = ticker.missed
@@ -786,6 +791,8 @@ class ControlLoop:
                         multirate.capture(k)
                 else:
                     multirate.fill(k)
+                if feedforward is not None:
+                    feedforward.apply()
                 t3 = mono()
 
                 if not limiter.apply():

@@ -36,6 +36,7 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "hold": ("aiohal.controllers.hold:HoldController", None),
         "homing": ("aiohal.controllers.homing:HomingController", None),
         "sine": ("aiohal.controllers.sine:SineController", None),
+        "gait": ("aiohal.controllers.gait:GaitController", None),
         "circle": ("aiohal.controllers.circle:CircleController", "sim"),
         "sequence": ("aiohal.controllers.sequence:SequenceController", None),
         "stream": ("aiohal.controllers.stream:StreamController", None),

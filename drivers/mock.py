@@ -23,6 +23,7 @@ from pydantic import Field
 from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
 from aiohal.robot import StateRow
+from aiohal.servo import ServoParams
 from aiohal.watchdog import SendDatagram
 
 ESTOP_PAYLOAD = b"ESTOP"
@@ -45,9 +46,11 @@ class MockFaults(Options):
 
 
 class MockOptions(Options):
-    dynamics: Literal["mirror", "first_order"] = Field(
-        "mirror", description="mirror: state = command; first_order: state follows with time_constant."
+    dynamics: Literal["mirror", "first_order", "servo"] = Field(
+        "mirror", description="mirror: state = command; first_order: state follows with time_constant; "
+        "servo: each joint behind a simulated servo drive (options.servo)."
     )
+    servo: ServoParams = Field(default_factory=ServoParams, description="The drives and joints of dynamics = servo.")
     time_constant: float = Field(0.02, gt=0, description="First-order time constant (s).")
     initial_position: JointValues = Field(0.0, description="Start position, scalar or per joint.")
     feedback_delay_ticks: int = Field(0, ge=0, le=1000, description="State shows the robot N ticks ago.")
@@ -117,6 +120,11 @@ class MockDriver(Driver):
             ft.force[:] = opts.force
             ft.torque[:] = opts.torque
         self._bind_step()
+        self._servo = None
+        if opts.dynamics == "servo":
+            from .mock_servo import MockServo
+
+            self._servo = MockServo(view, opts.servo, self.sim)
         # the devices, a run of adjacent rows at a time: the stamps of each run, and the hands'
         # rows (grasp, speed, force, position, effort) with scratch rows for their step
         runs = view.device_runs()
@@ -159,8 +167,12 @@ class MockDriver(Driver):
             if dt != self._dt:
                 self._set_dt(dt)
             stamped = self._direct
-            self._step_joints(*self._step_args, dt, self._first_order, self._alpha, self._inv_dt, stamped,
-                              *self._stamp_args, tick, clock.now_ns)
+            if self._servo is not None:
+                self._servo.step(dt)
+                stamped = False
+            else:
+                self._step_joints(*self._step_args, dt, self._first_order, self._alpha, self._inv_dt, stamped,
+                                  *self._stamp_args, tick, clock.now_ns)
         self._last_tick = tick
         self.reads += 1
         if not self._direct and not self._publish_state(tick):
@@ -228,6 +240,8 @@ class MockDriver(Driver):
             tick = self.view.clock.tick
             if at is not None and tick >= at:
                 raise OSError(errno.EIO, f"injected write error at tick {tick}")
+        if self._servo is not None:
+            self._servo.write()
         self.writes += 1
 
     def estop(self) -> None:

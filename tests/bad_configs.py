@@ -151,7 +151,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "bad-mock-option-value",
         GOOD + '\n[driver.options]\ndynamics = "second_order"\n',
-        ("driver[0].options.dynamics: input should be 'mirror' or 'first_order' (got 'second_order')",),
+        ("driver[0].options.dynamics: input should be 'mirror', 'first_order' or 'servo' (got 'second_order')",),
     ),
     BadConfig(
         "mock-initial-position-unknown-joint",
@@ -184,7 +184,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "unknown-controller-type",
         GOOD + '\n[controller]\ntype = "sin"\n',
-        ('controller.type: unknown controller "sin" (available: circle, hold, homing, sequence, sine, stream)',),
+        ('controller.type: unknown controller "sin" (available: circle, gait, hold, homing, sequence, sine, stream)',),
     ),
     BadConfig(
         "driver-unknown-device",
@@ -295,7 +295,7 @@ MANY = BadConfig(
         "driver[0].options.foo: unknown key",
         "joints.j1: no driver owns this joint",
         "joints.j2: no driver owns this joint",
-        'controller.type: unknown controller "nope" (available: circle, hold, homing, sequence, sine, stream)',
+        'controller.type: unknown controller "nope" (available: circle, gait, hold, homing, sequence, sine, stream)',
     ),
 )
 

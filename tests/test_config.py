@@ -224,7 +224,7 @@ def test_json_schema_is_strict_json_with_plugin_options():
     mock_options = defs[ref.removeprefix("#/$defs/")]
     assert {"dynamics", "time_constant", "initial_position", "faults"} <= set(mock_options["properties"])
     assert mock_options["additionalProperties"] is False
-    assert mock_options["properties"]["dynamics"]["enum"] == ["mirror", "first_order"]
+    assert mock_options["properties"]["dynamics"]["enum"] == ["mirror", "first_order", "servo"]
 
     # every loadable controller's params too (circle needs the sim extra)
     from aiohal import plugins

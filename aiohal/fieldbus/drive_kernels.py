@@ -28,8 +28,9 @@ from aiohal.fieldbus.cia402 import CST as _CST
 from aiohal.fieldbus.cia402 import CSV as _CSV
 from aiohal.robot import CommandRow, Mode, StateRow
 
-# layout columns: 5 input offsets, 5 output offsets, the joint's row
-IN, OUT, ROW = 0, 5, 10
+# layout columns: 5 input offsets, 5 output offsets, the 2 feed-forward offsets (-1: not
+# mapped), the joint's row
+IN, OUT, OFFSETS, ROW = 0, 5, 10, 12
 # constants columns (float64)
 RAD_PER_COUNT, MOTOR_RAD_PER_COUNT, NM_PER_PER_MILLE, POSITION_OFFSET, COUNTS_PER_RAD, PER_MILLE_PER_NM = range(6)
 # ints columns (int64): VALID says the drive's position was read once (so it can be unwrapped)
@@ -127,7 +128,9 @@ def decode_drives(inputs, layout, constants, ints, state, ticks, stamps, tick, n
 def encode_drives(outputs, layout, constants, ints, command, mode, hold_all):
     """Commands (``command``: the joints' command block, ``mode``: their modes) → every
     drive's outputs. A drive in hold (every drive with ``hold_all``) gets target = actual in
-    CSP; the others their mode's targets. Velocity and torque targets are clamped to their
+    CSP; the others their mode's targets. In CSP the target velocity and the effort plus
+    feed-forward go to the velocity and torque offsets (0x60B1, 0x60B2) of a drive that maps
+    them (its layout's offset is not -1), in the units of the target velocity and torque. Velocity and torque targets are clamped to their
     int32 / int16 range, the position target wraps. The loop's limits make every command
     finite and bounded before a driver sees it; should one not be, a non-finite position is
     held and a non-finite velocity or torque is sent as 0 (and a position beyond ±2⁶³ counts
@@ -140,18 +143,27 @@ def encode_drives(outputs, layout, constants, ints, command, mode, hold_all):
         target = ints[i, RAW_POSITION]
         speed = 0
         torque = 0
+        speed_offset = 0
+        torque_offset = 0
         p = command[C_POSITION, row]
         if not hold_all and not ints[i, HOLD] and np.isfinite(p):
             m = np.int64(mode[row])
             cia_mode = MODE_OF_OPERATION[m] if 0 <= m < MODE_OF_OPERATION.shape[0] else CSP
             target = np.int64(np.rint((p - k[POSITION_OFFSET]) * k[COUNTS_PER_RAD]))
-            if cia_mode != CSP:
-                v = command[C_VELOCITY, row] * k[COUNTS_PER_RAD]
-                t = (command[C_EFFORT, row] + command[C_FEEDFORWARD, row]) * k[PER_MILLE_PER_NM]
-                speed = np.int64(np.rint(_clamp(v, -2147483648.0, 2147483647.0))) if np.isfinite(v) else 0
-                torque = np.int64(np.rint(_clamp(t, -32768.0, 32767.0))) if np.isfinite(t) else 0
+            v = command[C_VELOCITY, row] * k[COUNTS_PER_RAD]
+            t = (command[C_EFFORT, row] + command[C_FEEDFORWARD, row]) * k[PER_MILLE_PER_NM]
+            v = np.int64(np.rint(_clamp(v, -2147483648.0, 2147483647.0))) if np.isfinite(v) else 0
+            t = np.int64(np.rint(_clamp(t, -32768.0, 32767.0))) if np.isfinite(t) else 0
+            if cia_mode == CSP:  # the feed-forward, where the drive maps its offsets
+                speed_offset, torque_offset = v, t
+            else:
+                speed, torque = v, t
         _put(outputs, o[OUT], ints[i, CONTROLWORD], 2)
         _put(outputs, o[OUT + 1], target, 4)
         _put(outputs, o[OUT + 2], speed, 4)
         _put(outputs, o[OUT + 3], torque, 2)
         _put(outputs, o[OUT + 4], cia_mode, 1)
+        if o[OFFSETS] >= 0:
+            _put(outputs, o[OFFSETS], speed_offset, 4)
+        if o[OFFSETS + 1] >= 0:
+            _put(outputs, o[OFFSETS + 1], torque_offset, 2)

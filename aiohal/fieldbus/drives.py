@@ -21,7 +21,7 @@ from aiohal import kernel_call
 from aiohal.robot import JOINT_COMMAND_FIELDS, DriverView, Fault, JointCommand, JointState
 
 from . import drive_kernels as kernels
-from .busvar import ProcessImage, VariableTypeError
+from .busvar import ProcessImage, UnknownVariableError, VariableTypeError
 from .cia402 import Cia402Drive, DriveEvent, DriveUnits, EventKind, State, Target
 
 log = logging.getLogger(__name__)
@@ -30,8 +30,13 @@ DRIVE_INPUTS = ("Statusword", "Position actual value", "Velocity actual value", 
 DRIVE_INPUT_TYPES = ("u16", "i32", "i32", "i16", "u16")
 DRIVE_OUTPUTS = ("Controlword", "Target position", "Target velocity", "Target torque", "Modes of operation")
 DRIVE_OUTPUT_TYPES = ("u16", "i32", "i32", "i16", "i8")
-#: bytes of each variable, inputs then outputs
-DRIVE_SIZES = tuple(int(t[1:]) // 8 for t in DRIVE_INPUT_TYPES + DRIVE_OUTPUT_TYPES)
+#: outputs a drive may map for feed-forward in CSP: the controller's target velocity and its
+#: effort plus feed-forward are sent there, where the drive adds them to its own loops'
+DRIVE_OFFSETS = ("Velocity offset", "Torque offset")  # 0x60B1, 0x60B2
+DRIVE_OFFSET_TYPES = ("i32", "i16")
+#: bytes of each variable, inputs, outputs then offsets
+DRIVE_SIZES = tuple(int(t[1:]) // 8 for t in DRIVE_INPUT_TYPES + DRIVE_OUTPUT_TYPES + DRIVE_OFFSET_TYPES)
+NOT_MAPPED = -1  # the offset of a feed-forward output the drive does not map: nothing is written
 
 
 @dataclass(frozen=True)
@@ -63,29 +68,45 @@ class DriveGroup:
     def __init__(self, image: ProcessImage, specs: Sequence[DriveSpec], *, stuck_after: int,
                  target: Target = Target.ENABLED) -> None:
         """On a process image whose slaves map every variable of :data:`DRIVE_INPUTS` and
-        :data:`DRIVE_OUTPUTS` with its type (checked here, by name)."""
+        :data:`DRIVE_OUTPUTS` with its type (checked here, by name), and those of
+        :data:`DRIVE_OFFSETS` they offer."""
+        offsets = []
         for s in specs:
             check_types(image, s.slave, DRIVE_INPUTS, DRIVE_INPUT_TYPES)
             check_types(image, s.slave, DRIVE_OUTPUTS, DRIVE_OUTPUT_TYPES)
-        offsets = [image.byte_offsets(s.slave, DRIVE_INPUTS) + image.byte_offsets(s.slave, DRIVE_OUTPUTS, writable=True)
-                   for s in specs]
+            extra = []
+            for name, kind in zip(DRIVE_OFFSETS, DRIVE_OFFSET_TYPES, strict=True):
+                try:
+                    image.variable(f"{s.slave}.{name}")
+                except UnknownVariableError:
+                    extra.append(NOT_MAPPED)
+                    continue
+                check_types(image, s.slave, (name,), (kind,))
+                extra += image.byte_offsets(s.slave, (name,), writable=True)
+            offsets.append(image.byte_offsets(s.slave, DRIVE_INPUTS)
+                           + image.byte_offsets(s.slave, DRIVE_OUTPUTS, writable=True) + extra)
         self._setup(image.inputs, image.outputs, offsets, specs, stuck_after, target)
 
     @classmethod
     def on_buffers(cls, inputs: np.ndarray, outputs: np.ndarray, offsets: Sequence[Sequence[int]],
                    specs: Sequence[DriveSpec], *, stuck_after: int, target: Target = Target.ENABLED) -> DriveGroup:
         """On plain ``uint8`` buffers: per drive, the byte offsets of the variables of
-        :data:`DRIVE_INPUTS` in ``inputs`` then of :data:`DRIVE_OUTPUTS` in ``outputs``
-        (little-endian, of those types; the caller checked them). A variable a drive does not
-        map may point at spare zero bytes past its buffer's data: it then reads 0, and what
-        is written there is never sent."""
+        :data:`DRIVE_INPUTS` in ``inputs`` then of :data:`DRIVE_OUTPUTS` in ``outputs``,
+        optionally followed by those of :data:`DRIVE_OFFSETS` (``NOT_MAPPED`` where the drive
+        has none; all of them when not given) (little-endian, of those types; the caller
+        checked them). A variable a drive does not map may point at spare zero bytes past its
+        buffer's data: it then reads 0, and what is written there is never sent."""
+        required = len(DRIVE_INPUTS) + len(DRIVE_OUTPUTS)
+        offsets = [list(o) + [NOT_MAPPED] * len(DRIVE_OFFSETS) if len(o) == required else list(o) for o in offsets]
         for i, o in enumerate(offsets):
-            if len(o) != len(DRIVE_INPUTS) + len(DRIVE_OUTPUTS):
-                raise ValueError(f"drive {i}: {len(DRIVE_INPUTS) + len(DRIVE_OUTPUTS)} offsets expected, got {len(o)}")
+            if len(o) != required + len(DRIVE_OFFSETS):
+                raise ValueError(f"drive {i}: {required} or {required + len(DRIVE_OFFSETS)} offsets expected, got {len(o)}")
             for k, (offset, size) in enumerate(zip(o, DRIVE_SIZES, strict=True)):
                 buf = inputs if k < len(DRIVE_INPUTS) else outputs
+                if k >= required and offset == NOT_MAPPED:
+                    continue
                 if not 0 <= offset <= len(buf) - size:
-                    raise ValueError(f"drive {i}: offset {offset} of {(DRIVE_INPUTS + DRIVE_OUTPUTS)[k]!r} is outside "
+                    raise ValueError(f"drive {i}: offset {offset} of {(DRIVE_INPUTS + DRIVE_OUTPUTS + DRIVE_OFFSETS)[k]!r} is outside "
                                      f"its buffer of {len(buf)} bytes")
         group = cls.__new__(cls)
         group._setup(inputs, outputs, offsets, specs, stuck_after, target)

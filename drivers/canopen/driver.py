@@ -50,9 +50,10 @@ log = logging.getLogger(__name__)
 DATA = Path(__file__).resolve().parent / "data"
 DRIVE_EDS = DATA / "aiohal_drive.eds"
 MODES = {"csp": 8, "csv": 9, "cst": 10}
-# (index, subindex, bits) of each drive variable, in DRIVE_INPUTS / DRIVE_OUTPUTS order
+# (index, subindex, bits) of each drive variable, in DRIVE_INPUTS / DRIVE_OUTPUTS (+ DRIVE_OFFSETS) order
 INPUT_OBJECTS = ((0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16), (0x603F, 0, 16))
-OUTPUT_OBJECTS = ((0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8))
+OUTPUT_OBJECTS = ((0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8),
+                  (0x60B1, 0, 32), (0x60B2, 0, 16))  # then DRIVE_OFFSETS, where a drive maps them
 REQUIRED = {0x6041, 0x6064, 0x6040, 0x607A}
 SPARE = 8  # zero bytes past each buffer's data, where unmapped variables point
 SYNC_COB_ID = 0x80

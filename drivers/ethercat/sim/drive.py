@@ -23,7 +23,9 @@ Dynamics, integrated over the time since the previous exchange in sub-steps of a
 
 * CSP: a second-order position loop (natural frequency ``csp_hz``, damping 1) on a setpoint
   interpolated linearly from the previous target to the new one, velocity feed-forward from
-  their slope and 0x60B1, torque limited by 0x6072;
+  0x60B1 where the RxPDOs map it (else from the targets' slope plus 0x60B1), torque
+  feed-forward 0x60B2 (per mille of 0x6076), torque limited by 0x6072 (RxPDO 0x1602 maps
+  both offsets);
 * CSV: first-order velocity tracking (time constant ``csv_tau``), acceleration limited by the
   available torque;
 * CST: torque (0x6071 + 0x60B2, per mille of 0x6076) drives an inertia with viscous and Coulomb
@@ -90,6 +92,9 @@ class Drive(Device):
     rx_pdos = {
         0x1600: [(0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8)],
         0x1601: [(0x6040, 0, 16), (0x607A, 0, 32)],
+        # CSP with the controller's feed-forward: velocity and torque offset
+        0x1602: [(0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8),
+                 (0x60B1, 0, 32), (0x60B2, 0, 16)],
     }
     tx_pdos = {
         0x1A00: [(0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16), (0x6061, 0, 8),
@@ -108,6 +113,8 @@ class Drive(Device):
     max_speed = 1000.0  # rad/s
 
     def build(self, od: ObjectDictionary) -> None:
+        self._ff_mapped = False  # RxPDOs map the velocity offset (compile_pdo)
+
         def check_mode(entry, value):
             if value not in SUPPORTED_MODES:
                 raise SdoAbort(odm.ABORT_VALUE_RANGE, f"mode {value} not supported")
@@ -152,6 +159,11 @@ class Drive(Device):
     #: a fault the drive finds in its self-test at every power-on (e.g. 0x7500, a brake or
     #: encoder error stored from before): it comes up in Fault; set through configure()
     power_on_fault: int | None = None
+
+    def compile_pdo(self) -> tuple[int, int]:
+        sizes = super().compile_pdo()
+        self._ff_mapped = any(e is self.e_vel_offset for e in self.rx_codec.entries)
+        return sizes
 
     def power_on(self) -> None:
         self.state = NOT_READY
@@ -387,7 +399,9 @@ class Drive(Device):
                 # from the previous target to this one over the interval being integrated
                 step = self._target_slope * h
                 target = p_now + err0 - self._target_slope * dt
-                slope = self._target_slope / cpr + vel_off  # velocity feed-forward, rad/s
+                # velocity feed-forward, rad/s: the master's (0x60B1) where mapped, else the targets' slope
+                slope = vel_off if self._ff_mapped else self._target_slope / cpr + vel_off
+                tt = self.e_torque_offset.value / 1000.0 * self._rated_nm  # torque feed-forward, N m
             elif mode == CSV:
                 vt = (self.e_target_vel.value) / cpr + vel_off
             else:
@@ -403,7 +417,7 @@ class Drive(Device):
             if enabled:
                 if mode == CSP:
                     acc = wn * wn * (target - pos) / cpr + 2.0 * wn * (slope - w)
-                    tau = J * acc + friction - load
+                    tau = J * acc + friction - load + tt
                     target += step
                 elif mode == CSV:
                     tau = J * (vt - w) / self.csv_tau + friction - load

@@ -1,0 +1,182 @@
+"""LOLA's Table III, Fig. 6 and Fig. 9 in simulation: the hip flexion joint's tracking error
+while walking, without and with the learned velocity feed-forward, and with a 2 kHz bus.
+
+``configs/lola_hip_sim.toml``: the ``gait`` controller (a hip flexion at 2.7 km/h, a stride of
+1.2 s; target position, target velocity and model torque feed-forward) on the mock driver's
+simulated servo drive (``aiohal.servo``), in lockstep, through the HAL's real path (read,
+controller, extrapolation, feed-forward, limits, write). Runs:
+
+* ``ref``: controller and bus at 1 kHz, k_e = 0 (k_vel,ff = 1: the target velocity as is);
+* ``ff``: the same with k_e learned by LOLA's policy at 1 kHz (``aiohal.learn_feedforward``);
+* ``ff_2khz``: loop and bus at 2 kHz, the controller at 1 kHz (``[controller] every = 2``,
+  targets extrapolated in between), k_e learned by the same policy in that configuration.
+
+The error is the target position of a tick against the position measured at that tick, RMS
+over 3 strides after a ramp-in and a settling stride. Fig. 6 is the cost (that RMS) over a
+sweep of k_e, with the points the policy visited; Fig. 9 the three error traces.
+
+    python -m benchmarks.lola_tracking [--json out.json] [--figures DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from .common import ROOT, write_json
+
+CONFIG = ROOT / "configs" / "lola_hip_sim.toml"
+STRIDES = 3  # measured strides per run
+
+
+def configure(rate_hz: float, every: int, k_e: float | None):
+    from aiohal.config import load_config
+    from aiohal.feedforward import FeedforwardSection
+
+    config = load_config(CONFIG)
+    config = config.with_loop(rate_hz=rate_hz, clock="virtual")
+    config = replace(config, controller=replace(config.controller, every=every))
+    section = config.feedforward.model_copy(update={"k_e": k_e, "gains": None}) if k_e is not None else \
+        FeedforwardSection(**{**config.feedforward.model_dump(), "k_e": None, "gains": None})
+    return replace(config, feedforward=section)
+
+
+async def tracking_run(rate_hz: float, every: int, k_e: float | None) -> dict:
+    """One run: the error of every tick after the settling time, and its RMS."""
+    from aiohal import ControlLoop
+
+    config = configure(rate_hz, every, k_e)
+    loop = ControlLoop(config)
+    period = config.controller.params.period
+    settle = config.controller.params.ramp + period
+    ticks = round((settle + STRIDES * period) * rate_hz)
+    times = np.zeros(ticks + 1)
+    measured = np.zeros(ticks + 1)
+    count = [0]
+
+    def record(control) -> None:
+        i = count[0]
+        if i < len(times):
+            times[i] = control.robot.clock.tick * control.period_s
+            measured[i] = control.robot.state.position[0]
+            count[0] = i + 1
+
+    async with loop:
+        loop.add_publisher(record)
+        report = await loop.run(duration=ticks / rate_hz)
+        # the controller's time is the tick's since activation (tick 0 at t = 0)
+        target, _ = loop.controller.reference(times[: count[0]])
+    t = times[: count[0]]
+    error = target[:, 0] - measured[: count[0]]
+    keep = t >= settle
+    return {"t": t[keep] - settle, "error": error[keep], "rms": float(np.sqrt(np.mean(error[keep] ** 2))),
+            "faults": report["faults"], "refused": report["commands_refused"],
+            "controller_rms": report["controller"].get("tracking_rms_rad")}
+
+
+async def learn_gain(rate_hz: float, every: int):
+    from aiohal.learn_feedforward import learn
+
+    learner, report = await learn(configure(rate_hz, every, None))
+    if report["faults"] or learner.best is None:
+        raise RuntimeError(f"learning failed: {report['faults']}")
+    return learner
+
+
+def figures(out_dir, runs: dict, sweeps: dict, learners: dict) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    for name, label in (("ref", "1 kHz, k_e = 0"), ("ff", "1 kHz, learned k_e"),
+                        ("ff_2khz", "2 kHz bus, 1 kHz controller, learned k_e")):
+        run = runs[name]
+        ax.plot(run["t"], run["error"] * 1e3, lw=0.9, label=f"{label}: RMS {run['rms'] * 1e3:.3f} mrad")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("hip flexion error (mrad)")
+    ax.set_title("Tracking error while walking (cf. LOLA Fig. 9)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    paths.append(str(out_dir / "lola_fig9_tracking.png"))
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for key, label, style in (("1khz", "1 kHz", "C0"), ("2khz", "2 kHz bus", "C2")):
+        k, rms = zip(*sweeps[key], strict=True)
+        ax.plot(k, np.array(rms) * 1e3, "-", color=style, label=f"{label}: sweep")
+        lk, lr = zip(*learners[key].costs, strict=True)
+        ax.plot(lk, np.array(lr) * 1e3, "o", color=style, mfc="none", label=f"{label}: windows of the policy")
+    ax.set_xlabel("k_e  (k_vel,ff = 1 + k_e)")
+    ax.set_ylabel("RMS error (mrad)")
+    ax.set_title("Cost against k_e (cf. LOLA Fig. 6)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    paths.append(str(out_dir / "lola_fig6_cost.png"))
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+    return paths
+
+
+async def main_async(args) -> dict:
+    start = time.perf_counter()
+    learners = {"1khz": await learn_gain(1000.0, 1), "2khz": await learn_gain(2000.0, 2)}
+    k_e, k_e_2khz = learners["1khz"].best[0], learners["2khz"].best[0]
+    runs = {"ref": await tracking_run(1000.0, 1, 0.0),
+            "ff": await tracking_run(1000.0, 1, k_e),
+            "ff_2khz": await tracking_run(2000.0, 2, k_e_2khz)}
+    sweep_k = np.round(np.arange(0.0, args.sweep_max + 1e-9, args.sweep_step), 6)
+    sweeps = {"1khz": [(float(k), (await tracking_run(1000.0, 1, float(k)))["rms"]) for k in sweep_k],
+              "2khz": [(float(k), (await tracking_run(2000.0, 2, float(k)))["rms"]) for k in sweep_k]}
+    result = {
+        "rms_ref_rad": runs["ref"]["rms"],
+        "rms_ff_rad": runs["ff"]["rms"],
+        "rms_ff_2khz_rad": runs["ff_2khz"]["rms"],
+        "k_e": k_e,
+        "k_e_2khz": k_e_2khz,
+        "reduction_ff": 1.0 - runs["ff"]["rms"] / runs["ref"]["rms"],
+        "reduction_ff_2khz": 1.0 - runs["ff_2khz"]["rms"] / runs["ref"]["rms"],
+        "learning_windows": {key: learner.costs for key, learner in learners.items()},
+        "sweep": sweeps,
+        "faults": {name: run["faults"] for name, run in runs.items()},
+        "commands_refused": {name: run["refused"] for name, run in runs.items()},
+        "lola_table3_rad": {"ref": 0.0047, "ff": 0.0004, "ff_2khz": 0.0003},
+    }
+    if not args.no_figures:
+        from pathlib import Path
+
+        result["figures"] = figures(Path(args.figures), runs, sweeps, learners)
+    result["seconds"] = round(time.perf_counter() - start, 1)
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--figures", default=str(ROOT / "docs" / "img"), help="folder of the PNGs")
+    parser.add_argument("--no-figures", action="store_true")
+    parser.add_argument("--sweep-max", type=float, default=0.5)
+    parser.add_argument("--sweep-step", type=float, default=0.05)
+    args = parser.parse_args()
+    result = asyncio.run(main_async(args))
+    ref, ff, ff2 = result["rms_ref_rad"], result["rms_ff_rad"], result["rms_ff_2khz_rad"]
+    print(f"RMS error, hip flexion: ref {ref:.3g} rad, learned ff {ff:.3g} rad ({result['reduction_ff']:.1%} lower), "
+          f"2 kHz {ff2:.3g} rad ({result['reduction_ff_2khz']:.1%} lower); k_e {result['k_e']:g} "
+          f"(2 kHz: {result['k_e_2khz']:g}); {result['seconds']} s")
+    for path in result.get("figures", []):
+        print("figure:", path)
+    write_json(args.json, result)
+
+
+if __name__ == "__main__":
+    main()
