@@ -4,7 +4,8 @@ how soon. docs/safety.md shows the same table; a bus that lands joins both.
 In-process faults are injected at a known tick on the virtual clock (the tick the level
 changes is exact); the stall of the event loop and the frozen process run on the real clock,
 where the bound is the watchdog's time (a frozen process: ``watchdog_ms`` + 5 ms, measured by
-the simulated hardware: the UDP board of the mock driver, and the simulated EtherCAT slaves).
+the simulated hardware: the UDP board of the mock driver, the simulated UDP joint boards and
+the simulated EtherCAT slaves).
 """
 
 from __future__ import annotations
