@@ -12,8 +12,11 @@ gets the safe actions first.
 Actions are plain data, built before the process starts (sockets are opened then, so that a
 wrong address fails the loop's activation, not the emergency):
 
-* :class:`SendDatagram`: a UDP datagram (a board's e-stop message);
+* :class:`SendDatagram`: a UDP datagram (a board's e-stop message), from a socket of its
+  own or from the driver's (passed to the process, so that a board that takes datagrams only
+  from its master's address takes this one);
 * :class:`SendFrame`: a raw Ethernet frame on an interface (a fieldbus stop frame; root);
+* :class:`SendCanFrame`: a classic CAN frame on a SocketCAN interface (an NMT stop);
 * :class:`WriteFile`: bytes written to a file (a GPIO's ``value`` for a motor power relay).
 
 Its own oversleeping (a stall of the whole machine, which also stalls the control process)
@@ -29,6 +32,7 @@ import mmap
 import os
 import select
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -42,16 +46,39 @@ EXIT = 1
 
 @dataclass(frozen=True)
 class SendDatagram:
-    """Send ``payload`` to ``host``:``port`` over UDP."""
+    """Send ``payload`` to ``host``:``port`` over UDP; from the socket ``fd`` of the control
+    process when given (its source address is then the driver's own)."""
 
     host: str
     port: int
     payload: bytes
+    fd: int | None = None
 
 
 @dataclass(frozen=True)
 class SendFrame:
     """Send ``frame`` (a whole Ethernet frame) on ``interface``; needs CAP_NET_RAW."""
+
+    interface: str
+    frame: bytes
+
+
+CAN_EFF_FLAG = 0x80000000  # linux/can.h: a 29-bit identifier
+CAN_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: id, length, pad, reserved, len8_dlc, data
+
+
+def can_frame(can_id: int, data: bytes, extended: bool = False) -> bytes:
+    """The 16 bytes of a ``struct can_frame`` as a CAN_RAW socket sends them."""
+    if len(data) > 8:
+        raise ValueError(f"a classic CAN frame carries at most 8 bytes, not {len(data)}")
+    if not 0 <= can_id < (1 << 29 if extended else 1 << 11):
+        raise ValueError(f"CAN id 0x{can_id:X} does not fit {'29' if extended else '11'} bits")
+    return CAN_FRAME.pack(can_id | (CAN_EFF_FLAG if extended else 0), len(data), bytes(data))
+
+
+@dataclass(frozen=True)
+class SendCanFrame:
+    """Send ``frame`` (:func:`can_frame`'s bytes) on the SocketCAN ``interface`` (e.g. can0)."""
 
     interface: str
     frame: bytes
@@ -65,6 +92,9 @@ class WriteFile:
     data: bytes
 
 
+ACTIONS = (SendDatagram, SendFrame, SendCanFrame, WriteFile)
+
+
 def _encode(owner: str, action: object) -> dict:
     fields = {k: (v.hex() if isinstance(v, bytes) else v) for k, v in vars(action).items()}
     return {"owner": owner, "kind": type(action).__name__, **fields}
@@ -75,7 +105,7 @@ class WatchdogProcess:
 
     def __init__(self, actions: list[tuple[str, object]], watchdog_ms: float, priority: int = 0) -> None:
         for owner, action in actions:
-            if not isinstance(action, (SendDatagram, SendFrame, WriteFile)):
+            if not isinstance(action, ACTIONS):
                 raise TypeError(f"{owner}: {action!r} is not a watchdog action")
         self.actions = actions
         self.watchdog_ms = watchdog_ms
@@ -92,8 +122,9 @@ class WatchdogProcess:
             self.heartbeat = memoryview(self._mm).cast("q")
             spec = {"parent": os.getpid(), "fd": fd, "watchdog_ns": round(self.watchdog_ms * 1e6),
                     "priority": self.priority, "actions": [_encode(o, a) for o, a in self.actions]}
+            shared = tuple(a.fd for _, a in self.actions if getattr(a, "fd", None) is not None)
             self.proc = subprocess.Popen([sys.executable, "-I", __file__], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, pass_fds=(fd,), text=True)
+                                         stdout=subprocess.PIPE, pass_fds=(fd, *shared), text=True)
         finally:
             os.close(fd)
         assert self.proc.stdin is not None and self.proc.stdout is not None
@@ -153,10 +184,18 @@ def _prepare(action: dict):
     """A function that runs the action now (its socket or file opened beforehand)."""
     kind = action["kind"]
     if kind == "SendDatagram":
+        payload, to = bytes.fromhex(action["payload"]), (action["host"], int(action["port"]))
+        if action.get("fd") is not None:  # the driver's socket: its address, never read here
+            shared = socket.socket(fileno=action["fd"])
+            return lambda: shared.sendto(payload, to)
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.connect((action["host"], int(action["port"])))
-        payload = bytes.fromhex(action["payload"])
+        sock.connect(to)
         return lambda: sock.send(payload)
+    if kind == "SendCanFrame":
+        can = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        can.bind((action["interface"],))
+        can_bytes = bytes.fromhex(action["frame"])
+        return lambda: can.send(can_bytes)
     if kind == "SendFrame":
         sock = socket.socket(socket.AF_PACKET, socket.SOCK_RAW)
         sock.bind((action["interface"], 0))

@@ -238,3 +238,32 @@ async def test_dropped_tpdos_leave_the_joints_unrefreshed_and_the_run_goes_on():
         report = await loop.run(ticks=1000)
     assert driver.late_cycles - late >= 10
     assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "3/3"
+
+
+def _configured_driver(**options):
+    loop = ControlLoop(parse_config(raw_config(channel(), **options)))
+    loop.configure()
+    return driver_of(loop)
+
+
+def test_the_watchdog_frame_is_an_nmt_stop_to_every_node_or_the_configured_frame():
+    from aiohal.watchdog import SendCanFrame
+
+    # struct can_frame: id (host order), length, 3 bytes pad/reserved/len8_dlc, 8 data bytes
+    driver = _configured_driver(interface="socketcan", simulate=False)
+    assert driver.safe_actions() == [SendCanFrame(driver.options.channel, (0).to_bytes(4, "little") + bytes(
+        [2, 0, 0, 0, 2, 0, 0, 0, 0, 0, 0, 0]))]  # 2 bytes: NMT Stop (0x02), node 0 (all)
+    (action,) = _configured_driver(interface="socketcan", simulate=False, estop_frame="1A0#DEAD").safe_actions()
+    assert action.frame == (0x1A0).to_bytes(4, "little") + bytes([2, 0, 0, 0, 0xDE, 0xAD, 0, 0, 0, 0, 0, 0])
+    (action,) = _configured_driver(interface="socketcan", simulate=False, estop_frame="18FF0010#01").safe_actions()
+    assert action.frame[:5] == (0x18FF0010 | 0x80000000).to_bytes(4, "little") + b"\x01"
+    # a virtual bus is this process's: the watchdog process could not reach it, so nothing is declared
+    assert _configured_driver().safe_actions() == []
+
+
+def test_an_estop_frame_that_is_not_id_hash_data_is_named():
+    from aiohal.errors import ConfigError
+
+    for bad in ("1A0", "1A0#ABC", "1A0#" + "00" * 9, "1A00#00"):
+        with pytest.raises(ConfigError, match="options.estop_frame"):
+            parse_config(raw_config(channel(), estop_frame=bad))

@@ -4,7 +4,8 @@ how soon. docs/safety.md shows the same table; a bus that lands joins both.
 In-process faults are injected at a known tick on the virtual clock (the tick the level
 changes is exact); the stall of the event loop and the frozen process run on the real clock,
 where the bound is the watchdog's time (a frozen process: ``watchdog_ms`` + 5 ms, measured by
-the simulated hardware: the UDP board of the mock driver, and the simulated EtherCAT slaves).
+the simulated hardware: the UDP board of the mock driver, the simulated UDP joint boards and
+the simulated EtherCAT slaves).
 """
 
 from __future__ import annotations
@@ -24,6 +25,13 @@ from test_hand import FaultWatch, hand_raw
 from test_safety_paths import Stuck
 from test_ethercat_driver import At, in_thread, raw_config, segment, sim  # noqa: F401  (fixtures)
 from test_watchdog import WATCHDOG_MS, SLACK_MS, Board, board, start_robot  # noqa: F401  (board: fixture)
+from test_canopen_driver import SINE, channel, driver_of
+from test_canopen_driver import raw_config as can_config
+from test_fri import Krc
+from udp_helpers import wait_for
+from aiohal.drivers.fri.protocol import State
+from test_udp_driver import KEY, KEY_HEX
+from test_udp_driver import _config as udp_config
 
 from aiohal.config import parse_config
 from aiohal.errors import DriverError
@@ -211,6 +219,227 @@ def test_a_frozen_process_is_stopped_by_the_watchdog_process_within_its_time(tmp
     assert proc.returncode == 1
 
 
+
+
+# ---------------------------------------------------------------- CANopen (virtual bus, in process)
+
+
+class TickTimes:
+    """A publisher: each tick run and the CLOCK_MONOTONIC time its publishers ran (after its read)."""
+
+    def __init__(self) -> None:
+        self.ticks: list[int] = []
+        self.times: list[float] = []
+
+    def __call__(self, loop) -> None:
+        self.ticks.append(loop.robot.clock.tick)
+        self.times.append(time.monotonic())
+
+    def at(self, tick: int) -> float:
+        return self.times[self.ticks.index(tick)]
+
+
+@pytest.mark.asyncio
+async def test_can_heartbeat_loss_fails_the_driver_within_its_timeout():
+    timeout_ms, heartbeat_ms, at = 100.0, 10, 50
+    raw = can_config(channel(), SINE, heartbeat_ms=heartbeat_ms, heartbeat_timeout_ms=timeout_ms)
+    async with ControlLoop(parse_config(raw)) as loop:
+        driver = driver_of(loop)
+        times = TickTimes()
+        loop.add_publisher(times)
+        loop.add_publisher(lambda lp: driver.sim.drives[3].go_silent() if lp.robot.clock.tick == at else None)
+        report = await loop.run(ticks=1500)
+    # the driver fails (hold), and with no driver left the loop stops everything, same tick
+    change = level_change(report, "hold")
+    assert [(t["source"], t["after"], t["tick"]) for t in report["safety"][1:3]] == [
+        ("driver:bus", "hold", change["tick"]), ("loop", "estop", change["tick"])]
+    assert "heartbeat lost" in report["faults"][0]["error"] and report["safety_level"] == "estop"
+    # detection time: the node's last heartbeat + the timeout, checked every tenth of it. Not
+    # before (its last heartbeat came at most heartbeat_ms after the node was silenced), and
+    # the tick before the failing one read no later than one check and one tick past it
+    due = float(driver._heard[2]) + timeout_ms / 1e3
+    period = 1 / raw["loop"]["rate_hz"]
+    assert (change["tick"] - at) * period >= (timeout_ms - heartbeat_ms) / 1e3 - period
+    before = max(k for k in times.ticks if k < change["tick"])
+    print(f"heartbeat loss: failed at tick {change['tick']}, {change['tick'] - at} ticks of "
+          f"{1e3 * period:g} ms after the node went silent (timeout {timeout_ms:g} ms)")
+    assert times.at(before) < due + timeout_ms / 1e4 + period
+
+
+@pytest.mark.asyncio
+async def test_can_emcy_drive_fault_holds_the_robot_on_the_next_tick():
+    at = 50
+    async with ControlLoop(parse_config(can_config(channel(), SINE))) as loop:
+        driver = driver_of(loop)
+        pending: list[int] = []  # ticks after whose read the EMCY had arrived, not yet handled
+
+        def watch(lp):
+            tick = lp.robot.clock.tick
+            if tick == at:
+                driver.sim.drives[2].inject_fault(0x2310)
+            if driver._emcy and not pending:
+                pending.append(tick)
+            if lp.level.name != "RUN" and tick > at + 5:
+                lp.request_stop("held")
+
+        loop.add_publisher(watch)
+        report = await loop.run(ticks=1000)
+    change = level_change(report, "hold")
+    assert report["safety_level"] == "hold" and change["source"] == "driver:bus"
+    assert change["tick"] >= at
+    # read by the notifier thread between two ticks: handled by the next tick's read (the
+    # drive's statusword may show the fault first, in the same or an earlier tick)
+    assert not pending or change["tick"] <= pending[0] + 1, (change, pending)
+    assert any("0x2310" in f["error"] for f in report["faults"])
+
+
+# ---------------------------------------------------------------- UDP joint boards (simulated, loopback)
+
+
+@pytest.mark.asyncio
+async def test_udp_board_silence_fails_the_driver_after_silent_ticks():
+    silent = 25
+    raw = udp_config(3, silent_ticks=silent, simulation={"die_board": 2, "die_after_s": 0.1, "priority": None})
+    loop = ControlLoop(parse_config(raw))
+    ran: list[int] = []
+    loop.add_publisher(lambda lp: ran.append(lp.robot.clock.tick))
+    async with loop:
+        report = await loop.run(duration=1.0)
+    change = level_change(report, "hold")
+    assert [(t["source"], t["after"], t["tick"]) for t in report["safety"][1:3]] == [
+        ("driver:boards", "hold", change["tick"]), ("loop", "estop", change["tick"])]
+    last = int(loop.slots[0].driver.board_tick[1])  # board 2's last answer
+    # the first tick run more than silent_ticks after it
+    assert change["tick"] == min(k for k in ran + [change["tick"]] if k - last > silent), (last, change)
+    assert "board(s) [2] silent" in report["faults"][0]["error"]
+
+
+@pytest.mark.asyncio
+async def test_udp_forgery_moves_nothing_is_counted_and_the_robot_runs_on():
+    import socket
+
+    from aiohal.drivers.udp.protocol import COMMAND_RECORD, STATE_RECORD, Kind, encode
+
+    raw = udp_config(3, key=KEY_HEX, silent_ticks=200, simulation={"priority": None})
+    loop = ControlLoop(parse_config(raw))
+    reach = [0.0]
+    forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    forger.bind(("127.0.0.1", 0))
+
+    def forge(lp):
+        reach[0] = max(reach[0], float(np.abs(lp.robot.state.position).max()))
+        if lp.robot.clock.tick != AT:
+            return
+        driver = lp.slots[0].driver
+        state = np.zeros(1, dtype=STATE_RECORD)
+        state["position"] = 1.5
+        command = np.zeros(1, dtype=COMMAND_RECORD)
+        command["mode"], command["position"] = 1, 1.5
+        for board, address in zip(driver.board_ids, driver.addresses):
+            # to the driver: states with the right key from a stranger, with a wrong key
+            forger.sendto(bytes(encode(Kind.STATE, board, 1 << 30, driver._seq, state, KEY)), driver.sock.getsockname())
+            forger.sendto(bytes(encode(Kind.STATE, board, 1 << 30, driver._seq, state, bytes(16))), driver.sock.getsockname())
+            # to the board: a command with the right key from a stranger
+            forger.sendto(bytes(encode(Kind.COMMAND, board, 1 << 30, 0, command, KEY)), address)
+
+    loop.add_publisher(forge)
+    try:
+        async with loop:
+            report = await loop.run(ticks=AT + 200)
+    finally:
+        forger.close()
+    health = loop.report()["drivers"]["boards"]
+    assert report["safety_level"] == "run" and report["faults"] == []
+    assert health["unauthenticated"] == 2 * 3 and health["simulated_boards"]["unauthenticated"] == 3
+    assert reach[0] < 0.5  # the sine's 0.2 rad: no joint went toward the forged 1.5
+
+
+def test_a_frozen_process_gets_the_udp_boards_e_stopped_by_the_watchdog_process():
+    """The boards take datagrams only from the master's address and with its key: the
+    watchdog process sends the ESTOP from the driver's own socket, with the MAC."""
+    import socket
+    import threading
+
+    from aiohal.drivers.udp.sim import BoardSimulator
+
+    require_root("SCHED_FIFO for the robot, its watchdog process and the simulated boards")
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    master = probe.getsockname()
+    probe.close()  # the driver binds this port next
+    sim = BoardSimulator([2, 2, 2], key=KEY, master=master, watchdog_ms=1000.0)
+
+    def serve():
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(95))  # the boards do not stall
+        sim.serve()
+
+    sim._thread = threading.Thread(target=serve, daemon=True)
+    sim._thread.start()
+    raw = udp_config(6, seconds_rate=1000, key=KEY_HEX, silent_ticks=200)
+    raw["driver"][0]["options"].update(
+        simulate=False, bind_address=master[0], bind_port=master[1],
+        boards=[{"id": b.id, "joints": [f"j{2 * i}", f"j{2 * i + 1}"], "port": b.sock.getsockname()[1]}
+                for i, b in enumerate(sim.boards)])
+    raw["loop"].update(max_feedback_age=5000, stall_timeout_ms=5000)
+    raw["realtime"] = {"priority": 80}
+    raw["safety"] = {"watchdog_ms": WATCHDOG_MS, "watchdog_priority": 90}
+    proc = subprocess.Popen([sys.executable, "-c", ROBOT_SCRIPT, json.dumps(raw)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        import select
+
+        ready, _, _ = select.select([proc.stdout], [], [], 60)
+        if (proc.stdout.readline().strip() if ready else "") != "ticking":
+            proc.kill()
+            pytest.fail(f"the robot did not tick: {proc.communicate(timeout=10)[1][-3000:]}")
+        assert all(b.estops_at == [] and b.counters["commands"] > 100 for b in sim.boards)
+        frozen = time.monotonic()
+        proc.send_signal(signal.SIGSTOP)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not all(b.estops_at for b in sim.boards):  # bounded
+            time.sleep(0.005)
+        for b in sim.boards:
+            assert b.estops_at, f"board {b.id} got no e-stop datagram ({b.counters})"
+            arrived, last_command = b.estops_at[0]
+            since_command_ms, since_freeze_ms = (arrived - last_command) * 1e3, (arrived - frozen) * 1e3
+            print(f"board {b.id}: ESTOP {since_command_ms:.2f} ms after its last command, "
+                  f"{since_freeze_ms:.2f} ms after SIGSTOP")
+            assert last_command >= frozen - 0.002  # this freeze's last command
+            assert since_command_ms <= WATCHDOG_MS + SLACK_MS and since_freeze_ms <= WATCHDOG_MS + SLACK_MS
+            assert b.estopped
+        assert sum(b.counters["unauthenticated"] + b.counters["malformed"] for b in sim.boards) == 0
+    finally:
+        proc.kill()
+        proc.wait(10)
+        sim.stop()
+
+
+# ---------------------------------------------------------------- FRI (simulated KRC, loopback)
+
+
+@pytest.mark.asyncio
+async def test_fri_quality_drop_holds_the_robot_on_the_tick_it_is_measured():
+    krc = Krc()
+    await krc.open()
+    d = krc.driver
+    holds: list[int] = []
+    d.view.report_fault = lambda phase, reason: None
+    d.view.request_hold = lambda reason: holds.append(d.view.clock.tick)
+    try:
+        krc.robot.command.position[:] = 0.1
+        await krc.ticks(3)
+        krc.sim.options.drop_answers = 0.6  # most answers lost: the KRC's statistics fall
+        first_bad = None
+        for _ in range(400):
+            await krc.ticks(1)
+            msr = d.msr
+            if first_bad is None and (msr["quality"] < d.min_quality or msr["state"] != State.CMD):
+                first_bad = d.view.clock.tick
+                break
+        assert first_bad is not None and holds == [first_bad]  # the read that took it held the robot
+        await wait_for(lambda: krc.sim.state == State.MON, timeout=5.0)  # the KRC's own drop to monitor mode
+    finally:
+        await krc.close()
 
 
 ROBOT_SCRIPT = """

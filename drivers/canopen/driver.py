@@ -41,6 +41,7 @@ from aiohal.fieldbus.pdo_options import parse_number, parse_pdo_entry, pdo_issue
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
+from aiohal.watchdog import SendCanFrame, can_frame
 
 from . import busload
 from .sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc, sensor_issues
@@ -57,6 +58,7 @@ OUTPUT_OBJECTS = ((0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0,
 REQUIRED = {0x6041, 0x6064, 0x6040, 0x607A}
 SPARE = 8  # zero bytes past each buffer's data, where unmapped variables point
 SYNC_COB_ID = 0x80
+NMT_COB_ID, NMT_STOP = 0x000, 0x02
 CAN_ERR_BUSOFF = 0x40  # error class of a socketcan error frame (linux/can/error.h)
 
 
@@ -126,6 +128,21 @@ class CanopenOptions(Options):
                                               "(interface virtual: a demo with one command).")
     initial_position: JointValues = Field(0.0, description="simulate: where the simulated joints start (rad), "
                                                            "scalar or per joint.")
+    estop_frame: str | None = Field(
+        None, pattern=r"^([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#([0-9A-Fa-f]{2}){0,8}$",
+        description="The frame the watchdog process sends when the tick stops, candump style: 'ID#DATA' (3 hex "
+                    "digits: 11-bit id, 8: 29-bit), e.g. a safety relay's e-stop message. Default: NMT Stop to "
+                    "every node (000#0200). socketcan only: other interfaces are not reachable from another process.")
+
+
+def estop_can_frame(spec: str | None) -> bytes:
+    """The ``struct can_frame`` of ``estop_frame`` ('ID#DATA'); None: NMT Stop (command 0x02)
+    to every node (node id 0), which leaves their PDOs and, per their abort connection option
+    (0x6007), stops the drives."""
+    if spec is None:
+        return can_frame(NMT_COB_ID, bytes((NMT_STOP, 0)))
+    ident, data = spec.split("#")
+    return can_frame(int(ident, 16), bytes.fromhex(data), extended=len(ident) == 8)
 
 
 class _ErrorFrames(can.Listener):
@@ -673,6 +690,14 @@ class CanopenDriver(Driver):
             log.error("canopen %s: sending the quick stop failed: %s", self.name, exc)
         finally:
             self._lock.release()
+
+    def safe_actions(self) -> list:
+        """An NMT Stop to every node (or ``estop_frame``), sent by the watchdog process on its
+        own CAN_RAW socket. Only on socketcan: a ``virtual`` bus lives in this process (no
+        other process can reach it), and the other interfaces' devices are held by this one."""
+        if self.options.interface != "socketcan":
+            return []
+        return [SendCanFrame(self.options.channel, estop_can_frame(self.options.estop_frame))]
 
     async def close(self) -> None:
         if self.drives is not None:

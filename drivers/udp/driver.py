@@ -34,6 +34,7 @@ from aiohal.fieldbus import simprocess
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault, Mode
+from aiohal.watchdog import SendDatagram
 
 from .protocol import (
     COMMAND_RECORD,
@@ -419,6 +420,19 @@ class UdpDriver(Driver):
         for i in range(len(self.addresses)):
             self._seq = (self._seq + 1) & 0xFFFFFFFF
             self._send_control(i, Kind.ESTOP)
+
+    def safe_actions(self) -> list:
+        """The ESTOP datagram of every board, as :meth:`estop` sends it (with the MAC when a
+        key is configured), sent from this driver's socket by the watchdog process: a board
+        that takes datagrams only from its master's address takes it. Its ``seq`` is fixed
+        when the watchdog starts: a board obeys an ESTOP whatever its ``seq`` (docs/udp.md),
+        and a replayed one can only stop the robot."""
+        if self.sock is None or self.sock.fileno() < 0:
+            return []
+        fd = self.sock.fileno()
+        return [SendDatagram(host, port, bytes(encode(Kind.ESTOP, self.board_ids[i], self._seq, self._ack[i],
+                                                      key=self.key)), fd=fd)
+                for i, (host, port) in enumerate(self.addresses)]
 
     async def close(self) -> None:
         if self.sock is not None and self.sock.fileno() >= 0:

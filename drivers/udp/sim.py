@@ -79,6 +79,7 @@ class SimBoard:
     dead: bool = False
     faulted: bool = False  # fault bits were set in its records
     held: tuple[bytes, bytes] | None = None  # a reply held back to be reordered
+    estops_at: list[tuple[float, float]] = field(default_factory=list)  # (arrival, last command's), monotonic s
     counters: dict[str, int] = field(default_factory=lambda: dict.fromkeys(
         ("commands", "replies", "estops", "resets", "malformed", "unauthenticated", "stale", "dropped", "garbage"), 0))
 
@@ -207,6 +208,7 @@ class BoardSimulator:
         rows = board.rows
         if head.kind == Kind.ESTOP:  # obeyed at once, whatever its sequence number
             counters["estops"] += 1
+            board.estops_at.append((now, board.last_command_at))
             board.estopped = True
             self._commanded[rows] = False  # a command not applied yet never will be
             self.model.stop(rows)
