@@ -79,7 +79,6 @@ class ChirpController(Controller):
         super().configure(robot, params)
         self.amplitude = robot.per_joint(params.amplitude, 0.0)
         self.rate = math.log(params.f_end / params.f_start) / params.duration  # d ln f / dt
-        self._tmp = np.zeros(robot.dof)
 
     def frequency(self, t: np.ndarray | float) -> np.ndarray | float:
         """Instantaneous frequency (Hz) at ``t`` s into the sweep."""
