@@ -136,8 +136,8 @@ class ControllerSection(Options):
     )
     extrapolate: bool = Field(
         True,
-        description="With every > 1: on the ticks in between, move position targets on with the last "
-        "target velocity (false: hold the last command).",
+        description="With every > 1: on the ticks in between, move position and velocity targets on "
+        "with the controller's last target velocity and its rate of change (false: hold the last command).",
     )
 
 

@@ -2,16 +2,22 @@
 
 With ``[controller] every = n`` the controller runs on every n-th tick only, and the drivers
 still exchange data on every tick. On the ticks in between, the command is the one the
-controller left, with each position target moved on along a line with its last target
-velocity: ``q*(k) = q*(k₀) + v*(k₀)·(k − k₀)·T``. The drives then get a ramp at the bus rate
-instead of a staircase at the controller's rate, which is what lets a slow planner drive a
-fast servo loop without exciting it at the controller's frequency.
+controller left, moved on along its own motion: the target velocity's rate of change over the
+controller's last two updates, ``a* = (v*(k₀) − v*(k₋₁)) / ((k₀ − k₋₁)·T)``, carries both
+targets on, ``q*(k) = q*(k₀) + v*(k₀)·τ + a*·τ²/2`` and ``v*(k) = v*(k₀) + a*·τ`` with
+``τ = (k − k₀)·T``. The drives then get a ramp at the bus rate instead of a staircase at the
+controller's rate, which is what lets a slow planner drive a fast servo loop without exciting
+it at the controller's frequency; and since a drive takes the target velocity as its velocity
+feed-forward, that has to move on too: held, it lags the motion by a*·τ, which a servo with a
+tuned feed-forward turns straight into tracking error (docs/experiments.md).
 
-Only joints commanded in position or impedance mode are extrapolated; velocity, effort,
-stiffness, damping and feed-forward are held as the controller left them. The command limits
-still apply on every tick, to the extrapolated targets: an extrapolation cannot leave the range
-or go faster than the velocity limit. A controller that sets no target velocity gets a
-zero-order hold.
+Only joints commanded in position or impedance mode are extrapolated; effort, stiffness,
+damping and the torque feed-forward are held as the controller left them, and so is everything
+of the joints in other modes. Until the controller has updated twice in the same modes (after
+the start, a mode change or a resync) the acceleration is taken as zero: the position moves on
+with the last target velocity alone. The command limits still apply on every tick, to the
+extrapolated targets: an extrapolation cannot leave the range or go faster than the velocity
+limit. A controller that sets no target velocity gets a zero-order hold.
 """
 
 from __future__ import annotations
@@ -36,8 +42,10 @@ class TargetExtrapolator:
         self._anchor = np.zeros_like(command.block)  # the command as the controller left it
         self._anchor_k = 0
         self._due = True
-        self._step = np.zeros(command.block.shape[-1])
-        self._moving = np.zeros(command.block.shape[-1], dtype=bool)  # rows in position / impedance mode
+        n = command.block.shape[-1]
+        self._accel = np.zeros(n)  # the target velocity's rate of change between the last two updates
+        self._step = np.zeros(n)
+        self._moving = np.zeros(n, dtype=bool)  # rows in position / impedance mode
         self._any_moving = False
         self._modes = b""
         self.updates = 0  # controller updates since the start
@@ -54,11 +62,17 @@ class TargetExtrapolator:
     def capture(self, k: int) -> None:
         """The controller has just updated the command at tick ``k`` (before the limits)."""
         cmd = self.command
+        modes = cmd.mode.tobytes()
+        # two updates of the same motion: not the first, not after a resync, not across a mode change
+        if self.updates and not self._due and modes == self._modes and k > self._anchor_k:
+            np.subtract(cmd.velocity, self._anchor[VEL], out=self._accel)
+            self._accel /= (k - self._anchor_k) * self.period_s
+        else:
+            self._accel.fill(0.0)
         np.copyto(self._anchor, cmd.block)
         self._anchor_k = k
         self._due = False
         self.updates += 1
-        modes = cmd.mode.tobytes()
         if modes != self._modes:
             self._modes = modes
             np.equal(cmd.mode, Mode.POSITION, out=self._moving)
@@ -66,9 +80,15 @@ class TargetExtrapolator:
             self._any_moving = bool(self._moving.any())
 
     def fill(self, k: int) -> None:
-        """A tick without the controller: its last command, position targets moved on."""
+        """A tick without the controller: its last command, position and velocity targets moved on."""
         block = self.command.block
         np.copyto(block, self._anchor)
         if self.extrapolate and self._any_moving:
-            np.multiply(self._anchor[VEL], (k - self._anchor_k) * self.period_s, out=self._step)
-            np.add(block[POS], self._step, out=block[POS], where=self._moving)
+            tau = (k - self._anchor_k) * self.period_s
+            step = self._step
+            np.multiply(self._accel, 0.5 * tau, out=step)  # (v* + a*·τ/2)·τ, in place
+            step += self._anchor[VEL]
+            step *= tau
+            np.add(block[POS], step, out=block[POS], where=self._moving)
+            np.multiply(self._accel, tau, out=step)
+            np.add(block[VEL], step, out=block[VEL], where=self._moving)

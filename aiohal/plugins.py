@@ -37,6 +37,7 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "homing": ("aiohal.controllers.homing:HomingController", None),
         "sine": ("aiohal.controllers.sine:SineController", None),
         "gait": ("aiohal.controllers.gait:GaitController", None),
+        "chirp": ("aiohal.controllers.chirp:ChirpController", None),
         "circle": ("aiohal.controllers.circle:CircleController", "sim"),
         "sequence": ("aiohal.controllers.sequence:SequenceController", None),
         "stream": ("aiohal.controllers.stream:StreamController", None),

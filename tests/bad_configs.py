@@ -184,7 +184,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "unknown-controller-type",
         GOOD + '\n[controller]\ntype = "sin"\n',
-        ('controller.type: unknown controller "sin" (available: circle, gait, hold, homing, sequence, sine, stream)',),
+        ('controller.type: unknown controller "sin" (available: chirp, circle, gait, hold, homing, sequence, sine, stream)',),
     ),
     BadConfig(
         "driver-unknown-device",
@@ -295,7 +295,7 @@ MANY = BadConfig(
         "driver[0].options.foo: unknown key",
         "joints.j1: no driver owns this joint",
         "joints.j2: no driver owns this joint",
-        'controller.type: unknown controller "nope" (available: circle, gait, hold, homing, sequence, sine, stream)',
+        'controller.type: unknown controller "nope" (available: chirp, circle, gait, hold, homing, sequence, sine, stream)',
     ),
 )
 

@@ -89,6 +89,29 @@ async def test_an_accelerating_target_is_extrapolated_within_the_second_order_te
 
 
 @pytest.mark.asyncio
+async def test_the_target_velocity_moves_on_with_its_rate_of_change():
+    every, a = 4, 5.0  # within the 20 rad/s² the limits allow
+    motion = Motion(v0=0.0, a=a)
+    loop = virtual_loop(raw_with(every), controller=motion)
+    sent = []  # (tick, position, velocity) as the driver gets them, after the limits
+    loop.add_publisher(lambda lp: sent.append((lp.robot.clock.tick, lp.robot.command.position[0],
+                                               lp.robot.command.velocity[0])))
+    async with loop:
+        await loop.run(ticks=200)
+    k, position, velocity = np.array(sent).T
+    t = k * PERIOD
+    second = k > motion.ran[1]  # from the second update on, the acceleration is known
+    q0 = position[0] - 0.5 * a * t[0] ** 2
+    # a constant acceleration is carried exactly: no lag in the velocity the drives take as
+    # feed-forward (held, it would lag by a·3T = 15 mrad/s), none in the position
+    np.testing.assert_allclose(velocity[second], a * t[second], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(position[second], q0 + 0.5 * a * t[second] ** 2, rtol=0, atol=1e-12)
+    # before it, the first update's velocity alone: held velocity, a line in position
+    first = (k > motion.ran[0]) & ~second & (k < motion.ran[1])
+    assert np.all(velocity[first] == velocity[k == motion.ran[0]])
+
+
+@pytest.mark.asyncio
 async def test_the_limits_apply_to_extrapolated_targets():
     class NearTheEnd(Controller):
         def update(self, t, dt):
@@ -149,6 +172,37 @@ def test_extrapolation_moves_only_position_and_impedance_targets():
     np.testing.assert_array_equal(cmd.position, [1.0, 2.0, 3.0, 4.0])
     with pytest.raises(ValueError, match="every"):
         TargetExtrapolator(cmd, period_s=0.01, every=0)
+
+
+def test_the_acceleration_comes_from_two_updates_of_the_same_motion():
+    cmd = JointCommand(3)
+    cmd.mode[:] = [Mode.POSITION, Mode.IMPEDANCE, Mode.VELOCITY]
+    cmd.feedforward[:] = 4.0
+    x = TargetExtrapolator(cmd, period_s=0.01, every=2)
+
+    def update(k, position, velocity):
+        cmd.position[:] = position
+        cmd.velocity[:] = velocity
+        x.capture(k)
+
+    update(10, 1.0, 2.0)
+    x.fill(11)  # one update: no acceleration yet
+    np.testing.assert_allclose(cmd.position, [1.02, 1.02, 1.0], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(cmd.velocity, [2.0, 2.0, 2.0])
+    update(12, 1.0, [3.0, 1.0, 5.0])  # 50, -50 rad/s² on the moving joints; velocity mode held
+    x.fill(13)
+    np.testing.assert_allclose(cmd.position, [1.0 + 0.03 + 0.0025, 1.0 + 0.01 - 0.0025, 1.0], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(cmd.velocity, [3.5, 0.5, 5.0], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(cmd.feedforward, [4.0, 4.0, 4.0])  # the torque feed-forward is held
+    x.force()  # a resync: the command changed under the controller, its last two updates are no motion
+    update(13, 1.0, 0.0)
+    x.fill(14)
+    np.testing.assert_array_equal(cmd.velocity, [0.0, 0.0, 0.0])
+    update(15, 1.0, 1.0)
+    cmd.mode[0] = Mode.VELOCITY  # a mode change: no acceleration across it
+    update(17, 1.0, 3.0)
+    x.fill(18)
+    np.testing.assert_array_equal(cmd.velocity, [3.0, 3.0, 3.0])
 
 
 @pytest.mark.parametrize("value", [0, 2.5, 1001])

@@ -160,7 +160,7 @@ def test_plugins_without_entry_points_lists_only_builtins(tmp_path):
     proc = run_cli("plugins", pythonpath=tmp_path)
     assert proc.returncode == 0
     names = [line.split()[0] for line in proc.stdout.splitlines() if line.startswith("  ")]
-    assert names == ["canopen", "ethercat", "fri", "mock", "mujoco", "nrt_hand", "udp", "circle", "gait", "hold", "homing", "sequence",
+    assert names == ["canopen", "ethercat", "fri", "mock", "mujoco", "nrt_hand", "udp", "chirp", "circle", "gait", "hold", "homing", "sequence",
                      "sine", "stream"]
 
 
@@ -226,7 +226,7 @@ def test_unknown_plugin_is_a_lookup_error_listing_available(fresh_cache):
     assert "mock" in known
     assert str(info.value) == f'unknown driver "nope" (available: {known})'
 
-    with pytest.raises(LookupError, match=r'^unknown controller "nope" \(available: circle, gait, hold, homing, sequence, sine'):
+    with pytest.raises(LookupError, match=r'^unknown controller "nope" \(available: chirp, circle, gait, hold, homing, sequence, sine'):
         plugins.load("controller", "nope")
 
 
