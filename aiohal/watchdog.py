@@ -32,6 +32,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 # the shared page: int64 words
@@ -108,6 +109,8 @@ class WatchdogProcess:
     def arm(self) -> None:
         """The loop starts ticking: watch the heartbeat from now."""
         hb = self.heartbeat
+        if hb is None:
+            raise RuntimeError("arm() before start()")
         hb[FIRED] = 0
         hb[STAMP] = time.monotonic_ns()
         hb[ARMED] = 1
@@ -149,7 +152,7 @@ class WatchdogProcess:
 # ---------------------------------------------------------------- the process itself
 
 
-def _prepare(action: dict):
+def _prepare(action: dict) -> Callable[[], object]:
     """A function that runs the action now (its socket or file opened beforehand)."""
     kind = action["kind"]
     if kind == "SendDatagram":
@@ -172,7 +175,7 @@ def _prepare(action: dict):
     raise ValueError(f"unknown action {kind!r}")
 
 
-def _act(run: list[tuple[str, object]]) -> None:
+def _act(run: list[tuple[str, Callable[[], object]]]) -> None:
     for owner, action in run:
         try:
             action()
