@@ -11,7 +11,7 @@ import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -194,6 +194,10 @@ def per_joint(values: float | dict[str, float] | Sequence[float], names: Sequenc
 
 class DeviceRecord:
     """One device's values: numpy views into its group's arrays, written in place."""
+
+    if TYPE_CHECKING:
+        # a field of the group (``record.grasp``), set per record in __init__
+        def __getattr__(self, field: str) -> np.ndarray: ...
 
     def __init__(self, group: DeviceGroup, index: int, name: str) -> None:
         self.name = name
