@@ -17,6 +17,7 @@ import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
@@ -25,6 +26,9 @@ from .config import Config, describe_validation_error, json_schema, load_config
 from .errors import AiohalError, ConfigError, ConfigIssue
 from .report import check_output_path, counted
 from .safety import SafetyLevel
+
+if TYPE_CHECKING:
+    from structlog.typing import Processor
 
 log = logging.getLogger("aiohal.cli")
 
@@ -37,12 +41,13 @@ def configure_logging(fmt: str = "auto", level: int = logging.INFO) -> None:
 
     if fmt == "auto":
         fmt = "console" if sys.stderr.isatty() else "json"
-    shared = [
+    shared: list[Processor] = [
         structlog.stdlib.add_log_level,
         structlog.stdlib.add_logger_name,
         structlog.stdlib.ExtraAdder(),
         structlog.processors.TimeStamper(fmt="iso", utc=True),
     ]
+    renderer: Processor
     if fmt == "json":
         renderer = structlog.processors.JSONRenderer()
         shared.append(structlog.processors.format_exc_info)

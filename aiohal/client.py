@@ -296,7 +296,8 @@ class RobotClient:
             self._lock_fd = None
         if self._seg is not None:
             self._seg.release()
-            self._seg = None
+            # closed: _check_open() says so to whoever asks next
+            self._seg = None  # type: ignore[assignment]
 
     def __enter__(self) -> RobotClient:
         return self

@@ -16,7 +16,7 @@ import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, cast
 
 from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
 
@@ -25,7 +25,7 @@ from .bridge import BridgeSection
 from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
 from .feedforward import FeedforwardSection
 from .feedforward import section_issues as feedforward_issues
-from .hal import Options, did_you_mean
+from .hal import Controller, Driver, Options, did_you_mean
 from .realtime import RealtimeSection
 from .record.options import RecordSection
 from .robot import JointSpec, Mode, Robot
@@ -174,7 +174,7 @@ _GLOB = "*?["  # a driver's joints are names or fnmatch patterns
 class DriverConfig:
     name: str
     type: str
-    cls: builtins.type  # the field "type" shadows the builtin here
+    cls: builtins.type[Driver]  # the field "type" shadows the builtin here
     joints: tuple[str, ...]
     devices: tuple[str, ...]
     options: Options
@@ -184,7 +184,7 @@ class DriverConfig:
 @dataclass(frozen=True)
 class ControllerConfig:
     type: str
-    cls: builtins.type  # the field "type" shadows the builtin here
+    cls: builtins.type[Controller]  # the field "type" shadows the builtin here
     params: Options
     every: int = 1
     extrapolate: bool = True
@@ -246,7 +246,7 @@ def _path(loc: tuple[Any, ...], prefix: str = "") -> str:
     return out
 
 
-def describe_validation_error(err: dict[str, Any], allowed: list[str] | None = None) -> str:
+def describe_validation_error(err: Mapping[str, Any], allowed: list[str] | None = None) -> str:
     """One pydantic error as a short message (the path is reported separately)."""
     kind = err["type"]
     value = err.get("input")
@@ -285,11 +285,11 @@ def _kind_of(tag: str) -> str:
     return named.get(tag, tag)
 
 
-def _collapse_unions(errors: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def _collapse_unions(errors: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
     """One error per value for a union: the errors of the member the value was meant for (a
     table's bad entry), else one "must be a number or a table" line; union tags left out."""
-    out: list[dict[str, Any]] = []
-    groups: dict[tuple[Any, ...], list[tuple[str, dict[str, Any]]]] = {}
+    out: list[Mapping[str, Any]] = []
+    groups: dict[tuple[Any, ...], list[tuple[str, Mapping[str, Any]]]] = {}
     for err in errors:
         loc = tuple(err["loc"])
         at = next((i for i, part in enumerate(loc) if isinstance(part, str) and _UNION_TAG.search(part)), None)
@@ -301,7 +301,7 @@ def _collapse_unions(errors: list[dict[str, Any]]) -> list[dict[str, Any]]:
             groups[loc[:at]] = []
             out.append({"loc": loc[:at], "_group": True})  # keeps the order of the errors
         groups[loc[:at]].append((loc[at], clean))
-    result: list[dict[str, Any]] = []
+    result: list[Mapping[str, Any]] = []
     for err in out:
         if not err.get("_group"):
             result.append(err)
@@ -372,7 +372,7 @@ def _expand(patterns: list[str], names: tuple[str, ...], path: str, issues: list
     return out
 
 
-def _load_plugin(kind: str, name: str, path: str, issues: list[ConfigIssue], given: type | None = None) -> type | None:
+def _load_plugin(kind: plugins.Kind, name: str, path: str, issues: list[ConfigIssue], given: type | None = None) -> type | None:
     """The plugin named ``name`` (or the class ``given`` from code), or None with the issue added."""
     try:
         return plugins.check_class(kind, given) if given is not None else plugins.load(kind, name)
@@ -383,7 +383,7 @@ def _load_plugin(kind: str, name: str, path: str, issues: list[ConfigIssue], giv
     return None
 
 
-def _plugin_checks(cls: type, where: str, *args: Any) -> list[tuple[str, str]]:
+def _plugin_checks(cls: type[Driver] | type[Controller], where: str, *args: Any) -> list[tuple[str, str]]:
     """A plugin's own config checks; a check that crashes is reported, not raised."""
     try:
         return list(cls.check_config(*args))
@@ -609,7 +609,7 @@ def _parse_drivers(
             doc.add(f"{where}.joints", "a driver's joints must be a contiguous run in the order of [joints] "
                     f"(got {', '.join(joints)})")
 
-        cls = _load_plugin("driver", section.type, f"{where}.type", doc.issues, given)
+        cls = cast("type[Driver] | None", _load_plugin("driver", section.type, f"{where}.type", doc.issues, given))
         dev_kinds: dict[str, str] = {}
         for dev_name in section.devices:
             if dev_name not in devices:
@@ -660,7 +660,7 @@ def _parse_controller(doc: _Document, joints: tuple[JointSpec, ...], robot: Robo
     section = doc.validate(ControllerSection, body, "controller")
     if section is None:
         return None
-    cls = _load_plugin("controller", section.type, "controller.type", doc.issues, given)
+    cls = cast("type[Controller] | None", _load_plugin("controller", section.type, "controller.type", doc.issues, given))
     if cls is None:
         return None
     params = doc.validate(cls.Params, section.params, "controller.params")
@@ -671,7 +671,7 @@ def _parse_controller(doc: _Document, joints: tuple[JointSpec, ...], robot: Robo
     return ControllerConfig(section.type, cls, params, section.every, section.extrapolate)
 
 
-def mode_issues(controller: type, params: Options, drivers: Sequence[DriverConfig]) -> list[ConfigIssue]:
+def mode_issues(controller: type[Controller], params: Options, drivers: Sequence[DriverConfig]) -> list[ConfigIssue]:
     """A mode the controller commands that a driver cannot apply to its joints, with the
     driver named (as ros2_control refuses a controller whose command interfaces the hardware
     does not export). Reported at ``controller.params.mode`` when a parameter chose it."""
@@ -740,6 +740,7 @@ def _depth_exceeds(value: Any, limit: int) -> bool:
     stack = [(value, 0)]
     while stack:
         node, depth = stack.pop()
+        children: Iterable[Any]
         if isinstance(node, dict):
             children = node.values()
         elif isinstance(node, list):
@@ -850,7 +851,7 @@ def json_schema() -> dict[str, Any]:
                 continue
             name = spec.name
             cls = plugins.load(kind, name)
-            model = cls.Options if kind == "driver" else cls.Params
+            model = cast("type[Driver]", cls).Options if kind == "driver" else cast("type[Controller]", cls).Params
             try:
                 sub = model.model_json_schema(ref_template="#/$defs/{model}")
             except Exception:  # a plugin whose options have no JSON Schema: left out

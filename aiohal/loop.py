@@ -22,11 +22,13 @@ import asyncio
 import functools
 import logging
 import math
+import subprocess
 import threading
 import time
 from collections.abc import Callable
 from enum import StrEnum
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -48,6 +50,9 @@ from .safety import FaultRecord, SafetyEvent, SafetyLevel, SafetyMachine, Safety
 from .stats import TickStats
 from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
 from .watchdog import STAMP, TICK, WORDS, WatchdogProcess
+
+if TYPE_CHECKING:
+    from .workspace import WorkspaceMonitor
 
 assert (TICK, STAMP) == (0, 1)  # the tick stores them as heartbeat[0] and heartbeat[1]
 
@@ -141,11 +146,12 @@ class ControlLoop:
         # when one runs, else a private page nobody reads
         self._heartbeat = memoryview(bytearray(WORDS * 8)).cast("q")
         #: workspace limits, only when configured (nothing of it in the tick otherwise)
-        self.workspace = None
+        self.workspace: WorkspaceMonitor | None = None
         if config.safety.workspace:
             from .workspace import WorkspaceMonitor
 
-            self.workspace = WorkspaceMonitor(config.robot.model, list(self.robot.joint_names),
+            # the config refuses workspace limits without [robot] model
+            self.workspace = WorkspaceMonitor(cast(Path, config.robot.model), list(self.robot.joint_names),
                                               self.robot.state.position, list(config.safety.workspace))
         self._outside = False  # a site is outside its workspace (recorded once per excursion)
         self.slots: list[DriverSlot] = []
@@ -192,8 +198,13 @@ class ControlLoop:
                 rate_hz=1000, clock="virtual",
             )
         """
-        instance = controller if isinstance(controller, Controller) else None
-        config = config_from_parts(controller=type(instance) if instance else controller, params=params, **parts)
+        instance: Controller | None
+        spec: str | type | dict[str, Any]
+        if isinstance(controller, Controller):
+            instance, spec = controller, type(controller)
+        else:
+            instance, spec = None, controller
+        config = config_from_parts(controller=spec, params=params, **parts)
         return cls(config, tick_source=tick_source, controller=instance,
                    controller_params=config.controller.params if instance else None)
 
@@ -220,10 +231,10 @@ class ControlLoop:
             except Exception as exc:
                 raise DriverError(dc.name, "configure", f"{type(exc).__name__}: {exc}") from exc
             self.slots.append(DriverSlot(driver, dc.type, dc.every, self.config.loop.max_feedback_age * dc.every))
-        view = self.robot.controller_view()
-        hold_cls = plugins.load("controller", "hold")
+        controller_view = self.robot.controller_view()
+        hold_cls = cast(type[Controller], plugins.load("controller", "hold"))
         self._hold = hold_cls()
-        self._hold.configure(view, hold_cls.Params())
+        self._hold.configure(controller_view, hold_cls.Params())
         if self._given_controller is not None:
             self.controller = self._given_controller
             self.controller_type = type(self.controller).__name__
@@ -232,7 +243,7 @@ class ControlLoop:
             self.controller = self.config.controller.cls()
             params = self.config.controller.params
         try:
-            self.controller.configure(view, params)
+            self.controller.configure(controller_view, params)
         except Exception as exc:
             raise ControllerError(self.controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
         self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.doors)
@@ -288,10 +299,10 @@ class ControlLoop:
         if self.multirate is not None:
             self.multirate.force()
         try:
-            self.controller.start(0.0)
+            cast(Controller, self.controller).start(0.0)  # set by configure()
         except Exception as exc:
             self._controller_failed("start", exc)
-        self.doors.activate()
+        cast(Doors, self.doors).activate()
 
     async def _bring_up(self, slot: DriverSlot, phase: str, step: Callable) -> None:
         try:
@@ -330,7 +341,7 @@ class ControlLoop:
         watchdog = WatchdogProcess(actions, safety.watchdog_ms, safety.watchdog_priority)
         watchdog.start()
         self.watchdog = watchdog
-        self._heartbeat = watchdog.heartbeat
+        self._heartbeat = cast(memoryview, watchdog.heartbeat)  # mapped by start()
 
     def _stop_watchdog(self) -> None:
         watchdog, self.watchdog = self.watchdog, None
@@ -488,6 +499,8 @@ class ControlLoop:
         reasons = self.active_faults()
         if reasons:
             raise SafetyRequestRefused("rearm() refused: " + "; ".join(reasons))
+        if self._configured is None:
+            raise SafetyRequestRefused("rearm() before configure()")
         cmd, measured = self.robot.command, self.robot.state.position
         if self.level == SafetyLevel.DISABLED:
             np.copyto(cmd.position, measured)
@@ -541,7 +554,7 @@ class ControlLoop:
             return
         t = (self.robot.clock.tick - self._k_start) * self.period_s
         try:
-            self._hold.update(t, self.period_s)
+            cast(Controller, self._hold).update(t, self.period_s)  # set by configure()
         except Exception as hold_exc:  # hold is simple enough never to get here
             self.record_fault("controller:hold", "update", hold_exc)
             self.estop("hold failed", source="controller:hold", event=SafetyEvent.FAULT)
@@ -576,7 +589,7 @@ class ControlLoop:
         self.controller = self._hold
         self.controller_type = "hold"
         # the last command was sent one period ago: hold's motion starts there
-        self._hold.start((self.robot.clock.tick - self._k_start - 1) * self.period_s)
+        cast(Controller, self._hold).start((self.robot.clock.tick - self._k_start - 1) * self.period_s)
 
     def _hold_for_driver(self, name: str, reason: str) -> None:
         if self.level > SafetyLevel.HOLD:
@@ -599,7 +612,7 @@ class ControlLoop:
         if self.multirate is not None:  # the controller sees the change this tick, not its old command
             self.multirate.force()
         if self.controller is self._hold and self.state in (LoopState.ACTIVE, LoopState.RUNNING):
-            self._hold.start((self.robot.clock.tick - self._k_start) * self.period_s)
+            cast(Controller, self._hold).start((self.robot.clock.tick - self._k_start) * self.period_s)
 
     def _check_feedback(self, k: int) -> None:
         """Some driver's feedback is older than its ``max_age`` ticks: flag it, hold, report once."""
@@ -616,12 +629,11 @@ class ControlLoop:
         else:
             self._stale_drivers.clear()
 
-    def _left_workspace(self) -> None:
+    def _left_workspace(self, workspace: WorkspaceMonitor) -> None:
         """A site is outside its workspace: its configured level, the site and distance recorded.
         Not commanding (estop, disabled), there is nothing to stop; rearm() waits for the site."""
         if self.level < SafetyLevel.HOLD:
             return
-        workspace = self.workspace
         entry = workspace.entries[workspace.outside]
         source = f"workspace:{entry.site}"
         reason = (f"site {entry.site} is {workspace.distance * 1e3:.2f} mm outside its "
@@ -678,14 +690,15 @@ class ControlLoop:
             watchdog = StallWatchdog(self, self.config.loop.stall_timeout_ms / 1e3)
             if self.watchdog is not None:
                 self.watchdog.arm()
-                log.info("watchdog process %d armed: %g ms", self.watchdog.proc.pid, self.watchdog.watchdog_ms)
+                log.info("watchdog process %d armed: %g ms", cast(subprocess.Popen, self.watchdog.proc).pid,
+                         self.watchdog.watchdog_ms)
             with watchdog:
                 try:
                     await self._tick_loop(ticks)
                 except asyncio.CancelledError:
                     if not watchdog.fired:
                         raise
-                    asyncio.current_task().uncancel()  # the watchdog's cancel ends the run, not the caller
+                    cast(asyncio.Task, asyncio.current_task()).uncancel()  # the watchdog's cancel ends the run, not the caller
         finally:
             if self.watchdog is not None:
                 self.watchdog.disarm()
@@ -772,7 +785,7 @@ class ControlLoop:
                 break
             if workspace is not None:
                 if not workspace.check():
-                    self._left_workspace()
+                    self._left_workspace(workspace)
                 elif self._outside:
                     self._outside = False
             t2 = mono()
@@ -783,7 +796,8 @@ class ControlLoop:
                 # hold, the HAL's own safety controller, runs on every tick whatever ``every``
                 if multirate is None or multirate.due(k) or self.controller is self._hold:
                     try:
-                        self.controller.update((k - k_start) * period_s, (k - self._last_update_k) * period_s)
+                        # never None while ticking (configure() set it); no cast call in the tick
+                        self.controller.update((k - k_start) * period_s, (k - self._last_update_k) * period_s)  # type: ignore[union-attr]
                     except Exception as exc:
                         self._controller_failed("update", exc)
                     self._last_update_k = k
@@ -955,6 +969,7 @@ class StallWatchdog:
             self._thread.join()
 
     def _watch(self) -> None:
+        loop = cast(asyncio.AbstractEventLoop, self._loop)  # set by __enter__, before this thread starts
         stats = self.control.stats
         last, since = -1, time.monotonic()
         notified = False
@@ -964,7 +979,7 @@ class StallWatchdog:
             process = self.control.watchdog
             if process is not None and process.fired_ns and not notified:
                 notified = True
-                self._loop.call_soon_threadsafe(self.control._check_watchdog_process)
+                loop.call_soon_threadsafe(self.control._check_watchdog_process)
             if count != last:
                 last, since = count, now
             elif now - since > self.timeout_s:
@@ -972,7 +987,7 @@ class StallWatchdog:
                 # synchronous, from this thread: the loop may be stuck
                 self.control.estop(f"no tick for {self.timeout_s * 1e3:g} ms", source="watchdog",
                                    event=SafetyEvent.WATCHDOG)
-                self._loop.call_soon_threadsafe(self._cancel)
+                loop.call_soon_threadsafe(self._cancel)
                 return
 
     def _cancel(self) -> None:

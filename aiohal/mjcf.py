@@ -70,7 +70,7 @@ def joint_addresses(model: mujoco.MjModel, names: list[str]) -> tuple[np.ndarray
 
 def actuator_for_joints(model: mujoco.MjModel, names: list[str]) -> np.ndarray:
     """The id of the actuator driving each joint directly (-1 where none)."""
-    by_joint = {}
+    by_joint: dict[int, int] = {}
     for i in range(model.nu):
         if int(model.actuator_trntype[i]) == int(mujoco.mjtTrn.mjTRN_JOINT):
             by_joint.setdefault(int(model.actuator_trnid[i, 0]), i)

@@ -182,7 +182,7 @@ def load(kind: str, name: str) -> type:
 
 def describe(kind: str) -> list[tuple[PluginSpec, str | None]]:
     """Each plugin with None if it loads, else the reason it does not."""
-    rows = []
+    rows: list[tuple[PluginSpec, str | None]] = []
     for name, spec in sorted(available(kind).items()):
         try:
             load(kind, name)

@@ -11,7 +11,7 @@ import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -195,6 +195,10 @@ def per_joint(values: float | dict[str, float] | Sequence[float], names: Sequenc
 class DeviceRecord:
     """One device's values: numpy views into its group's arrays, written in place."""
 
+    if TYPE_CHECKING:
+        # a field of the group (``record.grasp``), set per record in __init__
+        def __getattr__(self, field: str) -> np.ndarray: ...
+
     def __init__(self, group: DeviceGroup, index: int, name: str) -> None:
         self.name = name
         self.index = index
@@ -278,6 +282,10 @@ class ImuGroup(DeviceGroup):
         "angular_velocity": ((3,), np.float64),
         "linear_acceleration": ((3,), np.float64),
     }
+    # the arrays DeviceGroup.__init__ sets, one per field
+    quaternion: np.ndarray
+    angular_velocity: np.ndarray
+    linear_acceleration: np.ndarray
 
     def _init_values(self) -> None:
         self.quaternion[:, 0] = 1.0
@@ -289,6 +297,8 @@ class ForceTorqueGroup(DeviceGroup):
     kind = "force_torque"
     fields = ("force", "torque")
     shapes = {"force": ((3,), np.float64), "torque": ((3,), np.float64)}
+    force: np.ndarray
+    torque: np.ndarray
 
 
 class HandGroup(DeviceGroup):
@@ -307,6 +317,12 @@ class HandGroup(DeviceGroup):
         "effort": ((), np.float64),
         "object_detected": ((), np.bool_),
     }
+    grasp: np.ndarray
+    speed: np.ndarray
+    force: np.ndarray
+    position: np.ndarray
+    effort: np.ndarray
+    object_detected: np.ndarray
 
     def __init__(self, names: Sequence[str], joints: Sequence[str | None] = ()) -> None:
         super().__init__(names)
@@ -471,7 +487,7 @@ class DriverView:
         runs = []
         for group, indices in by_group.values():
             indices.sort()
-            start = indices[0]
+            start: int | None = indices[0]
             for previous, row in zip(indices, [*indices[1:], None], strict=True):
                 if row != previous + 1:  # the run ends at ``previous`` (None: the last row)
                     runs.append((group, slice(start, previous + 1)))

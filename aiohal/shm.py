@@ -26,7 +26,7 @@ import logging
 import os
 import re
 from multiprocessing import resource_tracker, shared_memory
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from pydantic import Field
@@ -92,6 +92,11 @@ def _round(n: int) -> int:
     return (n + LINE - 1) // LINE * LINE
 
 
+def _buf(shm: shared_memory.SharedMemory) -> memoryview:
+    """The mapping of an open segment (the stubs allow None, which only a closed one has)."""
+    return cast(memoryview, shm.buf)
+
+
 def pid_alive(pid: int) -> bool:
     if pid <= 0:
         return False
@@ -135,7 +140,7 @@ class Segment:
 
     def __init__(self, shm: shared_memory.SharedMemory, layout: Layout, owner: bool) -> None:
         self.shm, self.layout, self.owner = shm, layout, owner
-        buf, L = shm.buf, layout
+        buf, L = _buf(shm), layout
         n = L.dof
 
         def words(offset: int, count: int) -> np.ndarray:
@@ -166,7 +171,7 @@ class Segment:
 
     def meta(self) -> dict[str, Any]:
         L = self.layout
-        return json.loads(bytes(self.shm.buf[L.meta:L.meta + L.meta_len]).decode())
+        return json.loads(bytes(_buf(self.shm)[L.meta:L.meta + L.meta_len]).decode())
 
     def release(self) -> None:
         """Drop every view, then unmap (the views would keep the buffer exported)."""
@@ -190,8 +195,8 @@ def create_segment(robot: str, meta: dict[str, Any], *, dof: int, n_imu: int, n_
     except FileExistsError:
         _remove_stale(name, robot)
         shm = shared_memory.SharedMemory(name, create=True, size=layout.size)
-    shm.buf[: layout.size] = bytes(layout.size)  # touch every page now, not in the tick
-    shm.buf[layout.meta:layout.meta + len(blob)] = blob
+    _buf(shm)[: layout.size] = bytes(layout.size)  # touch every page now, not in the tick
+    _buf(shm)[layout.meta:layout.meta + len(blob)] = blob
     seg = Segment(shm, layout, owner=True)
     h = seg.header
     h[H_VERSION], h[H_PID], h[H_STATUS], h[H_DOF] = VERSION, os.getpid(), STATUS_STARTING, dof
@@ -204,7 +209,7 @@ def create_segment(robot: str, meta: dict[str, Any], *, dof: int, n_imu: int, n_
 def _remove_stale(name: str, robot: str) -> None:
     old = shared_memory.SharedMemory(name)
     try:
-        words = np.frombuffer(old.buf, np.int64, HEADER_WORDS) if old.size >= HEADER_WORDS * 8 else None
+        words = np.frombuffer(_buf(old), np.int64, HEADER_WORDS) if old.size >= HEADER_WORDS * 8 else None
         pid = int(words[H_PID]) if words is not None and words[H_MAGIC] == MAGIC else 0
         status = int(words[H_STATUS]) if words is not None else STATUS_CLOSED
         del words
@@ -226,7 +231,7 @@ def attach_segment(robot: str) -> Segment:
     except FileNotFoundError:
         raise RobotNotRunning(f"robot {robot!r} is not running: no shared memory /{name} "
                               "(is the loop up with [client] shm = true?)") from None
-    words = np.frombuffer(shm.buf, np.int64, HEADER_WORDS) if shm.size >= HEADER_WORDS * 8 else None
+    words = np.frombuffer(_buf(shm), np.int64, HEADER_WORDS) if shm.size >= HEADER_WORDS * 8 else None
     try:
         if words is None or words[H_MAGIC] != MAGIC:
             raise RobotNotRunning(f"robot {robot!r} is not running: /{name} is not ready or not an aiohal segment")
@@ -252,7 +257,8 @@ def _untrack(shm: shared_memory.SharedMemory) -> None:
     """Python < 3.13 registers a segment it attaches to with this process's resource tracker,
     which would unlink it when this process ends: the robot's, not ours to remove."""
     try:
-        resource_tracker.unregister(shm._name, "shared_memory")
+        # _name: the name as the tracker registered it (with its leading slash); not in the stubs
+        resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
     except Exception:
         pass
 

@@ -32,6 +32,7 @@ import selectors
 import sys
 import time
 from collections import deque
+from typing import cast
 
 CLOCK_MONOTONIC = 1
 TFD_TIMER_ABSTIME = 1
@@ -111,8 +112,9 @@ _libc = None
 def _timerfd_create_settime(first_ns: int, period_ns: int) -> int:
     """A non-blocking timerfd armed at absolute ``first_ns``, then every ``period_ns``."""
     if hasattr(os, "timerfd_create"):  # Python >= 3.13
-        fd = os.timerfd_create(time.CLOCK_MONOTONIC, flags=os.TFD_NONBLOCK | os.TFD_CLOEXEC)
-        os.timerfd_settime_ns(fd, flags=os.TFD_TIMER_ABSTIME, initial=first_ns, interval=period_ns)
+        # the stubs of python_version = 3.11 lack the os.timerfd_* of 3.13
+        fd = os.timerfd_create(time.CLOCK_MONOTONIC, flags=os.TFD_NONBLOCK | os.TFD_CLOEXEC)  # type: ignore[attr-defined]
+        os.timerfd_settime_ns(fd, flags=os.TFD_TIMER_ABSTIME, initial=first_ns, interval=period_ns)  # type: ignore[attr-defined]
         return fd
     global _libc
     if _libc is None:
@@ -197,11 +199,12 @@ class TimerfdTickSource(TickSource):
                     if loop_io:  # I/O came with the timer (ticks that overrun find it expired): one iteration
                         await asyncio.sleep(0)
                 else:  # the loop has something to run: it runs it, and wakes the tick on the timer
-                    self._loop.add_reader(self._fd, self._on_readable)
+                    loop = cast(asyncio.AbstractEventLoop, self._loop)  # set by start()
+                    loop.add_reader(self._fd, self._on_readable)
                     try:
                         await self._through_loop()
                     finally:
-                        self._loop.remove_reader(self._fd)
+                        loop.remove_reader(self._fd)
         n = self._expirations
         self._expirations = 0
         self._k += n
@@ -215,7 +218,7 @@ class TimerfdTickSource(TickSource):
     async def _through_loop(self) -> None:
         """Wait for the loop's reader callback on the timerfd (``_on_readable``)."""
         self.loop_waits += 1
-        self._waiter = self._loop.create_future()
+        self._waiter = cast(asyncio.AbstractEventLoop, self._loop).create_future()  # set by start()
         try:
             await self._waiter
         finally:

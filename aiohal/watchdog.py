@@ -36,6 +36,7 @@ import struct
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 # the shared page: int64 words
@@ -122,7 +123,7 @@ class WatchdogProcess:
             self.heartbeat = memoryview(self._mm).cast("q")
             spec = {"parent": os.getpid(), "fd": fd, "watchdog_ns": round(self.watchdog_ms * 1e6),
                     "priority": self.priority, "actions": [_encode(o, a) for o, a in self.actions]}
-            shared = tuple(a.fd for _, a in self.actions if getattr(a, "fd", None) is not None)
+            shared = tuple(a.fd for _, a in self.actions if isinstance(a, SendDatagram) and a.fd is not None)
             self.proc = subprocess.Popen([sys.executable, "-I", __file__], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, pass_fds=(fd, *shared), text=True)
         finally:
@@ -139,6 +140,8 @@ class WatchdogProcess:
     def arm(self) -> None:
         """The loop starts ticking: watch the heartbeat from now."""
         hb = self.heartbeat
+        if hb is None:
+            raise RuntimeError("arm() before start()")
         hb[FIRED] = 0
         hb[STAMP] = time.monotonic_ns()
         hb[ARMED] = 1
@@ -180,7 +183,7 @@ class WatchdogProcess:
 # ---------------------------------------------------------------- the process itself
 
 
-def _prepare(action: dict):
+def _prepare(action: dict) -> Callable[[], object]:
     """A function that runs the action now (its socket or file opened beforehand)."""
     kind = action["kind"]
     if kind == "SendDatagram":
@@ -211,7 +214,7 @@ def _prepare(action: dict):
     raise ValueError(f"unknown action {kind!r}")
 
 
-def _act(run: list[tuple[str, object]]) -> None:
+def _act(run: list[tuple[str, Callable[[], object]]]) -> None:
     for owner, action in run:
         try:
             action()

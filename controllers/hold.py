@@ -45,8 +45,8 @@ class HoldController(Controller):
         if rows.shape[0] != 2:
             raise RuntimeError("hold writes position and velocity as adjacent rows of the command block")
         rest = np.array([self.x0 + 0.5 * self.v0 * self.t_stop, np.zeros_like(self.x0)])
-        self._rest = memoryview(rest).cast("B")
-        self._position_velocity = memoryview(rows).cast("B")
+        self._rest = rest.data.cast("B")
+        self._position_velocity = rows.data.cast("B")
         self._write(0.0)
 
     def _write(self, elapsed: float) -> None:

@@ -20,6 +20,7 @@ class HomingParams(Options):
 
 class HomingController(Controller):
     Params = HomingParams
+    params: HomingParams  # what configure() stores, typed as this controller's
 
     @classmethod
     def check_config(cls, params, joints, robot):
@@ -42,7 +43,7 @@ class HomingController(Controller):
         self.goal[keep] = self.q0[keep]
         self.delta = self.goal - self.q0
         self.done = False
-        self.finished_at = None
+        self.finished_at: float | None = None
         robot.command.mode[:] = Mode.POSITION
 
     def update(self, t: float, dt: float) -> None:

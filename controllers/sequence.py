@@ -10,6 +10,8 @@ hand and a real one. The outcome of every hand step is in the report.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from pydantic import Field, model_validator
 
@@ -44,6 +46,7 @@ class SequenceParams(Options):
 
 class SequenceController(Controller):
     Params = SequenceParams
+    params: SequenceParams  # what configure() stores, typed as this controller's
 
     @classmethod
     def check_config(cls, params, joints, robot):
@@ -86,10 +89,10 @@ class SequenceController(Controller):
             return
         step = self.params.steps[self.index]
         if step.pose is not None:
-            goal = self.goals[self.index]
+            goal = cast(np.ndarray, self.goals[self.index])  # a pose step has its goal
             self.delta = np.where(np.isnan(goal), 0.0, goal - self.pose)
         else:
-            self.hand = self.robot.hand_for_joint(step.hand)
+            self.hand = self.robot.hand_for_joint(cast(str, step.hand))  # a step without pose has hand
             self.hand.grasp[...] = step.grasp
             self.hand.speed[...] = step.speed
             self.hand.force[...] = step.force
@@ -103,7 +106,7 @@ class SequenceController(Controller):
             return
         step = steps[self.index]
         if step.pose is not None:
-            T = step.duration
+            T = cast(float, step.duration)  # a pose step has duration (Step._one_kind)
             tau = min((t - self.t0) / T, 1.0)
             s = tau * tau * tau * (10.0 + tau * (-15.0 + 6.0 * tau))
             ds = 30.0 * tau * tau * (1.0 - tau) * (1.0 - tau) / T

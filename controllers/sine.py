@@ -27,6 +27,7 @@ class SineParams(Options):
 
 class SineController(Controller):
     Params = SineParams
+    params: SineParams  # what configure() stores, typed as this controller's
 
     @classmethod
     def check_config(cls, params, joints, robot):

@@ -47,6 +47,7 @@ class _Point:
 
 class StreamController(Controller):
     Params = StreamParams
+    params: StreamParams  # what configure() stores, typed as this controller's
 
     def start(self, t: float) -> None:
         door = shm.door(self.robot.name)
@@ -56,8 +57,8 @@ class StreamController(Controller):
         robot = self.robot
         n = robot.dof
         self._seg = seg
-        self._head = memoryview(seg.producer).cast("B").cast("q")
-        self._cons = memoryview(seg.consumer).cast("B").cast("q")
+        self._head = seg.producer.data.cast("B").cast("q")
+        self._cons = seg.consumer.data.cast("B").cast("q")
         self._capacity = seg.layout.capacity
         self._words = seg.slot_words
         self._pos = seg.slot_position
@@ -77,7 +78,7 @@ class StreamController(Controller):
         self._dry_ns = int(self.params.dry_after_s * 1e9)
         self._period_ns = robot.clock.period_ns
         self._latency = np.zeros(LATENCY_WINDOW, dtype=np.int64)
-        self._lat = memoryview(self._latency)
+        self._lat = self._latency.data
         self.applied = 0
         self.refused = 0
         self.underruns = 0
@@ -195,7 +196,7 @@ class StreamController(Controller):
             except ValueError:  # the segment is already gone
                 pass
         # drop every view of the segment so that the door can unmap it
-        self._head = self._cons = self._words = self._pos = self._vel = self._seg = None
+        self._head = self._cons = self._words = self._pos = self._vel = self._seg = None  # type: ignore[assignment]
 
     def latencies_ns(self, since: int = 0) -> np.ndarray:
         """Client write to the tick that took it, of the points applied since the ``since``-th

@@ -28,8 +28,9 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Literal
+from typing import Any, Literal, cast
 
 import mujoco
 import numpy as np
@@ -190,6 +191,8 @@ class MujocoDriver(Driver):
         from . import mujoco_kernels as kernels
 
         data, state, command = self.data, self.view.state, self.view.command
+        if data is None:
+            raise RuntimeError("the kernels are bound to the MjData made in __init__")
         self._read_args = (data.qpos, data.qvel, self._index, self.tau, state.block, state.updated_tick,
                            state.stamp_ns)
         self._read_joints = kernel_call.compiled_for(kernels.read_joints, (*self._read_args, 0, 0))
@@ -197,7 +200,7 @@ class MujocoDriver(Driver):
                              self.options.gravity_compensation, self.tau, data.ctrl)
         self._drive_torque = kernel_call.compiled_for(kernels.drive_torque, self._torque_args)
         self._sensor_runs = [(data.sensordata, *run) for run in self._gather_plan()]
-        self._read_sensors = kernels.read_sensors  # (no run: never called)
+        self._read_sensors: Callable[..., Any] = kernels.read_sensors  # (no run: never called)
         for run in self._sensor_runs:
             self._read_sensors = kernel_call.compiled_for(kernels.read_sensors, (*run, 0, 0))
 
@@ -211,6 +214,8 @@ class MujocoDriver(Driver):
         for device, record in view.devices.items():
             group = record.group
             fields = SENSOR_FIELDS[view.device_kinds[device]]
+            if group.values is None:
+                raise RuntimeError(f"{device}: a {group.kind} record is not one float64 row; no sensor fills it")
             addresses = np.full(group.values.shape[1], -1, dtype=np.intp)
             for field, (suffix, _dim) in fields.items():
                 sl = sensor_slice(self.model, _sensor_name(opts, device, field, suffix))
@@ -222,7 +227,8 @@ class MujocoDriver(Driver):
         runs = []
         for group, rows in view.device_runs():
             index = np.array([addresses_of[id(group), row] for row in range(rows.start, rows.stop)], dtype=np.intp)
-            runs.append((index, group.values[rows], group.updated_tick[rows], group.stamp_ns[rows]))
+            values = cast(np.ndarray, group.values)  # checked in the loop above
+            runs.append((index, values[rows], group.updated_tick[rows], group.stamp_ns[rows]))
         return runs
 
     def _open_viewer(self):
@@ -259,7 +265,7 @@ class MujocoDriver(Driver):
     async def write(self) -> None:
         if self._estopped:
             self.tau[:] = 0.0
-            self.data.ctrl[self.actuators] = 0.0
+            self.data.ctrl[self.actuators] = 0.0  # type: ignore[union-attr]  # made in __init__; no test in write()
         else:
             self._drive_torque(*self._torque_args)
         if self._executor is None:

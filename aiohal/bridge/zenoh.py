@@ -33,13 +33,16 @@ import math
 import struct
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from ..logutil import RateLimitedLogger
 from ..safety import SafetyLevel
 from . import ZenohBridgeSection
+
+if TYPE_CHECKING:
+    from ..client import RobotClient
 
 log = logging.getLogger(__name__)
 
@@ -91,10 +94,10 @@ class ZenohBridge:
                          "refused": 0}
         self.refused_by_reason: dict[str, int] = collections.Counter()
         self._warn = RateLimitedLogger(log)
-        self._session = None
+        self._session: Any = None  # a zenoh.Session (zenoh ships no types)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._client = None
+        self._client: RobotClient | None = None
         self._aio: asyncio.AbstractEventLoop | None = None
         self._lock = threading.Lock()  # the zenoh callbacks' counters and the shm client
         self.publish = self._make_publisher()
@@ -311,7 +314,7 @@ class ZenohBridge:
                 log.warning("robot %s: %s over zenoh refused: %s", control.robot.name, name, exc)
 
         log.warning("robot %s: %s requested over zenoh", control.robot.name, name)
-        self._aio.call_soon_threadsafe(action)  # acted on between two ticks, in the loop's thread
+        cast(asyncio.AbstractEventLoop, self._aio).call_soon_threadsafe(action)  # set by start()  # acted on between two ticks, in the loop's thread
         with self._lock:
             self.counters["requests_accepted"] += 1
 

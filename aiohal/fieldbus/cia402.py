@@ -19,6 +19,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum, IntEnum, IntFlag
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -227,7 +228,9 @@ _NEXT = {
 
 
 # The same, as tuples indexed by the state's value (a tuple index is cheaper than hashing an Enum).
-_NEXT_BY_STATE = {target: tuple(table.get(state) for state in State) for target, table in _NEXT.items()}
+# None only for Unknown, which _next_controlword decides without the table
+_NEXT_BY_STATE = {target: cast("tuple[int, ...]", tuple(table.get(state) for state in State))
+                  for target, table in _NEXT.items()}
 _REACHED_BY_STATE = {target: tuple(state in states for state in State) for target, states in _REACHED.items()}
 _IS_FAULTY = tuple(state in _FAULTY for state in State)
 
@@ -493,8 +496,8 @@ class DriveUnits:
         """One object for many drives: parameter arrays of shape ``(len(units),)``."""
         if not units:
             raise ValueError("no drive units to stack")
-        kts = [u.torque_constant for u in units]
-        kt = None if any(k is None for k in kts) else np.array([float(k) for k in kts])
+        kts = [u.torque_constant for u in units if u.torque_constant is not None]
+        kt = np.array([float(k) for k in kts]) if len(kts) == len(units) else None
         return cls(np.array([float(u.counts_per_rev) for u in units]),
                    np.array([float(u.gear_ratio) for u in units]),
                    np.array([float(u.rated_torque) for u in units]), kt)

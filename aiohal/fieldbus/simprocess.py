@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import Any
+from typing import Any, cast
 
 
 class SimulatorStartError(RuntimeError):
@@ -18,7 +18,8 @@ async def start(args: list[str], timeout_s: float) -> tuple[asyncio.subprocess.P
     process = await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE,
                                                    stderr=asyncio.subprocess.PIPE)
     try:
-        line = await asyncio.wait_for(process.stdout.readline(), timeout_s)
+        stdout = cast(asyncio.StreamReader, process.stdout)  # stdout=PIPE
+        line = await asyncio.wait_for(stdout.readline(), timeout_s)
         return process, json.loads(line)
     except (TimeoutError, ValueError) as exc:
         process.kill()

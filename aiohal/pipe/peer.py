@@ -143,6 +143,8 @@ class NrtPeer:
             self._thread.join(timeout)
             return
         process = self._process
+        if process is None:  # neither a thread nor a subprocess: nothing to wait for
+            return
         for escalate in (None, process.terminate, process.kill):
             if process.poll() is not None:
                 return

@@ -16,7 +16,7 @@ import numpy as np
 #: little-endian plain CDR (XCDR1), the ROS 2 default
 HEADER = bytes((0x00, 0x01, 0x00, 0x00))
 
-ROS_TYPES = {
+ROS_TYPES: dict[np.dtype, str] = {
     np.dtype(np.float64): "float64",
     np.dtype(np.int64): "int64",
     np.dtype(np.uint32): "uint32",

@@ -31,7 +31,7 @@ import numpy as np
 from ..stats import PHASES
 from . import ring as R
 from .cdr import Layout
-from .options import RecordSection
+from .options import Channel, RecordSection
 
 if TYPE_CHECKING:
     from ..loop import ControlLoop
@@ -63,7 +63,7 @@ class TickChannel:
     """A per-tick channel: its topic, layout, decimation and how its fields come from ring rows."""
 
     topic: str
-    key: str  # the [record] decimate key
+    key: Channel  # the [record] decimate key
     layout: Layout
     fields: Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]  # (meta rows, data rows) -> values
     timing: bool = False  # its rows are the previous tick's (timing is complete one tick later)
@@ -332,7 +332,8 @@ class Recorder:
                 self.error = f"{type(exc).__name__}: {exc}"
                 log.error("recording not finished: %s", self.error)
             finally:
-                self._file.close()
+                if self._file is not None:  # opened with the writer
+                    self._file.close()
         return self.summary()
 
     def _health_event(self) -> None:
@@ -458,8 +459,11 @@ class Recorder:
                 yield False
 
     def _flush(self) -> None:
-        self._writer.flush()  # closes the chunk in progress and writes it
-        self._file.flush()
+        writer, file = self._writer, self._file
+        if writer is None or file is None:  # not recording to a file
+            return
+        writer.flush()  # closes the chunk in progress and writes it
+        file.flush()
         self._last_flush = time.monotonic_ns()
 
     def _write_events(self) -> None:

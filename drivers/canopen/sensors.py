@@ -15,6 +15,7 @@ import logging
 import time
 from functools import lru_cache
 from pathlib import Path
+from typing import cast
 
 import cantools
 import numpy as np
@@ -47,7 +48,7 @@ class SensorOptions(Options):
 
 @lru_cache(maxsize=8)
 def load_dbc(path: str) -> cantools.database.can.Database:
-    return cantools.database.load_file(path, database_format="dbc")
+    return cast(cantools.database.can.Database, cantools.database.load_file(path, database_format="dbc"))
 
 
 def _signal(db, name: str):
@@ -95,7 +96,10 @@ class DbcSensor:
     def __init__(self, options: SensorOptions, record: DeviceRecord, kind: str, db) -> None:
         self.options = options
         self.record = record
-        self.row = record.group.values[record.index]  # every field of the record, in column order
+        values = record.group.values
+        if values is None:
+            raise TypeError(f"a {kind} group whose fields are not one float64 block cannot take DBC signals")
+        self.row = values[record.index]  # every field of the record, in column order
         self.buffer = self.row.copy()
         self.columns: dict[int, list[tuple[str, int]]] = {}  # frame id -> [(signal, column)]
         columns = record.group.columns

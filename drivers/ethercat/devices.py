@@ -8,7 +8,9 @@ sensors, one or two per bus, with one ``struct`` call each (:class:`~aiohal.fiel
 
 from __future__ import annotations
 
-from aiohal.fieldbus.busvar import ProcessImage, VariableTypeError
+from typing import cast
+
+from aiohal.fieldbus.busvar import ProcessImage, RecordCodec, VariableTypeError
 from aiohal.fieldbus.drives import (  # noqa: F401 (the drives, re-exported where the driver and its tests find them)
     DRIVE_INPUT_TYPES,
     DRIVE_INPUTS,
@@ -95,7 +97,7 @@ class ForceTorqueDevice(SensorDevice):
     def write_control(self) -> None:
         """One cycle of a pending tare (the loop's write)."""
         self.tare_left -= 1
-        self.control.pack(1 if self.tare_left > 0 else 0)
+        cast(RecordCodec, self.control).pack(1 if self.tare_left > 0 else 0)  # tare() checked it
 
     def fill(self, values: tuple, status: int) -> bool:
         wrench = values[0]

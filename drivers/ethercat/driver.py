@@ -34,7 +34,7 @@ import logging
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
@@ -345,7 +345,7 @@ class EthercatDriver(Driver):
         self._in_getters = [bus.slaves[i.position]._get_input for i in by_input]
         self._in_parts = [(i.position, bus.slaves[i.position], image.slave(i.name)) for i in by_input]
         self._contiguous_inputs = sum(i.input_bytes for i in by_input) == len(image.inputs)
-        self._inputs_bytes = memoryview(image.inputs).cast("B")  # bytes in with a memcpy, no numpy call
+        self._inputs_bytes = image.inputs.data.cast("B")  # bytes in with a memcpy, no numpy call
         self._out_parts = [(bus.slaves[i.position]._set_output, image.slave(i.name).output_offset,
                             image.slave(i.name).output_offset + i.output_bytes) for i in self.infos if i.output_bytes]
         self._send_now, self._receive_now = bus.cyclic_calls(opts.receive_timeout_us)
@@ -369,15 +369,18 @@ class EthercatDriver(Driver):
             if s.kind == "cia402":
                 units = DriveUnits(s.counts_per_rev or defaults.counts_per_rev, s.gear_ratio or defaults.gear_ratio,
                                    s.rated_torque or defaults.rated_torque)
-                specs.append(DriveSpec(s.name, s.joint, view.joint_names.index(s.joint), units, s.position_offset))
+                joint = cast(str, s.joint)  # check_config: every cia402 slave names its joint
+                specs.append(DriveSpec(s.name, joint, view.joint_names.index(joint), units, s.position_offset))
             elif s.kind == "imu":
-                self.sensors.append((i, ImuDevice(image, s.name, view.devices[s.device], {**IMU_VARIABLES, **s.variables})))
+                device = cast(str, s.device)  # check_config: every sensor slave names its device
+                self.sensors.append((i, ImuDevice(image, s.name, view.devices[device], {**IMU_VARIABLES, **s.variables})))
             elif s.kind == "force_torque":
                 control = s.variables.get("control")  # named: must exist; else the default if mapped
                 if control is None and _has_variable(image, s.name, FT_CONTROL):
                     control = FT_CONTROL
                 variables = {k: v for k, v in {**FT_VARIABLES, **s.variables}.items() if k != "control"}
-                self.sensors.append((i, ForceTorqueDevice(image, s.name, view.devices[s.device], variables, control)))
+                device = cast(str, s.device)
+                self.sensors.append((i, ForceTorqueDevice(image, s.name, view.devices[device], variables, control)))
         if sorted(s.row for s in specs) != list(range(view.dof)):  # check_config says so; decode relies on it
             raise BringUpError(f"every joint of an ethercat driver needs one cia402 drive: joints "
                                f"{list(view.joint_names)}, drives for {[s.joint for s in specs]}")
@@ -484,10 +487,12 @@ class EthercatDriver(Driver):
         if self._estop_requested:
             raise BringUpError("emergency stop during bring-up: the drives were not enabled")
         # a drive still in Fault after its reset would be in Fault again; a slow one may not be
-        error = BringUpError if any(m.faulted for m in self.drives.machines) else TransientBringUpError
+        error = BringUpError if any(m.faulted for m in drives.machines) else TransientBringUpError
         raise error(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
 
     def _not_enabled(self) -> str:
+        if self.drives is None:
+            return ""
         return ", ".join(f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")
                          for m in self.drives.machines if not m.enabled)
 
@@ -599,7 +604,8 @@ class EthercatDriver(Driver):
                 drives.write(self.view.command)
             if self._taring:
                 self._advance_tares()
-            out = self.image.outputs.tobytes()  # _write_outputs, spelled out as in read()
+            # open() made the image; no test added to the tick
+            out = self.image.outputs.tobytes()  # type: ignore[union-attr]  # _write_outputs, spelled out as in read()
             for set_output, start, end in self._out_parts:
                 set_output(out[start:end])
             self._written = True
@@ -618,7 +624,7 @@ class EthercatDriver(Driver):
         self._taring = [sensor for sensor in self._taring if sensor.tare_left > 0]
 
     def _write_outputs(self) -> None:
-        out = self.image.outputs.tobytes()
+        out = self.image.outputs.tobytes()  # type: ignore[union-attr]  # open() made the image
         for set_output, start, end in self._out_parts:
             set_output(out[start:end])
 
@@ -635,7 +641,8 @@ class EthercatDriver(Driver):
             self.drive_faults += 1
         elif event.kind is EventKind.LOST_ENABLED:
             self._check_states = True  # its slave may have left OP (SM watchdog): that fails the driver
-        respond_to_event(self.drives, i, event, self.view, self._drive_mask, f"ethercat {self.name}")
+        # only drives raise events, so there are drives
+        respond_to_event(cast(DriveGroup, self.drives), i, event, self.view, self._drive_mask, f"ethercat {self.name}")
 
     def _handle_pending(self) -> None:
         pending, self._pending = self._pending, []

@@ -106,7 +106,9 @@ def scan(ifname: str, pysoem: Any | None = None) -> list[ScannedSlave]:
     """Find the slaves on ``ifname`` and read what each one maps; the bus is closed (every slave
     to INIT) before this returns. Raises :class:`~.bus.BringUpError` when the bus does not answer."""
     if pysoem is None:
-        import pysoem  # the `ethercat` extra
+        import pysoem as default_pysoem  # the `ethercat` extra
+
+        pysoem = default_pysoem
     bus = Bus(pysoem, ifname)
     try:
         bus.open()

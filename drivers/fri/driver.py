@@ -25,14 +25,14 @@ import logging
 import socket
 import sys
 import time
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 from pydantic import Field
 
 from aiohal.errors import AiohalError
 from aiohal.fieldbus import simprocess
-from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
+from aiohal.hal import AnyOptions, Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.robot import Fault, Mode
 
 from .protocol import (
@@ -110,8 +110,9 @@ class FriDriver(Driver):
     command_modes = frozenset({Mode.POSITION, Mode.IMPEDANCE})
 
     @classmethod
-    def supported_modes(cls, options: FriOptions) -> frozenset[Mode]:
-        return cls.command_modes if options.control == "joint_impedance" else frozenset({Mode.POSITION})
+    def supported_modes(cls, options: AnyOptions) -> frozenset[Mode]:
+        control = cast(FriOptions, options).control  # the config validated them as this driver's
+        return cls.command_modes if control == "joint_impedance" else frozenset({Mode.POSITION})
 
     @classmethod
     def check_config(cls, options, joints, devices, robot):
@@ -127,9 +128,9 @@ class FriDriver(Driver):
         self.control = Control.POSITION if options.control == "position" else Control.JNT_IMP
         self.min_quality = int(Quality[options.min_quality.upper()])
         self.msr = np.zeros((), dtype=MSR)  # the newest measurement taken
-        self._msr_bytes = memoryview(self.msr).cast("B")
+        self._msr_bytes = self.msr.data.cast("B")
         self.cmd = new_cmd()  # the answer, sent from the callback
-        self._cmd_bytes = memoryview(self.cmd).cast("B")
+        self._cmd_bytes = self.cmd.data.cast("B")
         self.cmd["cmd_flags"] = FLAGS[self.control]
         krl = options.krl
         self.cmd["krl_int"][krl.strategy_int - 1] = STRATEGY[self.control]
@@ -140,7 +141,7 @@ class FriDriver(Driver):
         self.damping = view.per_joint(options.damping).astype(np.float32)
         self._default_stiffness, self._default_damping = self.stiffness.copy(), self.damping.copy()
         self.cmd["jnt_stiffness"], self.cmd["jnt_damping"] = self.stiffness, self.damping  # also while mirroring
-        self._msr_fields = {name: self.msr[name] for name in MSR.names}
+        self._msr_fields = {name: self.msr[name] for name in cast(tuple[str, ...], MSR.names)}  # a structured dtype
         self._cmd_fields = {name: self.cmd[name] for name in ("jnt_pos", "add_jnt_trq", "jnt_stiffness", "jnt_damping")}
         self._cmd_head = np.frombuffer(self._cmd_bytes, dtype="<u2", count=2)  # send_seq, refl_seq
         self.commanding = False  # answers carry our command (else the KRC's set point)
@@ -210,7 +211,8 @@ class FriDriver(Driver):
             if self.commanding:
                 self.counters["refused"] += 1
         try:
-            self.transport.sendto(self._cmd_bytes, self.krc)
+            # open() set the transport before the KRC's first datagram; no test added per datagram
+            self.transport.sendto(self._cmd_bytes, self.krc)  # type: ignore[union-attr]
             self.counters["sent"] += 1
         except OSError:
             pass
@@ -227,7 +229,8 @@ class FriDriver(Driver):
             port = await self._start_simulation(sock.getsockname())
             self.krc = ("127.0.0.1", port)
         elif opts.krc_address is not None:
-            self._krc_host = (await loop.getaddrinfo(opts.krc_address, None, family=socket.AF_INET))[0][4][0]
+            # an AF_INET address is (host, port), the host a str
+            self._krc_host = cast(str, (await loop.getaddrinfo(opts.krc_address, None, family=socket.AF_INET))[0][4][0])
         await self._wait(lambda: self._new, "no measurement from the KRC")
         self._take_measurement()
         if opts.start:

@@ -10,6 +10,10 @@ class HandCommandMsg(Message):
 
     TYPE = 10
     FIELDS = (("grasp", "d"), ("speed", "d"), ("force", "d"))
+    # the fields' values, set per instance by Message
+    grasp: float
+    speed: float
+    force: float
 
 
 class HandStateMsg(Message):
@@ -25,3 +29,9 @@ class HandStateMsg(Message):
         ("fault", "H"),
         ("command_seq", "I"),
     )
+    position: float
+    effort: float
+    object_detected: bool
+    ready: bool
+    fault: int
+    command_seq: int

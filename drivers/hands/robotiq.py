@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -116,7 +116,7 @@ def encode_command(action: int, position: int, speed: int, force: int) -> list[i
     return [action << 8, position, speed << 8 | force]
 
 
-def decode_status(registers: list[int]) -> RawStatus:
+def decode_status(registers: Sequence[int]) -> RawStatus:
     status, fault, motion = registers
     gripper = status >> 8
     return RawStatus(

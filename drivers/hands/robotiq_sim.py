@@ -19,7 +19,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Self
+from typing import Self, cast
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
@@ -257,13 +257,14 @@ class RobotiqSimServer:
         server = ModbusTcpServer(device, framer=FRAMERS[self.framing], address=(self.host, self.port))
         await server.serve_forever(background=True)
         self._server = server
-        self.port = server.transport.sockets[0].getsockname()[1]
+        # a TCP server's transport is its listening asyncio.Server
+        self.port = cast(asyncio.Server, server.transport).sockets[0].getsockname()[1]
 
     async def stop(self) -> None:
         """Close the listener and every connection (clients see the link drop)."""
         server, self._server = self._server, None
         if server is not None:
-            listener = server.transport
+            listener = cast(asyncio.Server, server.transport)
             await server.shutdown()
             await asyncio.wait_for(listener.wait_closed(), timeout=STOP_TIMEOUT_S)
 
@@ -289,12 +290,13 @@ class RobotiqSimServer:
         address: int,
         count: int,
         registers: list[int],
-        written: list[int] | None,
+        written: list[int] | list[bool] | None,
     ) -> ExcCodes | None:
         """pymodbus calls this before each access to the register block (addresses already
         checked): a write goes to the gripper, a read gets the status as of now."""
         if written is not None:
-            self.gripper.write_command(address - COMMAND_ADDRESS, written)
+            # registers, never coils, in this device: the values are ints
+            self.gripper.write_command(address - COMMAND_ADDRESS, cast(list[int], written))
         else:
             status = STATUS_ADDRESS - block_start
             registers[status : status + REGISTER_COUNT] = self.gripper.status_registers()

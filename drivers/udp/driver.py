@@ -24,7 +24,7 @@ import socket
 import struct
 import sys
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -120,7 +120,9 @@ def board_layout(options: UdpOptions, joints: list[str]) -> tuple[list[tuple[int
             return [], ["list the boards (or set simulate = true)"]
         k = options.joints_per_board
         return [(i // k + 1, i, min(k, len(joints) - i)) for i in range(0, len(joints), k)], []
-    layout, problems, row, ids = [], [], 0, set()
+    layout: list[tuple[int, int, int]] = []
+    problems: list[str] = []
+    row, ids = 0, set()
     for b in options.boards:
         names = [j for pattern in b.joints for j in joints if fnmatch.fnmatchcase(j, pattern)]
         if b.id in ids:
@@ -164,9 +166,10 @@ class UdpDriver(Driver):
         self.tx_records = np.zeros(n, dtype=COMMAND_RECORD)
         self.rx_records = np.zeros(n, dtype=STATE_RECORD)
         self.rx_records["temperature"] = np.nan
-        self._tx = {f: self.tx_records[f] for f in COMMAND_RECORD.names}
-        self._rx = {f: self.rx_records[f] for f in STATE_RECORD.names}
-        tx_bytes, rx_bytes = memoryview(self.tx_records).cast("B"), memoryview(self.rx_records).cast("B")
+        # structured dtypes: their names are a tuple
+        self._tx = {f: self.tx_records[f] for f in cast(tuple[str, ...], COMMAND_RECORD.names)}
+        self._rx = {f: self.rx_records[f] for f in cast(tuple[str, ...], STATE_RECORD.names)}
+        tx_bytes, rx_bytes = self.tx_records.data.cast("B"), self.rx_records.data.cast("B")
         self._tx_bodies = [tx_bytes[r.start * COMMAND_RECORD.itemsize:r.stop * COMMAND_RECORD.itemsize] for r in self.board_rows]
         self._rx_bodies = [rx_bytes[r.start * STATE_RECORD.itemsize:r.stop * STATE_RECORD.itemsize] for r in self.board_rows]
         self._heads = [bytearray(HEADER_SIZE) for _ in layout]
@@ -211,8 +214,10 @@ class UdpDriver(Driver):
             self.addresses = [("127.0.0.1", port) for port in ports]
         else:
             loop = asyncio.get_running_loop()
-            self.addresses = [((await loop.getaddrinfo(b.address, b.port, family=socket.AF_INET,
-                                                     type=socket.SOCK_DGRAM))[0][4][0], b.port) for b in opts.boards]
+            # an AF_INET address is (host, port), the host a str
+            self.addresses = [(cast(str, (await loop.getaddrinfo(b.address, b.port, family=socket.AF_INET,
+                                                               type=socket.SOCK_DGRAM))[0][4][0]), b.port)
+                              for b in opts.boards]
         self._by_address = {addr: i for i, addr in enumerate(self.addresses)}
         for i, head in enumerate(self._heads):
             count = self.board_rows[i].stop - self.board_rows[i].start
@@ -222,7 +227,7 @@ class UdpDriver(Driver):
 
     async def _start_simulation(self) -> list[int]:
         opts, sim = self.options, self.options.simulation
-        host, port = self.sock.getsockname()
+        host, port = cast(socket.socket, self.sock).getsockname()  # open() made it
         initial = self.view.per_joint(opts.initial_position)
         np.clip(initial, self.view.position_min, self.view.position_max, out=initial)
         args = [sys.executable, "-m", "aiohal.drivers.udp.sim",
@@ -269,7 +274,7 @@ class UdpDriver(Driver):
         """An ESTOP or RESET datagram to one board (allocates: not for the tick)."""
         data = encode(kind, self.board_ids[board], self._seq, self._ack[board], key=self.key)
         try:
-            self.sock.sendto(data, self.addresses[board])
+            cast(socket.socket, self.sock).sendto(data, self.addresses[board])  # open() made it
             self.counters["sent"] += 1
         except OSError:
             self.counters["send_errors"] += 1
@@ -280,10 +285,11 @@ class UdpDriver(Driver):
         """Take every datagram waiting on the socket; the boards whose reply was taken."""
         sock, counters, by_address = self.sock, self.counters, self._by_address
         rx_bufs, rx_view, key, seq = self._rx_bufs, self._rx_view, self.key, self._seq
-        taken = []
+        taken: list[int] = []
         while True:
             try:
-                size, anc, _flags, addr = sock.recvmsg_into(rx_bufs, ANC_SIZE)
+                # open() made the socket; no test added to the tick
+                size, anc, _flags, addr = sock.recvmsg_into(rx_bufs, ANC_SIZE)  # type: ignore[union-attr]
             except (BlockingIOError, InterruptedError):
                 return taken
             b = by_address.get(addr)
@@ -403,7 +409,7 @@ class UdpDriver(Driver):
             body = bodies[i]
             seal_parts(head, body, key)
             try:
-                sock.sendmsg((head, body), (), 0, addresses[i])
+                sock.sendmsg((head, body), (), 0, addresses[i])  # type: ignore[union-attr]  # open() made it
                 sent += 1
             except OSError:
                 counters["send_errors"] += 1

@@ -85,7 +85,7 @@ class ProtocolError(ValueError):
 
 class Header(NamedTuple):
     kind: int
-    count: int
+    count: int  # type: ignore[assignment]  # the field shadows tuple.count, which no caller uses
     flags: int
     board: int
     seq: int
@@ -123,7 +123,7 @@ def encode(kind: int, board: int, seq: int, ack: int, records: np.ndarray | None
     buf = bytearray(size)
     HEADER.pack_into(buf, 0, MAGIC, 0, VERSION, kind, count, FLAG_MAC if key is not None else 0,
                      board, 0, seq & 0xFFFFFFFF, ack & 0xFFFFFFFF, ZERO_MAC)
-    if count:
+    if records is not None and count:
         buf[HEADER_SIZE:] = records.tobytes()
     seal(buf, size, key)
     return buf

@@ -101,7 +101,7 @@ class BoardSimulator:
         self.random = random.Random(self.faults.seed)
         self.selector = selectors.DefaultSelector()
         self.boards: list[SimBoard] = []
-        self._delayed: list[tuple[float, int, SimBoard, tuple, tuple]] = []  # heap of (due, n, board, bytes, addr)
+        self._delayed: list[tuple[float, int, SimBoard, tuple[bytes, bytes], tuple]] = []  # heap of (due, n, board, bytes, addr)
         self._n_delayed = 0
         self._rx = bytearray(RECV_SIZE)
         self.commands = np.zeros(n, dtype=COMMAND_RECORD)  # the last command of every joint
@@ -121,8 +121,8 @@ class BoardSimulator:
             sock.setblocking(False)
             rows = slice(start, start + count)
             board = SimBoard(board_id, rows, sock, bytearray(HEADER_SIZE),
-                             memoryview(self.states[rows]).cast("B"),
-                             memoryview(self.commands[rows]).cast("B"))
+                             self.states[rows].data.cast("B"),
+                             self.commands[rows].data.cast("B"))
             self.boards.append(board)
             self.selector.register(sock, selectors.EVENT_READ, board)
             start += count
@@ -282,7 +282,7 @@ class BoardSimulator:
                 self._sendto(board, out, addr)
         board.held = None
 
-    def _sendto(self, board: SimBoard, data: bytes, addr: tuple) -> None:
+    def _sendto(self, board: SimBoard, data: tuple[bytes, bytes], addr: tuple) -> None:
         try:
             board.sock.sendmsg(data, (), 0, addr)
             board.counters["replies"] += 1

@@ -118,7 +118,7 @@ class Gather:
         packed = np.ascontiguousarray(np.broadcast_to(np.asarray(values, dtype=self.dtype), self.shape))
         self._buf[self._index] = packed.view(np.uint8).reshape(self._index.shape)
 
-    def __array__(self, dtype: DTypeLike = None, copy: bool | None = None) -> np.ndarray:
+    def __array__(self, dtype: DTypeLike | None = None, copy: bool | None = None) -> np.ndarray:
         values = self.get()
         return values if dtype is None else values.astype(dtype)
 

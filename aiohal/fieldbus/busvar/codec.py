@@ -29,7 +29,8 @@ class RecordCodec:
         self.buf = buf
         by_offset = sorted(range(len(variables)), key=lambda i: variables[i].bit_offset)
         start = variables[by_offset[0]].bit_offset // 8
-        fmt, at, slots = "<", start, [None] * len(variables)
+        slots: list[slice | int | None] = [None] * len(variables)  # each filled below
+        fmt, at = "<", start
         position = 0
         for i in by_offset:
             var = variables[i]

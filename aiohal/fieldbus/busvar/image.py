@@ -179,7 +179,7 @@ class ProcessImage:
 
     # ------------------------------------------------------------ linking
 
-    def link(self, name: str, dtype: DTypeLike = None, *, writable: bool = False) -> np.ndarray | BitVar | BitsVar:
+    def link(self, name: str, dtype: DTypeLike | None = None, *, writable: bool = False) -> np.ndarray | BitVar | BitsVar:
         """A zero-copy view of one variable: 0-d for a single entry, shape (n,) for an object's
         subindices. Bit variables give a :class:`BitVar` / :class:`BitsVar` instead. Outputs are
         read-only unless ``writable``; inputs are always read-only. ``dtype``, when given, must
@@ -204,7 +204,7 @@ class ProcessImage:
         view.flags.writeable = writable
         return view
 
-    def link_many(self, slaves: Sequence[str], name: str, dtype: DTypeLike = None, *, writable: bool = False,
+    def link_many(self, slaves: Sequence[str], name: str, dtype: DTypeLike | None = None, *, writable: bool = False,
                   gather: bool = True) -> np.ndarray | Gather:
         """The same variable of several slaves as one array of shape (len(slaves), ...), in the
         order given: a strided zero-copy view when the slaves are evenly spaced in the image
@@ -279,7 +279,7 @@ class ProcessImage:
             raise ReadOnlyVariableError(f'"{var.full_name}" is an input (slave to master): it is read-only')
 
     @staticmethod
-    def _check_dtype(var: Variable, dtype: DTypeLike) -> np.dtype:
+    def _check_dtype(var: Variable, dtype: DTypeLike | None) -> np.dtype:
         own = NUMPY_TYPES[var.type]
         if dtype is None:
             return own

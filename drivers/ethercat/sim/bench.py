@@ -146,8 +146,7 @@ def measure(segment: Segment, frames: int = 2000) -> dict[str, Any]:
             struct.pack_into("<HiihB", data, off, cw, 5000, 0, 0, 8)
         m.lrw(bytes(data), first)
     enabled = sum(1 for esc in segment.active if getattr(esc.device, "state", "") == "operation_enabled")
-    data = bytes(data)
-    fr = frame((LRW, 2, 0, 0, data), (FRMW, 2, first, 0x0910, bytes(8)))
+    fr = frame((LRW, 2, 0, 0, bytes(data)), (FRMW, 2, first, 0x0910, bytes(8)))
     handle = segment.handle_frame
     reply = handle(fr)
     _, _, wkc = parse(reply)[0] if reply else (0, b"", 0)

@@ -43,6 +43,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from .drive import Drive
 from .segment import Segment
 
 
@@ -159,7 +160,7 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
             esc.op_delay_ns = 0
             if esc.device.od is not None:
                 esc.device.od.hidden = set()
-            if getattr(esc.device, "power_on_fault", None) is not None:
+            if isinstance(esc.device, Drive) and esc.device.power_on_fault is not None:  # only drives have one
                 esc.device.power_on_fault = None
             if not esc.has_dc:
                 esc.has_dc = True

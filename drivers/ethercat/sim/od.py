@@ -381,8 +381,8 @@ class PdoCodec:
     def decode(self, buf: Any, offset: int) -> None:
         st = self._struct
         if st is not None:
-            for e, v in zip(self.entries, st.unpack_from(buf, offset), strict=True):
-                e.value = v
+            for entry, v in zip(self.entries, st.unpack_from(buf, offset), strict=True):
+                entry.value = v
             return
         raw = int.from_bytes(buf[offset:offset + self.size], "little")
         pos = 0
