@@ -24,6 +24,7 @@ run: $(STAMP)
 # lint only: formatting (ruff format) is not checked here
 lint: $(STAMP)
 	$(VENV)/bin/ruff check aiohal drivers controllers
+	$(VENV)/bin/ruff format --check aiohal drivers controllers
 	$(VENV)/bin/mypy aiohal drivers controllers
 
 test: lint

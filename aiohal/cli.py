@@ -100,7 +100,8 @@ def _duration(text: str) -> float:
         raise argparse.ArgumentTypeError(f"must be more than 0 s (got {text}); leave it out to run until stopped")
     if value > MAX_DURATION_S:
         raise argparse.ArgumentTypeError(
-            f"must be at most {MAX_DURATION_S:g} s (got {text}); leave it out to run until stopped")
+            f"must be at most {MAX_DURATION_S:g} s (got {text}); leave it out to run until stopped"
+        )
     return value
 
 
@@ -121,21 +122,30 @@ def _spin_guard(text: str) -> float:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m aiohal",
-        description="Run a robot from its TOML configuration. Other commands: "
-        "check CONFIG, schema, plugins.",
+        description="Run a robot from its TOML configuration. Other commands: check CONFIG, schema, plugins.",
     )
     p.add_argument("config", type=Path, help="robot configuration (TOML)")
     p.add_argument("--duration", type=_duration, default=None, help="seconds to run (default: until Ctrl-C/SIGTERM)")
     p.add_argument("--rate", type=_rate, default=None, help="tick rate in Hz (overrides loop.rate_hz)")
-    p.add_argument("--clock", choices=("auto", "timerfd", "sleep", "virtual"), default=None,
-                   help="wake source (overrides loop.clock)")
+    p.add_argument(
+        "--clock",
+        choices=("auto", "timerfd", "sleep", "virtual"),
+        default=None,
+        help="wake source (overrides loop.clock)",
+    )
     p.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio", help="event loop implementation")
-    p.add_argument("--spin-guard-us", type=_spin_guard, default=None, metavar="US",
-                   help="precision mode: wake US early and spin to each deadline (overrides realtime.spin_guard_us)")
+    p.add_argument(
+        "--spin-guard-us",
+        type=_spin_guard,
+        default=None,
+        metavar="US",
+        help="precision mode: wake US early and spin to each deadline (overrides realtime.spin_guard_us)",
+    )
     p.add_argument("--log-format", choices=("auto", "console", "json"), default="auto")
     p.add_argument("--report-json", type=Path, default=None, metavar="PATH", help="write the run report as JSON")
-    p.add_argument("--quiet", action="store_true",
-                   help="print only warnings and errors: no report, no progress, no live status")
+    p.add_argument(
+        "--quiet", action="store_true", help="print only warnings and errors: no report, no progress, no live status"
+    )
     run_outputs.add_arguments(p)
     p.add_argument("--version", action="version", version=f"aiohal {__version__}")
     return p
@@ -256,9 +266,14 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         control = ControlLoop(config)
         for sig in SAFETY_SIGNALS:
             loop.add_signal_handler(sig, on_safety_signal, control, sig)
-        log.info("starting robot %s: %d joints, %d driver(s), controller %s at %.0f Hz",
-                 config.robot.name, len(config.joints), len(config.drivers), config.controller.type,
-                 config.loop.rate_hz)
+        log.info(
+            "starting robot %s: %d joints, %d driver(s), controller %s at %.0f Hz",
+            config.robot.name,
+            len(config.joints),
+            len(config.drivers),
+            config.controller.type,
+            config.loop.rate_hz,
+        )
         try:
             await control.activate()
         except AiohalError as exc:
@@ -270,8 +285,10 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
             return 1
         outputs = run_outputs.RunOutputs(control, config, args)
         outputs.start()
-        log.info("running%s; Ctrl-C or SIGTERM stops safely",
-                 f" for {args.duration:g} s" if args.duration is not None else "")
+        log.info(
+            "running%s; Ctrl-C or SIGTERM stops safely",
+            f" for {args.duration:g} s" if args.duration is not None else "",
+        )
         stage = "running"
         try:
             if not control.stop_requested:
@@ -355,8 +372,10 @@ def cmd_check(argv: Sequence[str]) -> int:
             status = 2
             continue
         drivers = ", ".join(f"{d.name} ({d.type}, {counted(len(d.joints), 'joint')})" for d in config.drivers)
-        print(f"{path}: ok: robot {config.robot.name}, {counted(len(config.joints), 'joint')}, drivers: {drivers}, "
-              f"controller {config.controller.type} at {config.loop.rate_hz:g} Hz")
+        print(
+            f"{path}: ok: robot {config.robot.name}, {counted(len(config.joints), 'joint')}, drivers: {drivers}, "
+            f"controller {config.controller.type} at {config.loop.rate_hz:g} Hz"
+        )
     return status
 
 
@@ -402,8 +421,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = argv[0] if argv and argv[0] in SUBCOMMANDS else "run"
     if argv and argv[0] in SUBCOMMANDS:
         argv = argv[1:]
-    handler = {"run": cmd_run, "check": cmd_check, "schema": cmd_schema, "plugins": cmd_plugins,
-               "replay": cmd_replay, "plot": cmd_plot}[command]
+    handler = {
+        "run": cmd_run,
+        "check": cmd_check,
+        "schema": cmd_schema,
+        "plugins": cmd_plugins,
+        "replay": cmd_replay,
+        "plot": cmd_plot,
+    }[command]
     try:
         return handler(argv)
     except KeyboardInterrupt:

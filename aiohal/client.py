@@ -30,8 +30,16 @@ from .robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
 from .safety import SafetyLevel
 from .shm import RobotNotRunning, ShmError
 
-__all__ = ["BufferFull", "CommandBusy", "JointMismatch", "NotStreaming", "RobotClient", "RobotNotRunning",
-           "ShmError", "State"]
+__all__ = [
+    "BufferFull",
+    "CommandBusy",
+    "JointMismatch",
+    "NotStreaming",
+    "RobotClient",
+    "RobotNotRunning",
+    "ShmError",
+    "State",
+]
 
 
 class JointMismatch(ShmError, ValueError):
@@ -159,9 +167,14 @@ class RobotClient:
 
     # ------------------------------------------------------------ setpoints
 
-    def send(self, position: Sequence[float] | Mapping[str, float] | np.ndarray, *, t_ns: int = 0,
-             velocity: Sequence[float] | Mapping[str, float] | np.ndarray | None = None,
-             timeout_s: float = 0.0) -> None:
+    def send(
+        self,
+        position: Sequence[float] | Mapping[str, float] | np.ndarray,
+        *,
+        t_ns: int = 0,
+        velocity: Sequence[float] | Mapping[str, float] | np.ndarray | None = None,
+        timeout_s: float = 0.0,
+    ) -> None:
         """Queue one setpoint for time ``t_ns`` (0: as soon as possible). Every joint is given,
         as an array in the robot's order or a {name: value} map. Raises ValueError for a value
         that is not finite or out of range (nothing is queued), :class:`NotStreaming` when no
@@ -186,8 +199,10 @@ class RobotClient:
             flags = shm.FLAG_VELOCITY
         seg = self._seg
         if not seg.consumer[shm.C_STREAMING] or self.level < SafetyLevel.RUN:
-            raise NotStreaming(f"robot {self.robot!r} takes no setpoints: no stream controller is running "
-                               f"(safety level {self.level.name.lower()})")
+            raise NotStreaming(
+                f"robot {self.robot!r} takes no setpoints: no stream controller is running "
+                f"(safety level {self.level.name.lower()})"
+            )
         head = int(seg.producer[shm.P_HEAD])
         if head - int(seg.consumer[shm.C_TAIL]) >= self._capacity:
             deadline = time.monotonic() + timeout_s
@@ -205,12 +220,18 @@ class RobotClient:
         words[shm.SLOT_SENT_NS] = time.monotonic_ns()
         seg.producer[shm.P_HEAD] = head + 1  # last: the slot is complete before the tick can see it
 
-    def send_trajectory(self, times_ns: Sequence[int], positions: np.ndarray,
-                        velocities: np.ndarray | None = None, timeout_s: float = 1.0) -> None:
+    def send_trajectory(
+        self,
+        times_ns: Sequence[int],
+        positions: np.ndarray,
+        velocities: np.ndarray | None = None,
+        timeout_s: float = 1.0,
+    ) -> None:
         """Queue a trajectory, one point per row, waiting for room up to ``timeout_s`` per point."""
         for k, t in enumerate(times_ns):
-            self.send(positions[k], t_ns=int(t), velocity=None if velocities is None else velocities[k],
-                      timeout_s=timeout_s)
+            self.send(
+                positions[k], t_ns=int(t), velocity=None if velocities is None else velocities[k], timeout_s=timeout_s
+            )
 
     @property
     def pending(self) -> int:
@@ -271,7 +292,9 @@ class RobotClient:
             return out
         arr = np.asarray(values, dtype=np.float64)
         if arr.shape != (self.dof,):
-            raise ValueError(f"{what}: expected {self.dof} values (joints {list(self.joint_names)}), got shape {arr.shape}")
+            raise ValueError(
+                f"{what}: expected {self.dof} values (joints {list(self.joint_names)}), got shape {arr.shape}"
+            )
         np.copyto(out, arr)
         return out
 

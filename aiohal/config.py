@@ -66,7 +66,9 @@ class LoopSection(Options):
         "skip", description="After a stall: skip the missed ticks (keep phase) or run them late."
     )
     phase_us: float | None = Field(
-        None, ge=0, lt=1000,
+        None,
+        ge=0,
+        lt=1000,
         description="On a real clock, start the deadlines this many µs past a whole millisecond of "
         "CLOCK_MONOTONIC (e.g. to set apart two loops that share a CPU); default: between the "
         "kernel's own ticks (500 µs at 1 kHz).",
@@ -92,9 +94,7 @@ class LoopSection(Options):
 
 
 class JointSection(Options):
-    position: tuple[float, float] = Field(
-        (-math.inf, math.inf), description="[min, max] position (rad or m)."
-    )
+    position: tuple[float, float] = Field((-math.inf, math.inf), description="[min, max] position (rad or m).")
     velocity: float = Field(gt=0, description="Velocity limit (rad/s or m/s); inf for none.")
     acceleration: float = Field(math.inf, gt=0, description="Acceleration limit.")
     effort: float = Field(math.inf, gt=0, description="Effort limit (N·m or N).")
@@ -120,7 +120,9 @@ class DriverSection(Options):
     devices: list[str] = Field(default_factory=list)
     options: dict[str, Any] = Field(default_factory=dict, description="The driver's own options.")
     every: int = Field(
-        1, ge=1, le=1000,
+        1,
+        ge=1,
+        le=1000,
         description="Exchange data with this driver on every n-th tick only (a bus slower than the loop, "
         "e.g. classic CAN); its feedback's age is judged at its own rate.",
     )
@@ -130,7 +132,9 @@ class ControllerSection(Options):
     type: str = Field("hold", description="Controller name from `python -m aiohal plugins`.")
     params: dict[str, Any] = Field(default_factory=dict, description="The controller's parameters.")
     every: int = Field(
-        1, ge=1, le=1000,
+        1,
+        ge=1,
+        le=1000,
         description="Run the controller on every n-th tick only (a bus faster than the controller); "
         "the drivers still exchange data on every tick.",
     )
@@ -269,15 +273,33 @@ def describe_validation_error(err: Mapping[str, Any], allowed: list[str] | None 
 #: (``frequency.float``, ``frequency.dict[str,float]``): not a key the user wrote
 _UNION_TAG = re.compile(r"^(float|int|str|bool|none|bytes)$|[\[(]|^(function-|constrained-|lax-|json-or-python)")
 #: errors that only say the value is of another member's kind
-_WRONG_KIND = {"float_type", "float_parsing", "int_type", "int_parsing", "int_from_float", "string_type",
-               "bool_type", "bool_parsing", "dict_type", "list_type", "tuple_type", "none_required",
-               "literal_error", "model_type", "path_type", "is_instance_of", "enum"}
+_WRONG_KIND = {
+    "float_type",
+    "float_parsing",
+    "int_type",
+    "int_parsing",
+    "int_from_float",
+    "string_type",
+    "bool_type",
+    "bool_parsing",
+    "dict_type",
+    "list_type",
+    "tuple_type",
+    "none_required",
+    "literal_error",
+    "model_type",
+    "path_type",
+    "is_instance_of",
+    "enum",
+}
 
 
 def _kind_of(tag: str) -> str:
     if tag.startswith("literal["):
-        return " or ".join(f'"{v.strip()[1:-1]}"' if v.strip()[:1] in "'\"" else v.strip()
-                           for v in tag[len("literal["):-1].split(","))
+        return " or ".join(
+            f'"{v.strip()[1:-1]}"' if v.strip()[:1] in "'\"" else v.strip()
+            for v in tag[len("literal[") : -1].split(",")
+        )
     named = {"float": "a number", "int": "an integer", "str": "a string", "bool": "true or false"}
     for prefix, kind in (("dict[", "a table"), ("list[", "an array"), ("tuple[", "an array"), ("set[", "an array")):
         if tag.startswith(prefix):
@@ -296,7 +318,10 @@ def _collapse_unions(errors: Sequence[Mapping[str, Any]]) -> list[Mapping[str, A
         if at is None:
             out.append(err)
             continue
-        clean = {**err, "loc": loc[:at] + tuple(p for p in loc[at + 1:] if not (isinstance(p, str) and _UNION_TAG.search(p)))}
+        clean = {
+            **err,
+            "loc": loc[:at] + tuple(p for p in loc[at + 1 :] if not (isinstance(p, str) and _UNION_TAG.search(p))),
+        }
         if loc[:at] not in groups:
             groups[loc[:at]] = []
             out.append({"loc": loc[:at], "_group": True})  # keeps the order of the errors
@@ -312,7 +337,9 @@ def _collapse_unions(errors: Sequence[Mapping[str, Any]]) -> list[Mapping[str, A
             result.extend(meant)
         else:
             kinds = " or ".join(dict.fromkeys(_kind_of(tag) for tag, _ in members))
-            result.append({"loc": err["loc"], "type": "union", "msg": f"must be {kinds}", "input": members[0][1].get("input")})
+            result.append(
+                {"loc": err["loc"], "type": "union", "msg": f"must be {kinds}", "input": members[0][1].get("input")}
+            )
     return result
 
 
@@ -334,9 +361,7 @@ def _model_fields(model: Any, loc: tuple[Any, ...]) -> list[str] | None:
     return list(fields) if fields else None
 
 
-def _validate(
-    schema: Any, data: Any, prefix: str, issues: list[ConfigIssue], context: dict[str, Any]
-) -> Any:
+def _validate(schema: Any, data: Any, prefix: str, issues: list[ConfigIssue], context: dict[str, Any]) -> Any:
     """Validate ``data`` against a model or type; append located issues; None on failure."""
     try:
         return TypeAdapter(schema).validate_python(data, context=context)
@@ -372,7 +397,9 @@ def _expand(patterns: list[str], names: tuple[str, ...], path: str, issues: list
     return out
 
 
-def _load_plugin(kind: plugins.Kind, name: str, path: str, issues: list[ConfigIssue], given: type | None = None) -> type | None:
+def _load_plugin(
+    kind: plugins.Kind, name: str, path: str, issues: list[ConfigIssue], given: type | None = None
+) -> type | None:
     """The plugin named ``name`` (or the class ``given`` from code), or None with the issue added."""
     try:
         return plugins.check_class(kind, given) if given is not None else plugins.load(kind, name)
@@ -396,6 +423,8 @@ def _plugin_path(where: str, rel: str) -> str:
     if rel.startswith("/"):
         return rel[1:]
     return f"{where}.{rel}" if rel else where
+
+
 def _plugin_checks_rate(cls: type, options: Options, cycle_hz: float, every: int) -> list[tuple[str, str]]:
     """A driver's checks at the rate it is cycled at; a check that crashes is reported, not raised."""
     check = getattr(cls, "check_rate", None)
@@ -510,9 +539,11 @@ def _parse_loop(doc: _Document) -> tuple[LoopSection | None, RealtimeSection | N
     if loop is not None and realtime is not None:
         period_us = 1e6 / loop.rate_hz
         if realtime.spin_guard_us > period_us / 2:
-            doc.add("realtime.spin_guard_us",
-                    f"{realtime.spin_guard_us:g} µs is more than half the period ({period_us / 2:g} µs): "
-                    "the loop would spin most of the time")
+            doc.add(
+                "realtime.spin_guard_us",
+                f"{realtime.spin_guard_us:g} µs is more than half the period ({period_us / 2:g} µs): "
+                "the loop would spin most of the time",
+            )
     return loop, realtime
 
 
@@ -532,8 +563,10 @@ def _parse_joints(doc: _Document) -> tuple[JointSpec, ...]:
     specs: list[JointSpec] = []
     for name, body in raw_joints.items():
         if not name.strip() or any(c in name for c in _GLOB):
-            doc.add(f'joints."{name}"', "a joint name must not be empty nor contain * ? [ "
-                    "(drivers name their joints with those patterns)")
+            doc.add(
+                f'joints."{name}"',
+                "a joint name must not be empty nor contain * ? [ (drivers name their joints with those patterns)",
+            )
         if not isinstance(body, dict):
             doc.add(f"joints.{name}", "must be a table")
             joint = None
@@ -566,7 +599,10 @@ def _parse_devices(doc: _Document, joint_names: tuple[str, ...]) -> dict[str, De
 
 
 def _parse_drivers(
-    doc: _Document, joint_names: tuple[str, ...], devices: dict[str, DeviceSection], robot: RobotSection,
+    doc: _Document,
+    joint_names: tuple[str, ...],
+    devices: dict[str, DeviceSection],
+    robot: RobotSection,
     loop: LoopSection | None,
 ) -> tuple[DriverConfig, ...]:
     """``[[driver]]``: each entry with its joints (a contiguous run, each owned once), its
@@ -606,8 +642,10 @@ def _parse_drivers(
                 joint_owner[j] = i
         idx = [joint_names.index(j) for j in joints]
         if idx and idx != list(range(idx[0], idx[0] + len(idx))):
-            doc.add(f"{where}.joints", "a driver's joints must be a contiguous run in the order of [joints] "
-                    f"(got {', '.join(joints)})")
+            doc.add(
+                f"{where}.joints",
+                f"a driver's joints must be a contiguous run in the order of [joints] (got {', '.join(joints)})",
+            )
 
         cls = cast("type[Driver] | None", _load_plugin("driver", section.type, f"{where}.type", doc.issues, given))
         dev_kinds: dict[str, str] = {}
@@ -634,8 +672,9 @@ def _parse_drivers(
         if loop is not None:
             for rel, msg in _plugin_checks_rate(cls, options, loop.rate_hz / section.every, section.every):
                 doc.add(_plugin_path(where, rel), msg)
-        drivers.append(DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options,
-                                    section.every))
+        drivers.append(
+            DriverConfig(name, section.type, cls, tuple(joints), tuple(section.devices), options, section.every)
+        )
 
     if isinstance(doc.raw.get("driver"), list) and not incomplete:  # raw_drivers is [] after a malformed section
         for j in joint_names:
@@ -660,7 +699,9 @@ def _parse_controller(doc: _Document, joints: tuple[JointSpec, ...], robot: Robo
     section = doc.validate(ControllerSection, body, "controller")
     if section is None:
         return None
-    cls = cast("type[Controller] | None", _load_plugin("controller", section.type, "controller.type", doc.issues, given))
+    cls = cast(
+        "type[Controller] | None", _load_plugin("controller", section.type, "controller.type", doc.issues, given)
+    )
     if cls is None:
         return None
     params = doc.validate(cls.Params, section.params, "controller.params")
@@ -687,13 +728,23 @@ def mode_issues(controller: type[Controller], params: Options, drivers: Sequence
         try:
             supported = driver.cls.supported_modes(driver.options)
         except Exception as exc:
-            issues.append(ConfigIssue(where, f'driver "{driver.name}": {driver.cls.__name__}.supported_modes '
-                                      f"failed: {type(exc).__name__}: {exc}"))
+            issues.append(
+                ConfigIssue(
+                    where,
+                    f'driver "{driver.name}": {driver.cls.__name__}.supported_modes '
+                    f"failed: {type(exc).__name__}: {exc}",
+                )
+            )
             continue
         missing = commanded - supported
         if missing:
-            issues.append(ConfigIssue(where, f"commands {_mode_names(missing)}, which driver \"{driver.name}\" "
-                                      f"({driver.type}) cannot apply (it takes {_mode_names(supported) or 'none'})"))
+            issues.append(
+                ConfigIssue(
+                    where,
+                    f'commands {_mode_names(missing)}, which driver "{driver.name}" '
+                    f"({driver.type}) cannot apply (it takes {_mode_names(supported) or 'none'})",
+                )
+            )
     return issues
 
 
@@ -714,18 +765,23 @@ def _cross_check(
     if safety is not None and safety.workspace and robot is not None:
         doc.issues += _workspace_issues(robot, safety)
     zenoh = bridge.zenoh if bridge is not None else None
-    if zenoh is not None and zenoh.accept_setpoints and (client is None or not client.shm or
-                                                         (controller is not None and controller.type != "stream")):
-        doc.add("bridge.zenoh.accept_setpoints", "setpoints go through the shared-memory ring "
-                "to the stream controller: set [client] shm = true and [controller] type = \"stream\"")
+    if (
+        zenoh is not None
+        and zenoh.accept_setpoints
+        and (client is None or not client.shm or (controller is not None and controller.type != "stream"))
+    ):
+        doc.add(
+            "bridge.zenoh.accept_setpoints",
+            "setpoints go through the shared-memory ring "
+            'to the stream controller: set [client] shm = true and [controller] type = "stream"',
+        )
     if client is not None and client.shm and robot is not None:
         try:
             segment_name(robot.name)
         except AiohalError as exc:
             doc.add("robot.name", str(exc))
     if controller is not None and client is not None and controller.type == "stream" and not client.shm:
-        doc.add("controller.type", "the stream controller reads setpoints from shared memory: "
-                "set [client] shm = true")
+        doc.add("controller.type", "the stream controller reads setpoints from shared memory: set [client] shm = true")
 
 
 #: the largest config file read (the largest shipped config is about 10 KiB); a device or a
@@ -763,8 +819,10 @@ def load_config(path: str | Path) -> Config:
     except OSError as exc:
         raise ConfigError([ConfigIssue("", f"cannot read the file: {exc}")], source) from None
     if len(data) > MAX_CONFIG_BYTES:
-        raise ConfigError([ConfigIssue("", f"the file is larger than {MAX_CONFIG_BYTES // 1024} KiB: "
-                                       "not a robot configuration")], source)
+        raise ConfigError(
+            [ConfigIssue("", f"the file is larger than {MAX_CONFIG_BYTES // 1024} KiB: not a robot configuration")],
+            source,
+        )
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -814,8 +872,15 @@ def from_parts(
     if isinstance(joints, Mapping):
         raw["joints"] = {name: dict(body) if isinstance(body, Mapping) else body for name, body in joints.items()}
     else:
-        raw["joints"] = {j.name: {"position": [j.position_min, j.position_max], "velocity": j.velocity,
-                                  "acceleration": j.acceleration, "effort": j.effort} for j in joints}
+        raw["joints"] = {
+            j.name: {
+                "position": [j.position_min, j.position_max],
+                "velocity": j.velocity,
+                "acceleration": j.acceleration,
+                "effort": j.effort,
+            }
+            for j in joints
+        }
     if devices is not None:
         raw["devices"] = {name: dict(body) for name, body in devices.items()}
     raw["driver"] = [{"type": entry[0], **entry[1]} if isinstance(entry, tuple) else dict(entry) for entry in drivers]
@@ -843,7 +908,10 @@ def json_schema() -> dict[str, Any]:
         props[key] = sub
     props["joints"]["minProperties"] = 1
     props["driver"]["minItems"] = 1
-    for kind, section_key, field_name in (("driver", "DriverSection", "options"), ("controller", "ControllerSection", "params")):
+    for kind, section_key, field_name in (
+        ("driver", "DriverSection", "options"),
+        ("controller", "ControllerSection", "params"),
+    ):
         clauses = []
         names = []  # only the plugins that load: a broken one is no choice for a config
         for spec, error in plugins.describe(kind):
@@ -870,15 +938,17 @@ def json_schema() -> dict[str, Any]:
         section_schema = defs[section_key] if section_key in defs else props[kind]
         section_schema["allOf"] = clauses
         section_schema["properties"]["type"]["enum"] = sorted(names)
-    return _finite_defaults({
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "title": "aiohal robot configuration",
-        "type": "object",
-        "properties": props,
-        "required": list(REQUIRED_SECTIONS),
-        "additionalProperties": False,
-        "$defs": defs,
-    })
+    return _finite_defaults(
+        {
+            "$schema": "https://json-schema.org/draft/2020-12/schema",
+            "title": "aiohal robot configuration",
+            "type": "object",
+            "properties": props,
+            "required": list(REQUIRED_SECTIONS),
+            "additionalProperties": False,
+            "$defs": defs,
+        }
+    )
 
 
 def _finite_defaults(node: Any) -> Any:

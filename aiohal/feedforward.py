@@ -41,9 +41,11 @@ class FeedforwardSection(Options):
     """``[feedforward]``: learned velocity feed-forward gains, and how to learn them."""
 
     gains: Annotated[Path | None, AfterValidator(_relative)] = Field(
-        None, description="A gains file written by `python -m aiohal.feedforward learn` (relative to this config).")
+        None, description="A gains file written by `python -m aiohal.feedforward learn` (relative to this config)."
+    )
     k_e: JointValues | None = Field(
-        None, description="k_e given here, scalar or per joint (k_vel,ff = 1 + k_e); added to the file's, if both.")
+        None, description="k_e given here, scalar or per joint (k_vel,ff = 1 + k_e); added to the file's, if both."
+    )
     step: float = Field(0.1, gt=0, le=1, description="Learning: the raise of k_e per window.")
     window_s: float = Field(1.2, gt=0, description="Learning: the window of each RMS (one period of the motion).")
     settle_s: float = Field(1.2, ge=0, description="Learning: time before the first window (the ramp-in).")
@@ -66,7 +68,7 @@ def read_gains(path: Path) -> dict[str, float]:
 
 def write_gains(path: Path, gains: dict[str, float], comment: str = "") -> None:
     lines = [f"# {line}" for line in comment.splitlines()]
-    lines += ["# k_vel,ff = 1 + k_e per joint; load it with [feedforward] gains = \"<this file>\"", "[k_e]"]
+    lines += ['# k_vel,ff = 1 + k_e per joint; load it with [feedforward] gains = "<this file>"', "[k_e]"]
     lines += [f"{name} = {value:.6g}" for name, value in gains.items()]
     Path(path).write_text("\n".join(lines) + "\n")
 
@@ -156,8 +158,9 @@ class LearningFeedforward(VelocityFeedforward):
     of each tick (target position against the position measured at that tick) is summed over
     windows of ``window`` ticks, after ``settle`` ticks."""
 
-    def __init__(self, command: JointCommand, state: JointState, learner: GainLearner, window: int,
-                 settle: int) -> None:
+    def __init__(
+        self, command: JointCommand, state: JointState, learner: GainLearner, window: int, settle: int
+    ) -> None:
         super().__init__(command, np.zeros(len(command)))
         self.state = state
         self.learner = learner

@@ -71,8 +71,9 @@ def unknown_joint_issues(path: str, mapping: Any, allowed: Iterable[str]) -> lis
         return []
     allowed = list(allowed)
     known = set(allowed)
-    return [(f"{path}.{key}", f'unknown joint "{key}"{did_you_mean(key, allowed)}')
-            for key in mapping if key not in known]
+    return [
+        (f"{path}.{key}", f'unknown joint "{key}"{did_you_mean(key, allowed)}') for key in mapping if key not in known
+    ]
 
 
 class Driver(abc.ABC):

@@ -25,8 +25,10 @@ def compiled_for(kernel: Any, args: Sequence[Any]) -> Callable[..., Any]:
     called on the arrays of ``args``: they are checked here first (:func:`check`), and the
     caller passes those same arrays on every call, or calls this again for new ones."""
     if len(kernel.signatures) != 1:
-        raise TypeError(f"{kernel.py_func.__qualname__}: one explicit signature is needed for a direct call, "
-                        f"it has {len(kernel.signatures)}")
+        raise TypeError(
+            f"{kernel.py_func.__qualname__}: one explicit signature is needed for a direct call, "
+            f"it has {len(kernel.signatures)}"
+        )
     check(kernel, args)
     return kernel.get_overload(kernel.signatures[0])
 

@@ -27,8 +27,13 @@ async def learn(config: Any, duration_s: float | None = None) -> tuple[GainLearn
     learner = GainLearner(section.step, section.max_steps)
     loop = ControlLoop(config)
     async with loop:
-        loop.feedforward = LearningFeedforward(loop.robot.command, loop.robot.state, learner,
-                                               max(1, round(section.window_s * rate)), round(section.settle_s * rate))
+        loop.feedforward = LearningFeedforward(
+            loop.robot.command,
+            loop.robot.state,
+            learner,
+            max(1, round(section.window_s * rate)),
+            round(section.settle_s * rate),
+        )
         limit = duration_s or section.settle_s + section.window_s * (section.max_steps + 2)
         chunk = section.window_s
         elapsed = 0.0
@@ -42,8 +47,10 @@ async def learn(config: Any, duration_s: float | None = None) -> tuple[GainLearn
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m aiohal.learn_feedforward",
-                                     description="Learn the velocity feed-forward gains k_e (LOLA's policy).")
+    parser = argparse.ArgumentParser(
+        prog="python -m aiohal.learn_feedforward",
+        description="Learn the velocity feed-forward gains k_e (LOLA's policy).",
+    )
     parser.add_argument("config")
     parser.add_argument("--out", required=True, help="the gains file to write (TOML)")
     parser.add_argument("--clock", default=None, help="override [loop] clock (virtual: lockstep, as fast as it goes)")
@@ -67,8 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     names = [j.name for j in config.joints]
     k_e = learner.best[0]
     trace = ", ".join(f"{k:.2f}: {rms:.3g}" for k, rms in learner.costs)
-    write_gains(Path(args.out), {name: k_e for name in names},
-                f"learned by python -m aiohal.learn_feedforward {args.config}\nRMS per window (k_e: rad): {trace}")
+    write_gains(
+        Path(args.out),
+        {name: k_e for name in names},
+        f"learned by python -m aiohal.learn_feedforward {args.config}\nRMS per window (k_e: rad): {trace}",
+    )
     print(f"k_e = {k_e:g} (RMS {learner.best[1]:.3g} rad); windows: {trace}")
     return 0
 

@@ -71,8 +71,10 @@ class CommandLimiter:
         self._kernel = kernel_call.compiled_for(self._dispatcher, (*args, False))
         n = self._table.shape[1]
         if args[0].shape != (len(CommandRow), n) or args[1].shape != (n,) or args[2].shape != (n,):
-            raise ValueError(f"the limiter's kernel needs the robot's command block {(len(CommandRow), n)}, modes and "
-                             f"positions ({n},): got {args[0].shape}, {args[1].shape}, {args[2].shape}")
+            raise ValueError(
+                f"the limiter's kernel needs the robot's command block {(len(CommandRow), n)}, modes and "
+                f"positions ({n},): got {args[0].shape}, {args[1].shape}, {args[2].shape}"
+            )
         self._args = args
 
     @property

@@ -86,8 +86,18 @@ class DriverStatus(StrEnum):
 class DriverSlot:
     """A driver with its status and timing counters."""
 
-    __slots__ = ("driver", "name", "type", "status", "read_ns", "write_ns", "max_read_ns", "max_write_ns",
-                 "every", "max_age")
+    __slots__ = (
+        "driver",
+        "name",
+        "type",
+        "status",
+        "read_ns",
+        "write_ns",
+        "max_read_ns",
+        "max_write_ns",
+        "every",
+        "max_age",
+    )
 
     def __init__(self, driver: Driver, type_name: str, every: int = 1, max_age: int = 0) -> None:
         self.driver = driver
@@ -123,17 +133,24 @@ class ControlLoop:
         self.source = tick_source or make_source(config.loop.clock, guard_ns, config.loop.idle_wait)
         self.realtime: RealtimeState | None = None
         phase = config.loop.phase_us
-        self.ticker = Ticker(self.source, self.period_ns, config.loop.overrun,
-                             None if phase is None else round(phase * 1e3))
+        self.ticker = Ticker(
+            self.source, self.period_ns, config.loop.overrun, None if phase is None else round(phase * 1e3)
+        )
         self.stats = TickStats(config.loop.stats_window)
         self.limiter = CommandLimiter(self.robot, self.period_s)
         every = config.controller.every
         #: a controller slower than the bus (None: it runs on every tick)
-        self.multirate = (TargetExtrapolator(self.robot.command, self.period_s, every, config.controller.extrapolate)
-                          if every > 1 else None)
+        self.multirate = (
+            TargetExtrapolator(self.robot.command, self.period_s, every, config.controller.extrapolate)
+            if every > 1
+            else None
+        )
         #: learned velocity feed-forward, applied after the controller (None: not configured)
-        self.feedforward = (VelocityFeedforward(self.robot.command, gains_of(config.feedforward, list(self.robot.joint_names)))
-                            if config.feedforward.active else None)
+        self.feedforward = (
+            VelocityFeedforward(self.robot.command, gains_of(config.feedforward, list(self.robot.joint_names)))
+            if config.feedforward.active
+            else None
+        )
         #: the safety state machine (:mod:`aiohal.safety`); ``level`` mirrors its level for the tick
         self.safety = SafetyMachine(SafetyLevel[config.safety.fault_level.upper()])
         self.level = SafetyLevel.OFF
@@ -151,8 +168,12 @@ class ControlLoop:
             from .workspace import WorkspaceMonitor
 
             # the config refuses workspace limits without [robot] model
-            self.workspace = WorkspaceMonitor(cast(Path, config.robot.model), list(self.robot.joint_names),
-                                              self.robot.state.position, list(config.safety.workspace))
+            self.workspace = WorkspaceMonitor(
+                cast(Path, config.robot.model),
+                list(self.robot.joint_names),
+                self.robot.state.position,
+                list(config.safety.workspace),
+            )
         self._outside = False  # a site is outside its workspace (recorded once per excursion)
         self.slots: list[DriverSlot] = []
         self._active: list[DriverSlot] = []
@@ -205,8 +226,12 @@ class ControlLoop:
         else:
             instance, spec = None, controller
         config = config_from_parts(controller=spec, params=params, **parts)
-        return cls(config, tick_source=tick_source, controller=instance,
-                   controller_params=config.controller.params if instance else None)
+        return cls(
+            config,
+            tick_source=tick_source,
+            controller=instance,
+            controller_params=config.controller.params if instance else None,
+        )
 
     # ------------------------------------------------------------ lifecycle
 
@@ -401,8 +426,7 @@ class ControlLoop:
             self.worst_level = self.level  # the lowest level reached while running, for the exit status
         return changed
 
-    def estop(self, cause: str = "requested", *, source: str = "user",
-              event: SafetyEvent = SafetyEvent.ESTOP) -> None:
+    def estop(self, cause: str = "requested", *, source: str = "user", event: SafetyEvent = SafetyEvent.ESTOP) -> None:
         """Trigger every driver's emergency stop now (synchronous; safe to call twice, and from
         another thread or a signal handler). The drivers are still read; nothing is commanded
         until :meth:`reset_faults` and :meth:`rearm`."""
@@ -450,8 +474,9 @@ class ControlLoop:
                     self.record_fault(f"driver:{slot.name}", "release_estop", exc)
                     kept.append(slot.name)
             if kept:
-                raise SafetyRequestRefused(f"driver(s) {', '.join(kept)} cannot leave the emergency stop "
-                                           "without a restart")
+                raise SafetyRequestRefused(
+                    f"driver(s) {', '.join(kept)} cannot leave the emergency stop without a restart"
+                )
         for slot in self._active:
             self.robot.state.fault[slot.driver.view.rows] = 0
         self._stale_drivers.clear()
@@ -559,8 +584,14 @@ class ControlLoop:
             self.record_fault("controller:hold", "update", hold_exc)
             self.estop("hold failed", source="controller:hold", event=SafetyEvent.FAULT)
 
-    def enter_hold(self, reason: str, *, source: str = "loop", event: SafetyEvent = SafetyEvent.FAULT,
-                   level: SafetyLevel | None = None) -> None:
+    def enter_hold(
+        self,
+        reason: str,
+        *,
+        source: str = "loop",
+        event: SafetyEvent = SafetyEvent.FAULT,
+        level: SafetyLevel | None = None,
+    ) -> None:
         """Replace the controller by ``hold``, continuing from the last command sent: a joint
         that was moving brakes to rest within its acceleration limit (no jump, no stall).
         A fault goes to ``[safety] fault_level`` instead when that is ``estop``."""
@@ -622,7 +653,9 @@ class ControlLoop:
             self.robot.state.fault[view.rows] |= np.uint32(Fault.STALE)
             if slot.name not in self._stale_drivers:
                 self._stale_drivers.add(slot.name)
-                self.record_fault(f"driver:{slot.name}", "check", f"feedback is stale ({k - view.fresh_tick} ticks old)")
+                self.record_fault(
+                    f"driver:{slot.name}", "check", f"feedback is stale ({k - view.fresh_tick} ticks old)"
+                )
         if stale:
             self.enter_hold("stale feedback from " + ", ".join(s.name for s in stale), source="feedback")
             self._warn.warning("stale", "feedback still stale from %s", ", ".join(s.name for s in stale))
@@ -636,9 +669,11 @@ class ControlLoop:
             return
         entry = workspace.entries[workspace.outside]
         source = f"workspace:{entry.site}"
-        reason = (f"site {entry.site} is {workspace.distance * 1e3:.2f} mm outside its "
-                  f"{'box' if entry.box is not None else 'sphere'} (at {np.round(workspace.where, 4).tolist()} "
-                  f"in frame {entry.frame})")
+        reason = (
+            f"site {entry.site} is {workspace.distance * 1e3:.2f} mm outside its "
+            f"{'box' if entry.box is not None else 'sphere'} (at {np.round(workspace.where, 4).tolist()} "
+            f"in frame {entry.frame})"
+        )
         if not self._outside:
             self._outside = True
             self.record_fault(source, "check", reason)
@@ -679,8 +714,16 @@ class ControlLoop:
             if self.source.kind == "virtual":
                 # a virtual clock runs flat out: SCHED_FIFO would starve the machine (and be throttled)
                 rt = self.config.realtime
-                asked = [name for name, value in (("priority", rt.priority), ("lock_memory", rt.lock_memory),
-                                                  ("cpus", rt.cpus), ("spin_guard_us", rt.spin_guard_us)) if value]
+                asked = [
+                    name
+                    for name, value in (
+                        ("priority", rt.priority),
+                        ("lock_memory", rt.lock_memory),
+                        ("cpus", rt.cpus),
+                        ("spin_guard_us", rt.spin_guard_us),
+                    )
+                    if value
+                ]
                 if asked:  # by design, not a fault: a note, not a warning
                     self.realtime.applied["not_applied"] = f"{', '.join(asked)} (virtual clock)"
             else:
@@ -690,15 +733,20 @@ class ControlLoop:
             watchdog = StallWatchdog(self, self.config.loop.stall_timeout_ms / 1e3)
             if self.watchdog is not None:
                 self.watchdog.arm()
-                log.info("watchdog process %d armed: %g ms", cast(subprocess.Popen, self.watchdog.proc).pid,
-                         self.watchdog.watchdog_ms)
+                log.info(
+                    "watchdog process %d armed: %g ms",
+                    cast(subprocess.Popen, self.watchdog.proc).pid,
+                    self.watchdog.watchdog_ms,
+                )
             with watchdog:
                 try:
                     await self._tick_loop(ticks)
                 except asyncio.CancelledError:
                     if not watchdog.fired:
                         raise
-                    cast(asyncio.Task, asyncio.current_task()).uncancel()  # the watchdog's cancel ends the run, not the caller
+                    cast(
+                        asyncio.Task, asyncio.current_task()
+                    ).uncancel()  # the watchdog's cancel ends the run, not the caller
         finally:
             if self.watchdog is not None:
                 self.watchdog.disarm()
@@ -715,8 +763,12 @@ class ControlLoop:
         """The watchdog process acted on the hardware (the tick had stopped): estop here too."""
         watchdog = self.watchdog
         if watchdog is not None and watchdog.fired_ns and self.level > SafetyLevel.ESTOP:
-            self.record_fault("watchdog", "tick", f"the tick stopped for more than {watchdog.watchdog_ms:g} ms: "
-                              "the watchdog process ran the drivers' safe actions")
+            self.record_fault(
+                "watchdog",
+                "tick",
+                f"the tick stopped for more than {watchdog.watchdog_ms:g} ms: "
+                "the watchdog process ran the drivers' safe actions",
+            )
             self.estop("the watchdog process acted", source="watchdog", event=SafetyEvent.WATCHDOG)
 
     async def _tick_loop(self, ticks: int | None) -> None:
@@ -882,8 +934,9 @@ class ControlLoop:
         if self._given_controller is None and self.config.controller.type != self.controller_type:
             metrics["configured"] = self.config.controller.type
         if self.multirate is not None:
-            metrics.update(every=self.multirate.every, extrapolate=self.multirate.extrapolate,
-                           updates=self.multirate.updates)
+            metrics.update(
+                every=self.multirate.every, extrapolate=self.multirate.extrapolate, updates=self.multirate.updates
+            )
         if controller is not None:
             try:
                 metrics.update(controller.metrics())
@@ -985,8 +1038,9 @@ class StallWatchdog:
             elif now - since > self.timeout_s:
                 self.fired = True
                 # synchronous, from this thread: the loop may be stuck
-                self.control.estop(f"no tick for {self.timeout_s * 1e3:g} ms", source="watchdog",
-                                   event=SafetyEvent.WATCHDOG)
+                self.control.estop(
+                    f"no tick for {self.timeout_s * 1e3:g} ms", source="watchdog", event=SafetyEvent.WATCHDOG
+                )
                 loop.call_soon_threadsafe(self._cancel)
                 return
 
@@ -995,4 +1049,3 @@ class StallWatchdog:
         self.control.request_stop("stalled")
         if self._task is not None:
             self._task.cancel()
-

@@ -42,7 +42,7 @@ def plot(recording, out_dir: Path, joints: list[str] | None = None) -> list[Path
         t = state.t[si]
         fig, (ax, err) = plt.subplots(2, 1, sharex=True, figsize=(10, 6))
         for i in pick[:12]:
-            line, = ax.plot(t, state.position[si, i], label=names[i])
+            (line,) = ax.plot(t, state.position[si, i], label=names[i])
             ax.plot(t, command.position[ci, i], "--", color=line.get_color(), linewidth=0.8)
             err.plot(t, (command.position[ci, i] - state.position[si, i]) * 1e3, color=line.get_color())
         ax.set_ylabel("position (solid) / target (dashed)")

@@ -105,10 +105,7 @@ def _entry_point_specs(kind: str) -> list[PluginSpec]:
 def available(kind: str) -> dict[str, PluginSpec]:
     """Every known plugin of a kind; a built-in name cannot be taken over, and a registered
     one goes before an entry point of the same name."""
-    found = {
-        name: PluginSpec(kind, name, target, extra, "built-in")
-        for name, (target, extra) in BUILTIN[kind].items()
-    }
+    found = {name: PluginSpec(kind, name, target, extra, "built-in") for name, (target, extra) in BUILTIN[kind].items()}
     for name, spec in _REGISTERED[kind].items():
         found.setdefault(name, spec)
     for spec in _entry_point_specs(kind):
@@ -140,8 +137,9 @@ def _import_target(spec: PluginSpec) -> type:
         ) from exc
     except AttributeError as exc:
         if exc.name not in spec.target.replace(":", ".").split("."):  # raised by the module's own code
-            raise PluginError(f'{spec.kind} "{spec.name}": importing {module_name} failed: '
-                              f"AttributeError: {exc}") from exc
+            raise PluginError(
+                f'{spec.kind} "{spec.name}": importing {module_name} failed: AttributeError: {exc}'
+            ) from exc
         raise PluginError(f'{spec.kind} "{spec.name}": {spec.target} does not exist') from exc
     except ValueError as exc:  # not a name at all
         raise PluginError(f'{spec.kind} "{spec.name}": {spec.target!r} is not a "package.module:Class" name') from exc

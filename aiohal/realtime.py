@@ -38,7 +38,10 @@ class RealtimeSection(Options):
         None, min_length=1, description="CPUs the ticking thread may run on."
     )
     timer_slack_ns: int | None = Field(
-        1, ge=1, le=1_000_000_000, description="Timer slack of the ticking thread (Linux default 50 µs); none = leave it."
+        1,
+        ge=1,
+        le=1_000_000_000,
+        description="Timer slack of the ticking thread (Linux default 50 µs); none = leave it.",
     )
     spin_guard_us: float = Field(
         0.0, ge=0, description="Precision mode: wake this early and spin to the deadline (≤ half the period)."

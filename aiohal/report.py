@@ -32,8 +32,18 @@ def _fmt(value: Any) -> str:
 
 
 #: key suffixes that carry a unit: ``sim_time_s`` reads "sim time 1.00 s"
-_UNITS = (("_rad_or_m", " rad or m"), ("_per_s", "/s"), ("_percent", " %"), ("_us", " µs"), ("_ms", " ms"),
-          ("_ns", " ns"), ("_hz", " Hz"), ("_rad", " rad"), ("_s", " s"), ("_m", " m"))
+_UNITS = (
+    ("_rad_or_m", " rad or m"),
+    ("_per_s", "/s"),
+    ("_percent", " %"),
+    ("_us", " µs"),
+    ("_ms", " ms"),
+    ("_ns", " ns"),
+    ("_hz", " Hz"),
+    ("_rad", " rad"),
+    ("_s", " s"),
+    ("_m", " m"),
+)
 
 
 def _item(key: str, value: Any) -> str:
@@ -105,8 +115,10 @@ def format_report(report: dict[str, Any]) -> str:
     lines.append(f"  controller   {ctrl['type']}" + (f": {extra}" if extra else ""))
     rec = report.get("record")
     if rec:
-        lines.append(f"  record       {rec['path'] or 'live only'}: {rec['ticks']} ticks, {rec['dropped_ticks']} dropped, "
-                     f"{rec['messages']} messages" + (f", ERROR {rec['error']}" if rec.get("error") else ""))
+        lines.append(
+            f"  record       {rec['path'] or 'live only'}: {rec['ticks']} ticks, {rec['dropped_ticks']} dropped, "
+            f"{rec['messages']} messages" + (f", ERROR {rec['error']}" if rec.get("error") else "")
+        )
     for fault in report["faults"]:
         lines.append(f"  FAULT        {fault['source']} in {fault['phase']} at tick {fault['tick']}: {fault['error']}")
     return "\n".join(lines)

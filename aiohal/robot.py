@@ -177,7 +177,9 @@ class JointCommand(_Rows):
         self.mode = np.zeros(n, dtype=np.int8)
 
 
-def per_joint(values: float | dict[str, float] | Sequence[float], names: Sequence[str], default: float = 0.0) -> np.ndarray:
+def per_joint(
+    values: float | dict[str, float] | Sequence[float], names: Sequence[str], default: float = 0.0
+) -> np.ndarray:
     """An array over ``names`` from a scalar, a {joint: value} map (others get ``default``) or a list."""
     if isinstance(values, dict):
         return np.array([float(values.get(name, default)) for name in names])
@@ -334,9 +336,7 @@ class HandGroup(DeviceGroup):
         self.force[:] = 1.0
 
 
-DEVICE_GROUPS: dict[str, type[DeviceGroup]] = {
-    cls.kind: cls for cls in (ImuGroup, ForceTorqueGroup, HandGroup)
-}
+DEVICE_GROUPS: dict[str, type[DeviceGroup]] = {cls.kind: cls for cls in (ImuGroup, ForceTorqueGroup, HandGroup)}
 
 
 # ---------------------------------------------------------------- the robot and its views

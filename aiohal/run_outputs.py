@@ -23,10 +23,22 @@ FOXGLOVE_PORT = 8765
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--record", type=Path, default=None, metavar="PATH",
-                        help="record every tick to this MCAP file (overrides [record] path)")
-    parser.add_argument("--foxglove", type=int, nargs="?", const=FOXGLOVE_PORT, default=None, metavar="PORT",
-                        help=f"serve the run live to Foxglove on localhost:PORT (default {FOXGLOVE_PORT})")
+    parser.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="record every tick to this MCAP file (overrides [record] path)",
+    )
+    parser.add_argument(
+        "--foxglove",
+        type=int,
+        nargs="?",
+        const=FOXGLOVE_PORT,
+        default=None,
+        metavar="PORT",
+        help=f"serve the run live to Foxglove on localhost:PORT (default {FOXGLOVE_PORT})",
+    )
 
 
 def record_path(config: Any, args: argparse.Namespace) -> Path | None:

@@ -120,16 +120,14 @@ class SafetyMachine:
             to = wanted if wanted < self.level else None
         return to
 
-    def fire(self, event: SafetyEvent, tick: int, source: str, cause: str,
-             level: SafetyLevel | None = None) -> bool:
+    def fire(self, event: SafetyEvent, tick: int, source: str, cause: str, level: SafetyLevel | None = None) -> bool:
         """Apply ``event``; record it when the table has a row for it. False if refused."""
         to = self.target(event, level)
         if to is None:
             return False
         if to == self.level == SafetyLevel.ESTOP:
             return True  # a repeated emergency stop changes nothing worth a record
-        self.transitions.append(Transition(tick, event.value, source, cause,
-                                           self.level.name.lower(), to.name.lower()))
+        self.transitions.append(Transition(tick, event.value, source, cause, self.level.name.lower(), to.name.lower()))
         self.level = to
         return True
 
@@ -174,17 +172,26 @@ class SafetySection(Options):
     """``[safety]``: how faults are handled, the watchdog process and the workspace."""
 
     fault_level: Literal["hold", "estop"] = Field(
-        "hold", description="Where a fault (driver, controller, stale feedback, refused command) takes the robot.")
+        "hold", description="Where a fault (driver, controller, stale feedback, refused command) takes the robot."
+    )
     watchdog: bool = Field(
-        True, description="Start the watchdog process when some driver declares an out-of-process safe action "
-                          "(and the clock is real): it runs them when the tick's heartbeat stops.")
+        True,
+        description="Start the watchdog process when some driver declares an out-of-process safe action "
+        "(and the clock is real): it runs them when the tick's heartbeat stops.",
+    )
     watchdog_ms: float = Field(
-        20.0, gt=0, le=10_000, description="The heartbeat is stale after this long (ms): the watchdog process acts.")
+        20.0, gt=0, le=10_000, description="The heartbeat is stale after this long (ms): the watchdog process acts."
+    )
     workspace: list[WorkspaceSection] = Field(
-        default_factory=list, description="Sites that must stay inside a box or sphere (needs [robot] model).")
+        default_factory=list, description="Sites that must stay inside a box or sphere (needs [robot] model)."
+    )
     watchdog_priority: int = Field(
-        0, ge=0, le=99, description="SCHED_FIFO priority of the watchdog process (0: normal scheduling); it "
-                                    "should be above the loop's.")
+        0,
+        ge=0,
+        le=99,
+        description="SCHED_FIFO priority of the watchdog process (0: normal scheduling); it "
+        "should be above the loop's.",
+    )
 
 
 @dataclass(frozen=True)

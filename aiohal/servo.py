@@ -56,19 +56,52 @@ class ServoParams(Options):
     current_gain: float = Field(4.7, ge=0, description="P of the current loop (V/A).")
     current_integral_time: float = Field(0.00125, gt=0, description="Integral time of the current loop (s).")
     current_rate_hz: float = Field(20_000.0, gt=0, description="Current loop rate; the mechanics step at it too.")
-    velocity_every: int = Field(2, ge=1, description="The position and velocity loops run every n current steps "
-                                "(10 kHz at the defaults).")
-    velocity_filter_hz: float = Field(1000.0, gt=0, description="Low-pass (first order) of the measured motor "
-                                      "speed the velocity loop uses.")
+    velocity_every: int = Field(
+        2, ge=1, description="The position and velocity loops run every n current steps (10 kHz at the defaults)."
+    )
+    velocity_filter_hz: float = Field(
+        1000.0, gt=0, description="Low-pass (first order) of the measured motor speed the velocity loop uses."
+    )
 
 
 # columns of the parameter table (one row per joint), in ServoParams' order
 PARAM_FIELDS = tuple(ServoParams.model_fields)
-(GEAR, ROTOR_J, LOAD_J, VISCOUS, COULOMB, GRAVITY, KT, RES, IND, IMAX, VMAX, KP_POS, KP_VEL, TI_VEL, KP_CUR, TI_CUR,
- CUR_HZ, VEL_EVERY, VEL_FILTER_HZ) = range(len(PARAM_FIELDS))
+(
+    GEAR,
+    ROTOR_J,
+    LOAD_J,
+    VISCOUS,
+    COULOMB,
+    GRAVITY,
+    KT,
+    RES,
+    IND,
+    IMAX,
+    VMAX,
+    KP_POS,
+    KP_VEL,
+    TI_VEL,
+    KP_CUR,
+    TI_CUR,
+    CUR_HZ,
+    VEL_EVERY,
+    VEL_FILTER_HZ,
+) = range(len(PARAM_FIELDS))
 # columns of the state table (one row per joint)
-STATE_FIELDS = ("position", "velocity", "current", "velocity_integral", "current_integral", "current_command",
-                "previous_target", "target", "velocity_ff", "current_ff", "phase", "measured_speed")
+STATE_FIELDS = (
+    "position",
+    "velocity",
+    "current",
+    "velocity_integral",
+    "current_integral",
+    "current_command",
+    "previous_target",
+    "target",
+    "velocity_ff",
+    "current_ff",
+    "phase",
+    "measured_speed",
+)
 (Q, W, CURRENT, VEL_INT, CUR_INT, I_CMD, PREV_TARGET, TARGET, VEL_FF, CUR_FF, PHASE, W_MEAS) = range(len(STATE_FIELDS))
 
 
@@ -145,7 +178,8 @@ class ReferenceServo:
             if self.phase == 0:
                 hv = h * p.velocity_every
                 self.measured_speed += (self.motor_speed - self.measured_speed) * (
-                    1.0 - math.exp(-hv * 2.0 * math.pi * p.velocity_filter_hz))
+                    1.0 - math.exp(-hv * 2.0 * math.pi * p.velocity_filter_hz)
+                )
                 setpoint = self.previous_target + (self.target - self.previous_target) * k / n
                 speed = p.position_gain * (setpoint - self.position) + self.velocity_ff  # joint rad/s
                 error = speed * p.gear_ratio - self.measured_speed
@@ -241,7 +275,6 @@ def step_servos(state, params, cycle):
         s[Q], s[W], s[CURRENT] = angle, w, i
         s[PHASE] = phase
         s[PREV_TARGET] = s[TARGET]
-
 
 
 class ServoBank:

@@ -64,8 +64,11 @@ _NAME_OK = re.compile(r"^[A-Za-z0-9_.-]{1,200}$")
 class ClientSection(Options):
     """``[client]``: the shared-memory door for processes on this machine (docs/client.md)."""
 
-    shm: bool = Field(False, description="Publish state and take setpoints through shared memory "
-                      "(segment aiohal.<robot>); needed by the stream controller.")
+    shm: bool = Field(
+        False,
+        description="Publish state and take setpoints through shared memory "
+        "(segment aiohal.<robot>); needed by the stream controller.",
+    )
     capacity: int = Field(1024, ge=2, le=1 << 20, description="Setpoints the ring holds.")
 
 
@@ -83,8 +86,9 @@ class SegmentBusy(ShmError):
 
 def segment_name(robot: str) -> str:
     if not _NAME_OK.match(robot):
-        raise ShmError(f"robot name {robot!r} cannot name a shared-memory segment "
-                       "(letters, digits, '_', '.', '-' only)")
+        raise ShmError(
+            f"robot name {robot!r} cannot name a shared-memory segment (letters, digits, '_', '.', '-' only)"
+        )
     return f"aiohal.{robot}"
 
 
@@ -116,22 +120,35 @@ class Layout:
         self.dof, self.n_imu, self.n_ft, self.capacity, self.meta_len = dof, n_imu, n_ft, capacity, meta_len
         n_state, n_cmd = len(JOINT_STATE_FIELDS), len(JOINT_COMMAND_FIELDS)
         at = 0
-        self.header = at; at += HEADER_WORDS * 8
-        self.seqlock = at; at += LINE
-        self.requests = at; at += LINE
-        self.producer = at; at += LINE
-        self.consumer = at; at += LINE
-        self.meta = at; at += _round(meta_len)
+        self.header = at
+        at += HEADER_WORDS * 8
+        self.seqlock = at
+        at += LINE
+        self.requests = at
+        at += LINE
+        self.producer = at
+        at += LINE
+        self.consumer = at
+        at += LINE
+        self.meta = at
+        at += _round(meta_len)
         # the state payload the seqlock guards: each array on a line of its own
-        self.state = at; at += _round(n_state * dof * 8)
-        self.command = at; at += _round(n_cmd * dof * 8)
-        self.fault = at; at += _round(dof * 4)
-        self.mode = at; at += _round(dof)
-        self.imu = at; at += _round(n_imu * 10 * 8)
-        self.ft = at; at += _round(n_ft * 6 * 8)
+        self.state = at
+        at += _round(n_state * dof * 8)
+        self.command = at
+        at += _round(n_cmd * dof * 8)
+        self.fault = at
+        at += _round(dof * 4)
+        self.mode = at
+        at += _round(dof)
+        self.imu = at
+        at += _round(n_imu * 10 * 8)
+        self.ft = at
+        at += _round(n_ft * 6 * 8)
         self.slot_words = SLOT_WORDS_HEAD + 2 * dof
         self.slot_size = _round(self.slot_words * 8)
-        self.ring = at; at += capacity * self.slot_size
+        self.ring = at
+        at += capacity * self.slot_size
         self.size = at
 
 
@@ -160,10 +177,13 @@ class Segment:
         ring = np.frombuffer(buf, np.uint8, L.capacity * L.slot_size, L.ring).reshape(L.capacity, L.slot_size)
         #: per slot: the int64 head words, the positions and the velocities
         self.slot_words = [ring[i, : SLOT_WORDS_HEAD * 8].view(np.int64) for i in range(L.capacity)]
-        self.slot_position = [ring[i, SLOT_WORDS_HEAD * 8:(SLOT_WORDS_HEAD + n) * 8].view(np.float64)
-                              for i in range(L.capacity)]
-        self.slot_velocity = [ring[i, (SLOT_WORDS_HEAD + n) * 8:(SLOT_WORDS_HEAD + 2 * n) * 8].view(np.float64)
-                              for i in range(L.capacity)]
+        self.slot_position = [
+            ring[i, SLOT_WORDS_HEAD * 8 : (SLOT_WORDS_HEAD + n) * 8].view(np.float64) for i in range(L.capacity)
+        ]
+        self.slot_velocity = [
+            ring[i, (SLOT_WORDS_HEAD + n) * 8 : (SLOT_WORDS_HEAD + 2 * n) * 8].view(np.float64)
+            for i in range(L.capacity)
+        ]
 
     @property
     def name(self) -> str:
@@ -171,12 +191,26 @@ class Segment:
 
     def meta(self) -> dict[str, Any]:
         L = self.layout
-        return json.loads(bytes(_buf(self.shm)[L.meta:L.meta + L.meta_len]).decode())
+        return json.loads(bytes(_buf(self.shm)[L.meta : L.meta + L.meta_len]).decode())
 
     def release(self) -> None:
         """Drop every view, then unmap (the views would keep the buffer exported)."""
-        for attr in ("header", "seqlock", "requests", "producer", "consumer", "state", "command", "fault",
-                     "mode", "imu", "ft", "slot_words", "slot_position", "slot_velocity"):
+        for attr in (
+            "header",
+            "seqlock",
+            "requests",
+            "producer",
+            "consumer",
+            "state",
+            "command",
+            "fault",
+            "mode",
+            "imu",
+            "ft",
+            "slot_words",
+            "slot_position",
+            "slot_velocity",
+        ):
             setattr(self, attr, None)
         try:
             self.shm.close()
@@ -184,8 +218,9 @@ class Segment:
             log.warning("shared memory %s still has views; left mapped", self.shm.name)
 
 
-def create_segment(robot: str, meta: dict[str, Any], *, dof: int, n_imu: int, n_ft: int,
-                   capacity: int, period_ns: int, can_rearm: bool) -> Segment:
+def create_segment(
+    robot: str, meta: dict[str, Any], *, dof: int, n_imu: int, n_ft: int, capacity: int, period_ns: int, can_rearm: bool
+) -> Segment:
     """Make the robot's segment; one left by a process that is gone is replaced."""
     name = segment_name(robot)
     blob = json.dumps(meta).encode()
@@ -196,7 +231,7 @@ def create_segment(robot: str, meta: dict[str, Any], *, dof: int, n_imu: int, n_
         _remove_stale(name, robot)
         shm = shared_memory.SharedMemory(name, create=True, size=layout.size)
     _buf(shm)[: layout.size] = bytes(layout.size)  # touch every page now, not in the tick
-    _buf(shm)[layout.meta:layout.meta + len(blob)] = blob
+    _buf(shm)[layout.meta : layout.meta + len(blob)] = blob
     seg = Segment(shm, layout, owner=True)
     h = seg.header
     h[H_VERSION], h[H_PID], h[H_STATUS], h[H_DOF] = VERSION, os.getpid(), STATUS_STARTING, dof
@@ -229,8 +264,9 @@ def attach_segment(robot: str) -> Segment:
     try:
         shm = shared_memory.SharedMemory(name)
     except FileNotFoundError:
-        raise RobotNotRunning(f"robot {robot!r} is not running: no shared memory /{name} "
-                              "(is the loop up with [client] shm = true?)") from None
+        raise RobotNotRunning(
+            f"robot {robot!r} is not running: no shared memory /{name} (is the loop up with [client] shm = true?)"
+        ) from None
     words = np.frombuffer(_buf(shm), np.int64, HEADER_WORDS) if shm.size >= HEADER_WORDS * 8 else None
     try:
         if words is None or words[H_MAGIC] != MAGIC:
@@ -239,10 +275,13 @@ def attach_segment(robot: str) -> Segment:
             raise ShmError(f"/{name} has layout version {int(words[H_VERSION])}, this client reads {VERSION}")
         pid, status = int(words[H_PID]), int(words[H_STATUS])
         if status == STATUS_CLOSED or not pid_alive(pid):
-            raise RobotNotRunning(f"robot {robot!r} is not running: /{name} was left by process {pid}, "
-                                  + ("which closed it" if status == STATUS_CLOSED else "which is gone"))
-        layout = Layout(int(words[H_DOF]), int(words[H_N_IMU]), int(words[H_N_FT]),
-                        int(words[H_CAPACITY]), int(words[H_META_LEN]))
+            raise RobotNotRunning(
+                f"robot {robot!r} is not running: /{name} was left by process {pid}, "
+                + ("which closed it" if status == STATUS_CLOSED else "which is gone")
+            )
+        layout = Layout(
+            int(words[H_DOF]), int(words[H_N_IMU]), int(words[H_N_FT]), int(words[H_CAPACITY]), int(words[H_META_LEN])
+        )
     except BaseException:
         del words
         shm.close()
@@ -286,8 +325,15 @@ class ShmDoor:
             "force_torque": list(robot.force_torque.names),
         }
         self.segment = create_segment(
-            robot.name, _finite_json(meta), dof=robot.dof, n_imu=len(robot.imu), n_ft=len(robot.force_torque),
-            capacity=capacity, period_ns=control.period_ns, can_rearm=True)
+            robot.name,
+            _finite_json(meta),
+            dof=robot.dof,
+            n_imu=len(robot.imu),
+            n_ft=len(robot.force_torque),
+            capacity=capacity,
+            period_ns=control.period_ns,
+            can_rearm=True,
+        )
         self.requests_acted = 0
         self.publish = self._make_publisher()
         _DOORS[robot.name] = self
@@ -301,11 +347,18 @@ class ShmDoor:
         seg, robot, control = self.segment, self.control.robot, self.control
         seq = memoryview(seg.seqlock).cast("B").cast("q")
         req = memoryview(seg.requests).cast("B").cast("q")
-        pairs = [(memoryview(dst).cast("B"), memoryview(src).cast("B"))
-                 for dst, src in ((seg.state, robot.state.block), (seg.command, robot.command.block),
-                                  (seg.fault, robot.state.fault), (seg.mode, robot.command.mode),
-                                  (seg.imu, robot.imu.values), (seg.ft, robot.force_torque.values))
-                 if src is not None and src.size]
+        pairs = [
+            (memoryview(dst).cast("B"), memoryview(src).cast("B"))
+            for dst, src in (
+                (seg.state, robot.state.block),
+                (seg.command, robot.command.block),
+                (seg.fault, robot.state.fault),
+                (seg.mode, robot.command.mode),
+                (seg.imu, robot.imu.values),
+                (seg.ft, robot.force_torque.values),
+            )
+            if src is not None and src.size
+        ]
         (d_state, s_state), (d_cmd, s_cmd), (d_fault, s_fault), (d_mode, s_mode) = pairs[:4]
         devices = pairs[4:]
         # released at close: a memoryview left over the segment would keep it mapped
@@ -389,10 +442,12 @@ def door(robot: str) -> ShmDoor | None:
 
 def _finite_json(meta: dict[str, Any]) -> dict[str, Any]:
     """JSON has no inf: an absent limit is written as null."""
+
     def fix(v: Any) -> Any:
         if isinstance(v, float) and not np.isfinite(v):
             return None
         if isinstance(v, list):
             return [fix(x) for x in v]
         return v
+
     return {k: fix(v) for k, v in meta.items()}

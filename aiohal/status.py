@@ -52,8 +52,10 @@ def render(figures: dict[str, Any]) -> Any:
     table.add_column()
     table.add_row("robot", f"{figures['robot']}  ticks {figures['ticks']}")
     table.add_row("rate", f"{figures['rate_hz']:.1f} Hz")
-    table.add_row("lateness", f"p99 {figures['lateness_p99_us']:.1f} µs (last 1000 ticks)  "
-                              f"work p50 {figures['work_p50_us']:.1f} µs")
+    table.add_row(
+        "lateness",
+        f"p99 {figures['lateness_p99_us']:.1f} µs (last 1000 ticks)  work p50 {figures['work_p50_us']:.1f} µs",
+    )
     table.add_row("missed", str(figures["missed_ticks"]))
     table.add_row("safety", f"[{colour}]{level}[/]")
     table.add_row("faults", str(figures["fault_count"]) + "".join(f"\n[red]{f}[/]" for f in figures["faults"]))
@@ -61,8 +63,12 @@ def render(figures: dict[str, Any]) -> Any:
         extra = ", ".join(f"{k} {_short(v)}" for k, v in d.items() if k != "status" and not isinstance(v, (dict, list)))
         table.add_row(f"driver {name}", d["status"] + (f"  {extra}" if extra else ""))
     ctrl = figures["controller"]
-    table.add_row("controller", ctrl.get("type", "?") + "  " + ", ".join(
-        f"{k} {_short(v)}" for k, v in ctrl.items() if k != "type" and not isinstance(v, (dict, list))))
+    table.add_row(
+        "controller",
+        ctrl.get("type", "?")
+        + "  "
+        + ", ".join(f"{k} {_short(v)}" for k, v in ctrl.items() if k != "type" and not isinstance(v, (dict, list))),
+    )
     from rich.panel import Panel
 
     return Panel(table, title="aiohal", expand=False)
@@ -89,8 +95,9 @@ class StatusPanel:
         from rich.console import Console
         from rich.live import Live
 
-        self._live = Live(render(status(self.control)), console=self.console or Console(),
-                          auto_refresh=False, transient=True)
+        self._live = Live(
+            render(status(self.control)), console=self.console or Console(), auto_refresh=False, transient=True
+        )
         self._live.start()
         self._task = asyncio.get_running_loop().create_task(self._refresh())
 

@@ -280,7 +280,9 @@ class IdleWait:
         selector = getattr(loop, "_selector", None)
         if not isinstance(selector, selectors.EpollSelector) or loop.get_debug():
             return None
-        if not isinstance(getattr(loop, "_ready", None), deque) or not isinstance(getattr(loop, "_scheduled", None), list):
+        if not isinstance(getattr(loop, "_ready", None), deque) or not isinstance(
+            getattr(loop, "_scheduled", None), list
+        ):
             return None
         return cls(loop, fd, selector.fileno())
 

@@ -121,11 +121,21 @@ class WatchdogProcess:
             os.ftruncate(fd, WORDS * 8)
             self._mm = mmap.mmap(fd, WORDS * 8)
             self.heartbeat = memoryview(self._mm).cast("q")
-            spec = {"parent": os.getpid(), "fd": fd, "watchdog_ns": round(self.watchdog_ms * 1e6),
-                    "priority": self.priority, "actions": [_encode(o, a) for o, a in self.actions]}
+            spec = {
+                "parent": os.getpid(),
+                "fd": fd,
+                "watchdog_ns": round(self.watchdog_ms * 1e6),
+                "priority": self.priority,
+                "actions": [_encode(o, a) for o, a in self.actions],
+            }
             shared = tuple(a.fd for _, a in self.actions if isinstance(a, SendDatagram) and a.fd is not None)
-            self.proc = subprocess.Popen([sys.executable, "-I", __file__], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, pass_fds=(fd, *shared), text=True)
+            self.proc = subprocess.Popen(
+                [sys.executable, "-I", __file__],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                pass_fds=(fd, *shared),
+                text=True,
+            )
         finally:
             os.close(fd)
         assert self.proc.stdin is not None and self.proc.stdout is not None
@@ -210,6 +220,7 @@ def _prepare(action: dict) -> Callable[[], object]:
 
         def write() -> None:
             os.pwrite(fd, data, 0)
+
         return write
     raise ValueError(f"unknown action {kind!r}")
 

@@ -20,8 +20,9 @@ from .safety import SafetyLevel, WorkspaceSection
 
 
 class WorkspaceMonitor:
-    def __init__(self, model_path: str | Path, joint_names: list[str], position: np.ndarray,
-                 entries: list[WorkspaceSection]) -> None:
+    def __init__(
+        self, model_path: str | Path, joint_names: list[str], position: np.ndarray, entries: list[WorkspaceSection]
+    ) -> None:
         import mujoco  # the `sim` extra: loaded only for a configured workspace
 
         from . import mjcf
@@ -40,7 +41,9 @@ class WorkspaceMonitor:
         self._sites, self._frames = [], []
         for e in entries:
             self._sites.append(mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, e.site))
-            self._frames.append(0 if e.frame == "world" else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, e.frame))
+            self._frames.append(
+                0 if e.frame == "world" else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, e.frame)
+            )
         self._local = np.empty(3)
         self.outside = -1  # the entry a site is outside of, -1: all inside
         self.distance = 0.0  # how far outside (m)

@@ -28,15 +28,18 @@ from aiohal.robot import Mode
 
 
 class ChirpParams(Options):
-    amplitude: JointValues = Field(0.0002, description="Amplitude (rad), scalar or per joint (joints not "
-                                   "named stay where they are).")
+    amplitude: JointValues = Field(
+        0.0002, description="Amplitude (rad), scalar or per joint (joints not named stay where they are)."
+    )
     f_start: float = Field(10.0, gt=0, description="Frequency at the start of the sweep (Hz).")
     f_end: float = Field(500.0, gt=0, description="Frequency at the end of the sweep (Hz).")
     duration: float = Field(4.0, gt=0, description="Length of the sweep (s).")
     settle: float = Field(0.5, ge=0, description="Time at the start position before the sweep (s).")
     ramp: float = Field(0.05, ge=0, description="Fade-in and fade-out of the amplitude (s).")
-    velocity_feedforward: bool = Field(True, description="Send the sweep's velocity as the target velocity "
-                                       "(false: position only, zero target velocity).")
+    velocity_feedforward: bool = Field(
+        True,
+        description="Send the sweep's velocity as the target velocity (false: position only, zero target velocity).",
+    )
 
 
 def _fade(x: float) -> tuple[float, float]:
@@ -58,8 +61,12 @@ class ChirpController(Controller):
         if params.f_end <= params.f_start:
             issues.append(("params.f_end", f"must be above f_start ({params.f_end:g} <= {params.f_start:g})"))
         if 2.0 * params.ramp > params.duration:
-            issues.append(("params.ramp", f"fade-in and fade-out ({2 * params.ramp:g} s) are longer than "
-                           f"the sweep ({params.duration:g} s)"))
+            issues.append(
+                (
+                    "params.ramp",
+                    f"fade-in and fade-out ({2 * params.ramp:g} s) are longer than the sweep ({params.duration:g} s)",
+                )
+            )
         if issues:
             return issues
         too_fast: dict[str, list[str]] = {}
@@ -136,5 +143,4 @@ class ChirpController(Controller):
             cmd.velocity.fill(0.0)
 
     def metrics(self) -> dict:
-        return {"f_start_hz": self.params.f_start, "f_end_hz": self.params.f_end,
-                "sweep_s": self.params.duration}
+        return {"f_start_hz": self.params.f_start, "f_end_hz": self.params.f_end, "sweep_s": self.params.duration}

@@ -214,21 +214,27 @@ def _check_start(c: CircleController) -> str:
             raise ValueError(f'site "{name}": no joint the circle may move carries it')
         anchors = [data.xanchor[j] for j in reversed(chain)] + [data.site_xpos[sid]]
         reach = sum(float(np.linalg.norm(q - r)) for r, q in itertools.pairwise(anchors))
-        reach += sum(float(np.ptp(model.jnt_range[j])) for j in chain if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE)
+        reach += sum(
+            float(np.ptp(model.jnt_range[j])) for j in chain if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_SLIDE
+        )
         points = np.repeat(c.center[3 * i : 3 * i + 3][None, :], len(angles), axis=0)
         points[:, a] += p.radius * np.cos(angles)
         points[:, b] += p.radius * np.sin(angles)
         farthest = float(np.linalg.norm(points - anchors[0], axis=1).max())
         if farthest > reach + 1e-9:
             joint = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, chain[-1])
-            raise ValueError(f'site "{name}": the circle comes {farthest:.3f} m from joint "{joint}", '
-                             f"farther than the chain reaches ({reach:.3f} m)")
+            raise ValueError(
+                f'site "{name}": the circle comes {farthest:.3f} m from joint "{joint}", '
+                f"farther than the chain reaches ({reach:.3f} m)"
+            )
         in_plane = c.J[3 * i : 3 * i + 3][[a, b]]  # the site's Jacobian rows of the circle's axes
         smallest = float(np.linalg.svd(in_plane, compute_uv=False).min())
         if smallest < SINGULAR_M_PER_RAD:
-            warnings.append(f'site "{name}": the start pose is singular in the {p.plane} plane '
-                            f"(smallest singular value {smallest:.2g} m/rad); the circle may be tracked "
-                            "poorly: start from another pose (initial_position or keyframe)")
+            warnings.append(
+                f'site "{name}": the start pose is singular in the {p.plane} plane '
+                f"(smallest singular value {smallest:.2g} m/rad); the circle may be tracked "
+                "poorly: start from another pose (initial_position or keyframe)"
+            )
     return "; ".join(warnings)
 
 
@@ -277,10 +283,21 @@ def _tick_function(c: CircleController, site_positions):
     command_position = c.robot.command.position
     command_velocity = c.robot.command.velocity
     velocity_rows = None if gather else command_velocity[rows]  # a view of the moving rows
-    subtract, multiply, add, minimum, maximum, copyto = np.subtract, np.multiply, np.add, np.minimum, np.maximum, np.copyto
+    subtract, multiply, add, minimum, maximum, copyto = (
+        np.subtract,
+        np.multiply,
+        np.add,
+        np.minimum,
+        np.maximum,
+        np.copyto,
+    )
     cos, sin = math.cos, math.sin
     mul_mat_mat_t, chol_factor, chol_solve, mul_mat_t_vec = (
-        mujoco.mju_mulMatMatT, mujoco.mju_cholFactor, mujoco.mju_cholSolve, mujoco.mju_mulMatTVec)
+        mujoco.mju_mulMatMatT,
+        mujoco.mju_cholFactor,
+        mujoco.mju_cholSolve,
+        mujoco.mju_mulMatTVec,
+    )
 
     def update(t: float, dt: float) -> None:
         elapsed = t - t0

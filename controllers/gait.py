@@ -30,15 +30,22 @@ from aiohal.robot import Mode
 class GaitParams(Options):
     period: float = Field(1.2, gt=0, description="Gait period, one stride (s).")
     harmonics: list[tuple[float, float]] = Field(
-        [(0.35, 0.0), (0.06, 0.9)], min_length=1,
-        description="(amplitude rad, phase rad) of harmonic 1, 2, ... of the gait frequency.")
+        [(0.35, 0.0), (0.06, 0.9)],
+        min_length=1,
+        description="(amplitude rad, phase rad) of harmonic 1, 2, ... of the gait frequency.",
+    )
     offset: JointValues = Field(0.1, description="Mean position (rad), scalar or per joint.")
     scale: JointValues = Field(1.0, description="Factor on the series, scalar or per joint.")
     ramp: float = Field(1.0, ge=0, description="Blend-in time from the start position (s).")
-    inertia: JointValues = Field(2.2, ge=0, description="Model: inertia at the joint incl. the rotor's "
-                                 "through the gear (kg·m²), for the torque feed-forward.")
-    gravity_torque: JointValues = Field(30.0, description="Model: m·g·l of the load (N·m): gravity torque "
-                                        "gravity_torque · sin q.")
+    inertia: JointValues = Field(
+        2.2,
+        ge=0,
+        description="Model: inertia at the joint incl. the rotor's "
+        "through the gear (kg·m²), for the torque feed-forward.",
+    )
+    gravity_torque: JointValues = Field(
+        30.0, description="Model: m·g·l of the load (N·m): gravity torque gravity_torque · sin q."
+    )
     torque_feedforward: bool = Field(True, description="Send the model's torque as feed-forward.")
 
 

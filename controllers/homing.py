@@ -29,8 +29,10 @@ class HomingController(Controller):
             target = params.pose.get(joint.name)
             if target is not None and not joint.position_min <= target <= joint.position_max:
                 issues.append(
-                    (f"params.pose.{joint.name}", f"{target} is outside the joint's range "
-                     f"[{joint.position_min}, {joint.position_max}]")
+                    (
+                        f"params.pose.{joint.name}",
+                        f"{target} is outside the joint's range [{joint.position_min}, {joint.position_max}]",
+                    )
                 )
         return issues
 

@@ -59,8 +59,12 @@ class SequenceController(Controller):
                 for name, target in step.pose.items():
                     joint = names.get(name)
                     if joint is not None and not joint.position_min <= target <= joint.position_max:
-                        issues.append((f"{where}.pose.{name}", f"{target} is outside the joint's range "
-                                       f"[{joint.position_min}, {joint.position_max}]"))
+                        issues.append(
+                            (
+                                f"{where}.pose.{name}",
+                                f"{target} is outside the joint's range [{joint.position_min}, {joint.position_max}]",
+                            )
+                        )
             elif step.hand not in names:
                 issues.append((f"{where}.hand", f'unknown joint "{step.hand}"'))
         return issues
@@ -75,9 +79,7 @@ class SequenceController(Controller):
         robot = self.robot
         robot.command.mode[:] = Mode.POSITION
         self.pose = robot.state.position.copy()  # the pose commanded between moves
-        self.goals = [
-            None if s.pose is None else robot.per_joint(s.pose, default=np.nan) for s in self.params.steps
-        ]
+        self.goals = [None if s.pose is None else robot.per_joint(s.pose, default=np.nan) for s in self.params.steps]
         self.index = -1
         self.outcomes: list[dict] = []
         self._next(t)
@@ -122,14 +124,16 @@ class SequenceController(Controller):
         outcome = self._hand_outcome(step, t - self.t0)
         if outcome:
             hand = self.hand
-            self.outcomes.append({
-                "step": self.index,
-                "hand": hand.name,
-                "grasp": step.grasp,
-                "outcome": outcome,
-                "position": round(float(hand.position), 4),
-                "time_s": round(t - self.t0, 3),
-            })
+            self.outcomes.append(
+                {
+                    "step": self.index,
+                    "hand": hand.name,
+                    "grasp": step.grasp,
+                    "outcome": outcome,
+                    "position": round(float(hand.position), 4),
+                    "time_s": round(t - self.t0, 3),
+                }
+            )
             self._next(t)
 
     def _hand_outcome(self, step: Step, waited: float) -> str:

@@ -49,8 +49,12 @@ class SineController(Controller):
             frequency = value("frequency", joint.name, 0.5)
             where = f"params.amplitude.{joint.name}" if isinstance(params.amplitude, dict) else "params.amplitude"
             if frequency < 0:
-                issues.append((f"params.frequency.{joint.name}" if isinstance(params.frequency, dict) else "params.frequency",
-                               f"must be >= 0 (got {frequency})"))
+                issues.append(
+                    (
+                        f"params.frequency.{joint.name}" if isinstance(params.frequency, dict) else "params.frequency",
+                        f"must be >= 0 (got {frequency})",
+                    )
+                )
             peak = 2.0 * math.pi * frequency * amplitude
             if peak > joint.velocity:
                 too_fast.setdefault(where, []).append(f"{joint.name} ({peak:.3g} > {joint.velocity:.3g})")
@@ -114,8 +118,14 @@ class SineController(Controller):
         np.add(swing, self.q0, out=command.position)
 
     def metrics(self) -> dict:
-        sum_sq, largest, samples = getattr(self, "_sum_sq", 0.0), getattr(self, "_largest", 0.0), getattr(self, "_samples", 0)
+        sum_sq, largest, samples = (
+            getattr(self, "_sum_sq", 0.0),
+            getattr(self, "_largest", 0.0),
+            getattr(self, "_samples", 0),
+        )
         if not samples:
             return {"tracking_rms_rad_or_m": float("nan"), "tracking_max_rad_or_m": float("nan")}
-        return {"tracking_rms_rad_or_m": round(math.sqrt(sum_sq / samples), 6), "tracking_max_rad_or_m": round(float(largest), 6)}
-
+        return {
+            "tracking_rms_rad_or_m": round(math.sqrt(sum_sq / samples), 6),
+            "tracking_max_rad_or_m": round(float(largest), 6),
+        }

@@ -29,8 +29,12 @@ class StreamUnderrun(AiohalError, RuntimeError):
 
 
 class StreamParams(Options):
-    dry_after_s: float = Field(0.1, gt=0, description="After the last point's time, hold it this long "
-                               "waiting for the next, then fault (the loop goes to hold).")
+    dry_after_s: float = Field(
+        0.1,
+        gt=0,
+        description="After the last point's time, hold it this long "
+        "waiting for the next, then fault (the loop goes to hold).",
+    )
 
 
 class _Point:
@@ -155,8 +159,10 @@ class StreamController(Controller):
         cmd.velocity.fill(0.0)
         if self._streaming and now - a.t > self._dry_ns:
             self.underruns += 1
-            raise StreamUnderrun(f"no setpoint for {(now - a.t) / 1e9:.3f} s after the last one "
-                                 f"(dry_after_s = {self.params.dry_after_s:g})")
+            raise StreamUnderrun(
+                f"no setpoint for {(now - a.t) / 1e9:.3f} s after the last one "
+                f"(dry_after_s = {self.params.dry_after_s:g})"
+            )
 
     def _interpolate(self, a: _Point, b: _Point, now: int, cmd) -> None:
         span = (b.t - a.t) * 1e-9
@@ -207,8 +213,11 @@ class StreamController(Controller):
         return self._latency[idx] if end else np.zeros(0, dtype=np.int64)
 
     def metrics(self) -> dict:
-        out = {"points_applied": getattr(self, "applied", 0), "points_refused": getattr(self, "refused", 0),
-               "underruns": getattr(self, "underruns", 0)}
+        out = {
+            "points_applied": getattr(self, "applied", 0),
+            "points_refused": getattr(self, "refused", 0),
+            "underruns": getattr(self, "underruns", 0),
+        }
         n = min(getattr(self, "applied", 0), LATENCY_WINDOW)
         if n and self.robot.clock.kind != "virtual":
             lat = self._latency[:n] / 1e3

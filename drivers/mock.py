@@ -41,14 +41,17 @@ class MockFaults(Options):
     feedback_lost_for: int = Field(0, ge=0, description="Ticks without feedback; 0 = for good.")
     estop_error: bool = Field(False, description="Raise in estop() (to test isolation).")
     close_hangs: bool | Literal["thread"] = Field(
-        False, description="close() never returns (to test a forced stop); \"thread\": it waits for ever on a "
-        "worker thread, as a blocking call in asyncio.to_thread would, which the process cannot join.")
+        False,
+        description='close() never returns (to test a forced stop); "thread": it waits for ever on a '
+        "worker thread, as a blocking call in asyncio.to_thread would, which the process cannot join.",
+    )
 
 
 class MockOptions(Options):
     dynamics: Literal["mirror", "first_order", "servo"] = Field(
-        "mirror", description="mirror: state = command; first_order: state follows with time_constant; "
-        "servo: each joint behind a simulated servo drive (options.servo)."
+        "mirror",
+        description="mirror: state = command; first_order: state follows with time_constant; "
+        "servo: each joint behind a simulated servo drive (options.servo).",
     )
     servo: ServoParams = Field(default_factory=ServoParams, description="The drives and joints of dynamics = servo.")
     time_constant: float = Field(0.02, gt=0, description="First-order time constant (s).")
@@ -60,9 +63,11 @@ class MockOptions(Options):
     hand_speed: float = Field(2.0, gt=0, description="Hand closing speed at speed=1 (grasp units/s).")
     faults: MockFaults = Field(default_factory=MockFaults)
     estop_datagram: str | None = Field(
-        None, pattern=r"^[^:]+:\d{1,5}$",
+        None,
+        pattern=r"^[^:]+:\d{1,5}$",
         description="'host:port': the simulated board's e-stop datagram goes there, from estop() and, when "
-                    "the tick stops, from the watchdog process.")
+        "the tick stops, from the watchdog process.",
+    )
 
 
 class MockDriver(Driver):
@@ -101,8 +106,7 @@ class MockDriver(Driver):
         self.velocity[:] = 0.0
         self.effort[:] = 0.0
         self._faulty = (
-            faults.read_error_at_tick is not None or faults.write_error_at_tick is not None
-            or opts.read_latency_us > 0
+            faults.read_error_at_tick is not None or faults.write_error_at_tick is not None or opts.read_latency_us > 0
         )
         self._first_order = opts.dynamics == "first_order"
         self._dt = 0.0
@@ -133,8 +137,18 @@ class MockDriver(Driver):
         for group, rows in runs:
             if group.kind == "hand":
                 hands = rows.stop - rows.start
-                self._hand_runs.append((group.grasp[rows], group.speed[rows], group.force[rows], group.position[rows],
-                                        group.effort[rows], np.zeros(hands), np.zeros(hands), np.zeros(hands, dtype=bool)))
+                self._hand_runs.append(
+                    (
+                        group.grasp[rows],
+                        group.speed[rows],
+                        group.force[rows],
+                        group.position[rows],
+                        group.effort[rows],
+                        np.zeros(hands),
+                        np.zeros(hands),
+                        np.zeros(hands, dtype=bool),
+                    )
+                )
 
     def _set_dt(self, dt: float) -> None:
         """The step's factors for a time step of ``dt`` (a new one after a missed tick)."""
@@ -151,7 +165,8 @@ class MockDriver(Driver):
         self._step_args = (command.block, command.mode, self.sim)
         self._stamp_args = (state.updated_tick, state.stamp_ns)
         self._step_joints = kernel_call.compiled_for(
-            mock_kernels.step_joints, (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0))
+            mock_kernels.step_joints, (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0)
+        )
 
     async def read(self) -> None:
         view = self.view
@@ -171,8 +186,17 @@ class MockDriver(Driver):
                 self._servo.step(dt)
                 stamped = False
             else:
-                self._step_joints(*self._step_args, dt, self._first_order, self._alpha, self._inv_dt, stamped,
-                                  *self._stamp_args, tick, clock.now_ns)
+                self._step_joints(
+                    *self._step_args,
+                    dt,
+                    self._first_order,
+                    self._alpha,
+                    self._inv_dt,
+                    stamped,
+                    *self._stamp_args,
+                    tick,
+                    clock.now_ns,
+                )
         self._last_tick = tick
         self.reads += 1
         if not self._direct and not self._publish_state(tick):
@@ -199,8 +223,10 @@ class MockDriver(Driver):
         opts = self.options
         faults = opts.faults
         lost_at = faults.feedback_lost_at_tick
-        if lost_at is not None and tick >= lost_at and (
-            not faults.feedback_lost_for or tick < lost_at + faults.feedback_lost_for
+        if (
+            lost_at is not None
+            and tick >= lost_at
+            and (not faults.feedback_lost_for or tick < lost_at + faults.feedback_lost_for)
         ):
             self.feedback_lost += 1
             return False

@@ -26,8 +26,24 @@ _MODE = types.Array(types.int8, 1, "A", readonly=True)
 _STAMPS = types.Array(types.int64, 1, "A")
 
 
-@njit(types.void(_RO_BLOCK, _MODE, _BLOCK, types.float64, types.boolean, types.float64, types.float64,
-                 types.boolean, _STAMPS, _STAMPS, types.int64, types.int64), cache=True, nogil=True)
+@njit(
+    types.void(
+        _RO_BLOCK,
+        _MODE,
+        _BLOCK,
+        types.float64,
+        types.boolean,
+        types.float64,
+        types.float64,
+        types.boolean,
+        _STAMPS,
+        _STAMPS,
+        types.int64,
+        types.int64,
+    ),
+    cache=True,
+    nogil=True,
+)
 def step_joints(command, mode, sim, dt, first_order, alpha, inv_dt, stamp, updated_tick, stamp_ns, tick, now_ns):
     """Move each simulated joint (``sim``: rows as in the state block) toward its target by
     ``dt``: the position command, or the position plus velocity × dt in velocity mode, or

@@ -58,8 +58,11 @@ class MujocoOptions(Options):
     kd: JointValues = Field(20.0, description="Velocity gain (N·m·s/rad), scalar or per joint.")
     gravity_compensation: bool = Field(True, description="Add qfrc_bias (gravity, Coriolis) to the torque.")
     initial_position: JointValues = Field(0.0, description="Start position, scalar or per joint.")
-    keyframe: str | None = Field(None, description="Start from this keyframe of the model (e.g. \"home\"); "
-                                 "initial_position, if given too, then sets the joints it names.")
+    keyframe: str | None = Field(
+        None,
+        description='Start from this keyframe of the model (e.g. "home"); '
+        "initial_position, if given too, then sets the joints it names.",
+    )
     joint_map: dict[str, str] = Field(default_factory=dict, description="Config joint -> MJCF joint name.")
     sensors: dict[str, dict[str, str]] = Field(
         default_factory=dict, description="Device -> {field: MJCF sensor name}, to override the naming rule."
@@ -86,8 +89,13 @@ def fit_timestep(model, period_s: float) -> int:
     if abs(steps - substeps) > 1e-6:
         substeps = math.ceil(steps)
         model.opt.timestep = period_s / substeps
-        log.info("tick period %g ms is not a whole number of model timesteps (%g ms): %d substep(s) of %g ms",
-                 period_s * 1e3, timestep * 1e3, substeps, model.opt.timestep * 1e3)
+        log.info(
+            "tick period %g ms is not a whole number of model timesteps (%g ms): %d substep(s) of %g ms",
+            period_s * 1e3,
+            timestep * 1e3,
+            substeps,
+            model.opt.timestep * 1e3,
+        )
     return substeps
 
 
@@ -116,13 +124,22 @@ class MujocoDriver(Driver):
             keys = _keyframes(str(path))
             if options.keyframe not in keys:
                 hint = did_you_mean(options.keyframe, keys)
-                issues.append(("options.keyframe", f'no keyframe "{options.keyframe}" in the model '
-                               f"{os.path.basename(path)}{hint or ' (it has: ' + (', '.join(keys) or 'none') + ')'}"))
+                issues.append(
+                    (
+                        "options.keyframe",
+                        f'no keyframe "{options.keyframe}" in the model '
+                        f"{os.path.basename(path)}{hint or ' (it has: ' + (', '.join(keys) or 'none') + ')'}",
+                    )
+                )
         for joint in joints:
             mjcf = options.joint_map.get(joint, joint)
             if mjcf not in names.joints:
-                issues.append((f"options.joint_map.{joint}" if joint in options.joint_map else "joints",
-                               f'joint "{mjcf}" is not in the model {os.path.basename(path)}'))
+                issues.append(
+                    (
+                        f"options.joint_map.{joint}" if joint in options.joint_map else "joints",
+                        f'joint "{mjcf}" is not in the model {os.path.basename(path)}',
+                    )
+                )
             elif mjcf not in names.actuated_joints:
                 issues.append(("joints", f'joint "{mjcf}" has no actuator in the model {os.path.basename(path)}'))
         for device, kind in devices.items():
@@ -130,7 +147,12 @@ class MujocoDriver(Driver):
                 sensor = _sensor_name(options, device, field, suffix)
                 if names.sensors.get(sensor) != dim:
                     found = "missing" if sensor not in names.sensors else f"has {names.sensors[sensor]} values"
-                    issues.append((f"options.sensors.{device}", f'{kind} "{device}" needs sensor "{sensor}" with {dim} values ({found})'))
+                    issues.append(
+                        (
+                            f"options.sensors.{device}",
+                            f'{kind} "{device}" needs sensor "{sensor}" with {dim} values ({found})',
+                        )
+                    )
         return issues
 
     def __init__(self, name, view, options) -> None:
@@ -160,8 +182,14 @@ class MujocoDriver(Driver):
         hi = self.model.actuator_ctrlrange[self.actuators, 1]
         limited = self.model.actuator_ctrllimited[self.actuators].astype(bool)
         # rows as drivers/mujoco_kernels.py names them: kp, kd, lower and upper torque bound
-        self._table = np.array([view.per_joint(opts.kp), view.per_joint(opts.kd),
-                                np.where(limited, lo, -np.inf), np.where(limited, hi, np.inf)])
+        self._table = np.array(
+            [
+                view.per_joint(opts.kp),
+                view.per_joint(opts.kd),
+                np.where(limited, lo, -np.inf),
+                np.where(limited, hi, np.inf),
+            ]
+        )
         self._index = np.array([self.qpos_adr, self.dof_adr, self.actuators], dtype=np.intp)  # qpos, dof, actuator
         self.tau = np.zeros(n)
         if opts.keyframe is not None:  # the whole model's pose (a floating base's too), then the overrides
@@ -193,11 +221,19 @@ class MujocoDriver(Driver):
         data, state, command = self.data, self.view.state, self.view.command
         if data is None:
             raise RuntimeError("the kernels are bound to the MjData made in __init__")
-        self._read_args = (data.qpos, data.qvel, self._index, self.tau, state.block, state.updated_tick,
-                           state.stamp_ns)
+        self._read_args = (data.qpos, data.qvel, self._index, self.tau, state.block, state.updated_tick, state.stamp_ns)
         self._read_joints = kernel_call.compiled_for(kernels.read_joints, (*self._read_args, 0, 0))
-        self._torque_args = (command.block, command.mode, state.block, self._table, self._index, data.qfrc_bias,
-                             self.options.gravity_compensation, self.tau, data.ctrl)
+        self._torque_args = (
+            command.block,
+            command.mode,
+            state.block,
+            self._table,
+            self._index,
+            data.qfrc_bias,
+            self.options.gravity_compensation,
+            self.tau,
+            data.ctrl,
+        )
         self._drive_torque = kernel_call.compiled_for(kernels.drive_torque, self._torque_args)
         self._sensor_runs = [(data.sensordata, *run) for run in self._gather_plan()]
         self._read_sensors: Callable[..., Any] = kernels.read_sensors  # (no run: never called)

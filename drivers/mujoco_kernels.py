@@ -41,8 +41,11 @@ _MODE = types.Array(types.int8, 1, "A", readonly=True)
 _STAMPS = types.Array(types.int64, 1, "A")
 
 
-@njit(types.void(_RO_VECTOR, _RO_VECTOR, _INDEX, _RO_VECTOR, _BLOCK, _STAMPS, _STAMPS, types.int64, types.int64),
-      cache=True, nogil=True)
+@njit(
+    types.void(_RO_VECTOR, _RO_VECTOR, _INDEX, _RO_VECTOR, _BLOCK, _STAMPS, _STAMPS, types.int64, types.int64),
+    cache=True,
+    nogil=True,
+)
 def read_joints(qpos, qvel, index, tau, state, updated_tick, stamp_ns, tick, now_ns):
     """Measured position and velocity from MjData, effort = the torque applied last tick;
     every joint stamped with this tick."""
@@ -54,8 +57,11 @@ def read_joints(qpos, qvel, index, tau, state, updated_tick, stamp_ns, tick, now
         stamp_ns[j] = now_ns
 
 
-@njit(types.void(_RO_BLOCK, _MODE, _RO_BLOCK, _TABLE, _INDEX, _RO_VECTOR, types.boolean, _VECTOR, _VECTOR),
-      cache=True, nogil=True)
+@njit(
+    types.void(_RO_BLOCK, _MODE, _RO_BLOCK, _TABLE, _INDEX, _RO_VECTOR, types.boolean, _VECTOR, _VECTOR),
+    cache=True,
+    nogil=True,
+)
 def drive_torque(command, mode, state, table, index, bias, compensate, tau, ctrl):
     """``tau = kp·(q* − q) + kd·(v* − v) + effort* + feed-forward (+ qfrc_bias)``, clamped to
     the actuator's range and written to ``ctrl``. The gains by mode: position kp and kd,
@@ -88,8 +94,11 @@ _ROWS = types.Array(types.float64, 2, "C")
 _ROW_STAMPS = types.Array(types.int64, 1, "C")
 
 
-@njit(types.void(_RO_VECTOR, _SENSOR_INDEX, _ROWS, _ROW_STAMPS, _ROW_STAMPS, types.int64, types.int64),
-      cache=True, nogil=True)
+@njit(
+    types.void(_RO_VECTOR, _SENSOR_INDEX, _ROWS, _ROW_STAMPS, _ROW_STAMPS, types.int64, types.int64),
+    cache=True,
+    nogil=True,
+)
 def read_sensors(sensordata, index, rows, updated_tick, stamp_ns, tick, now_ns):
     """Adjacent rows of a device group (IMUs, force/torque sensors) from ``sensordata``:
     ``rows[r, c] = sensordata[index[r, c]]``, each row stamped with this tick."""

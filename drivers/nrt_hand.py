@@ -135,8 +135,9 @@ class NrtHandDriver(Driver):
                 if code != FAULT_NONE:
                     if code not in self.faults_seen:
                         self.faults_seen.append(code)
-                    view.report_fault("read", f"hand {hand.name} reports fault code "
-                                      f"{describe_fault(code, self.options.backend)}")
+                    view.report_fault(
+                        "read", f"hand {hand.name} reports fault code {describe_fault(code, self.options.backend)}"
+                    )
             bits = Fault.HARDWARE if code != FAULT_NONE else 0
         else:
             bits = self._age_fault(time.monotonic_ns())
@@ -174,7 +175,7 @@ class NrtHandDriver(Driver):
             await asyncio.to_thread(self.peer.stop, 1.0)
 
     def _hand_summary(self) -> str:
-        """"ok" only for a hand that never faulted nor went silent during the run."""
+        """ "ok" only for a hand that never faulted nor went silent during the run."""
         said = []
         if self.lost_reason:
             said.append(f"lost: {self.lost_reason}")

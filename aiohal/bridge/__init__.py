@@ -23,12 +23,18 @@ class ZenohBridgeSection(Options):
     listen: list[str] = Field(default_factory=list, description='Endpoints to listen on, e.g. "tcp/127.0.0.1:7447".')
     connect: list[str] = Field(default_factory=list, description="Endpoints (peers or a router) to connect to.")
     multicast_scouting: bool = Field(True, description="Find peers on the LAN by UDP multicast.")
-    config_file: str | None = Field(None, description="A Zenoh JSON5 config (access control, TLS, "
-                                    "authentication); the keys above are applied over it.")
+    config_file: str | None = Field(
+        None,
+        description="A Zenoh JSON5 config (access control, TLS, authentication); the keys above are applied over it.",
+    )
     accept_setpoints: bool = Field(False, description="Take joint setpoints on <prefix>/<robot>/cmd/setpoint.")
-    accept_safety: list[Literal["hold", "estop", "rearm"]] = Field(default_factory=list, description='Safety requests taken on '
-                                     '<prefix>/<robot>/cmd/<name>: any of "hold", "estop", "rearm".')
-    queue: int = Field(64, ge=4, le=1 << 16, description="State snapshots buffered between the tick and the bridge thread.")
+    accept_safety: list[Literal["hold", "estop", "rearm"]] = Field(
+        default_factory=list,
+        description='Safety requests taken on <prefix>/<robot>/cmd/<name>: any of "hold", "estop", "rearm".',
+    )
+    queue: int = Field(
+        64, ge=4, le=1 << 16, description="State snapshots buffered between the tick and the bridge thread."
+    )
 
 
 class BridgeSection(Options):

@@ -90,8 +90,13 @@ class ZenohBridge:
         self._rows = np.zeros((q, len(STATE_ROWS), robot.dof))
         self._head = 0  # snapshots written by the tick (the thread reads it; the GIL orders them)
         self._events: collections.deque = collections.deque()
-        self.counters = {"state_sent": 0, "state_dropped": 0, "setpoints_accepted": 0, "requests_accepted": 0,
-                         "refused": 0}
+        self.counters = {
+            "state_sent": 0,
+            "state_dropped": 0,
+            "setpoints_accepted": 0,
+            "requests_accepted": 0,
+            "refused": 0,
+        }
         self.refused_by_reason: dict[str, int] = collections.Counter()
         self._warn = RateLimitedLogger(log)
         self._session: Any = None  # a zenoh.Session (zenoh ships no types)
@@ -109,8 +114,10 @@ class ZenohBridge:
         state_rows = memoryview(robot.state.block[:3]).cast("B")  # position, velocity, effort: adjacent
         command_position = memoryview(robot.command.position).cast("B")
         cut = 3 * robot.dof * 8
-        rows = [(memoryview(self._rows[i]).cast("B")[:cut], memoryview(self._rows[i]).cast("B")[cut:])
-                for i in range(self.section.queue)]
+        rows = [
+            (memoryview(self._rows[i]).cast("B")[:cut], memoryview(self._rows[i]).cast("B")[cut:])
+            for i in range(self.section.queue)
+        ]
         ticks = [memoryview(self._ticks[i]) for i in range(self.section.queue)]
         queue, every, clock, faults = self.section.queue, self.every, robot.clock, control.faults
         events = self._events
@@ -161,8 +168,12 @@ class ZenohBridge:
         self._sub = s.declare_subscriber(f"{self.base}/cmd/**", self._on_command)
         self._thread = threading.Thread(target=self._run, name=f"aiohal-zenoh-{self.control.robot.name}", daemon=True)
         self._thread.start()
-        log.info("zenoh bridge for %s: publishing under %s/, accepting %s", self.control.robot.name, self.base,
-                 ", ".join(self._accepted_keys()) or "no command")
+        log.info(
+            "zenoh bridge for %s: publishing under %s/, accepting %s",
+            self.control.robot.name,
+            self.base,
+            ", ".join(self._accepted_keys()) or "no command",
+        )
 
     def _accepted_keys(self) -> list[str]:
         keys = ["cmd/setpoint"] if self.section.accept_setpoints else []
@@ -215,7 +226,7 @@ class ZenohBridge:
 
     def _publish_event(self, level: int, n_faults: int, tick: int) -> None:
         self._pub_safety.put(json.dumps({"level": SafetyLevel(level).name.lower(), "tick": tick}))
-        for fault in self.control.faults[self._faults_sent:n_faults]:
+        for fault in self.control.faults[self._faults_sent : n_faults]:
             self._pub_faults.put(json.dumps(fault.as_dict()))
         self._faults_sent = max(self._faults_sent, n_faults)
 
@@ -233,15 +244,18 @@ class ZenohBridge:
             "level": control.level.name.lower(),
             "controller": control.controller_type,
             "faults": len(control.faults),
-            "bridge": {**self.counters, "refused_by_reason": dict(self.refused_by_reason),
-                       "accepting": self._accepted_keys()},
+            "bridge": {
+                **self.counters,
+                "refused_by_reason": dict(self.refused_by_reason),
+                "accepting": self._accepted_keys(),
+            },
         }
 
     # ------------------------------------------------------------ commands (zenoh's threads)
 
     def _on_command(self, sample) -> None:
         key = str(sample.key_expr)
-        name = key[len(self.base) + len("/cmd/"):]
+        name = key[len(self.base) + len("/cmd/") :]
         try:
             payload = sample.payload.to_bytes()
             if name == "setpoint" and self.section.accept_setpoints:
@@ -301,9 +315,11 @@ class ZenohBridge:
 
     def _safety(self, name: str) -> None:
         control = self.control
-        request = {"hold": lambda: control.hold("requested over zenoh"),
-                   "estop": lambda: control.estop("requested over zenoh", source="zenoh"),
-                   "rearm": lambda: control.rearm(source="zenoh")}[name]
+        request = {
+            "hold": lambda: control.hold("requested over zenoh"),
+            "estop": lambda: control.estop("requested over zenoh", source="zenoh"),
+            "rearm": lambda: control.rearm(source="zenoh"),
+        }[name]
 
         def action() -> None:
             from ..safety import SafetyRequestRefused
@@ -314,7 +330,9 @@ class ZenohBridge:
                 log.warning("robot %s: %s over zenoh refused: %s", control.robot.name, name, exc)
 
         log.warning("robot %s: %s requested over zenoh", control.robot.name, name)
-        cast(asyncio.AbstractEventLoop, self._aio).call_soon_threadsafe(action)  # set by start()  # acted on between two ticks, in the loop's thread
+        cast(asyncio.AbstractEventLoop, self._aio).call_soon_threadsafe(
+            action
+        )  # set by start()  # acted on between two ticks, in the loop's thread
         with self._lock:
             self.counters["requests_accepted"] += 1
 

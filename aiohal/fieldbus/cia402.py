@@ -80,8 +80,11 @@ class OperationMode(IntEnum):
 
 
 PP, PV, PT = OperationMode.PROFILE_POSITION, OperationMode.PROFILE_VELOCITY, OperationMode.PROFILE_TORQUE
-CSP, CSV, CST = (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.CYCLIC_SYNC_VELOCITY,
-                 OperationMode.CYCLIC_SYNC_TORQUE)
+CSP, CSV, CST = (
+    OperationMode.CYCLIC_SYNC_POSITION,
+    OperationMode.CYCLIC_SYNC_VELOCITY,
+    OperationMode.CYCLIC_SYNC_TORQUE,
+)
 
 
 class State(IntEnum):
@@ -183,8 +186,7 @@ class DriveEvent:
             case EventKind.STUCK:
                 target = self.target.value if self.target else "?"
                 extra = ": the fault reset did not clear it" if self.state is State.FAULT else ""
-                return (f"{who}: no progress for {self.cycles} cycles in {self.state.label} "
-                        f"(target {target}){extra}")
+                return f"{who}: no progress for {self.cycles} cycles in {self.state.label} (target {target}){extra}"
             case _:
                 return f"{who}: {self.kind.value} ({self.state.label})"
 
@@ -195,8 +197,9 @@ _FAULTY = frozenset({State.FAULT_REACTION_ACTIVE, State.FAULT})
 _REACHED = {
     Target.ENABLED: frozenset({State.OPERATION_ENABLED}),
     Target.DISABLED: frozenset({State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED, State.FAULT}),
-    Target.QUICK_STOP: frozenset({State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED,
-                                  State.QUICK_STOP_ACTIVE, State.FAULT}),
+    Target.QUICK_STOP: frozenset(
+        {State.NOT_READY_TO_SWITCH_ON, State.SWITCH_ON_DISABLED, State.QUICK_STOP_ACTIVE, State.FAULT}
+    ),
 }
 
 # The next controlword per target and state, one standard transition at a time. Quick stop
@@ -229,8 +232,9 @@ _NEXT = {
 
 # The same, as tuples indexed by the state's value (a tuple index is cheaper than hashing an Enum).
 # None only for Unknown, which _next_controlword decides without the table
-_NEXT_BY_STATE = {target: cast("tuple[int, ...]", tuple(table.get(state) for state in State))
-                  for target, table in _NEXT.items()}
+_NEXT_BY_STATE = {
+    target: cast("tuple[int, ...]", tuple(table.get(state) for state in State)) for target, table in _NEXT.items()
+}
 _REACHED_BY_STATE = {target: tuple(state in states for state in State) for target, states in _REACHED.items()}
 _IS_FAULTY = tuple(state in _FAULTY for state in State)
 
@@ -258,13 +262,35 @@ class Cia402Drive:
     """
 
     __slots__ = (
-        "_idle", "_next", "_pulse_left", "_reached", "_reset_allowed", "_reset_watch", "_target",
-        "controlword", "cycles_in_state", "error_code", "events", "hold_target", "name",
-        "reset_pulse_cycles", "state", "statusword", "stuck", "stuck_after",
+        "_idle",
+        "_next",
+        "_pulse_left",
+        "_reached",
+        "_reset_allowed",
+        "_reset_watch",
+        "_target",
+        "controlword",
+        "cycles_in_state",
+        "error_code",
+        "events",
+        "hold_target",
+        "name",
+        "reset_pulse_cycles",
+        "state",
+        "statusword",
+        "stuck",
+        "stuck_after",
     )
 
-    def __init__(self, name: str = "", *, target: Target = Target.DISABLED, stuck_after: int = 1000,
-                 reset_pulse_cycles: int = 3, auto_reset: bool = True) -> None:
+    def __init__(
+        self,
+        name: str = "",
+        *,
+        target: Target = Target.DISABLED,
+        stuck_after: int = 1000,
+        reset_pulse_cycles: int = 3,
+        auto_reset: bool = True,
+    ) -> None:
         if stuck_after < 1 or reset_pulse_cycles < 1:
             raise ValueError("stuck_after and reset_pulse_cycles must be at least 1")
         self.name = name
@@ -374,8 +400,9 @@ class Cia402Drive:
         if self._idle >= self.stuck_after and not self.stuck:
             self._check_progress(state)
         self.controlword = controlword
-        self.hold_target = not (state is State.OPERATION_ENABLED and self._target is Target.ENABLED
-                                and self.cycles_in_state >= 1)
+        self.hold_target = not (
+            state is State.OPERATION_ENABLED and self._target is Target.ENABLED and self.cycles_in_state >= 1
+        )
         return controlword
 
     def _enter(self, state: State, error_code: int) -> None:
@@ -428,13 +455,14 @@ class Cia402Drive:
         self._idle = 0
         self.stuck = False
 
-    def _event(self, kind: EventKind, *, previous: State | None = None, error_code: int = 0,
-               cycles: int = 0) -> None:
+    def _event(self, kind: EventKind, *, previous: State | None = None, error_code: int = 0, cycles: int = 0) -> None:
         self.events.append(DriveEvent(kind, self.name, self.state, previous, error_code, cycles, self._target))
 
     def __repr__(self) -> str:
-        return (f"Cia402Drive({self.name!r}, state={self.state.label}, target={self._target.value}, "
-                f"controlword=0x{self.controlword:04X})")
+        return (
+            f"Cia402Drive({self.name!r}, state={self.state.label}, target={self._target.value}, "
+            f"controlword=0x{self.controlword:04X})"
+        )
 
 
 # ---------------------------------------------------------------- units
@@ -461,8 +489,13 @@ class DriveUnits:
     conversions (the HAL's command limiter refuses NaN and infinities upstream).
     """
 
-    def __init__(self, counts_per_rev: ArrayLike = 131072, gear_ratio: ArrayLike = 1.0,
-                 rated_torque: ArrayLike = 1.0, torque_constant: ArrayLike | None = None) -> None:
+    def __init__(
+        self,
+        counts_per_rev: ArrayLike = 131072,
+        gear_ratio: ArrayLike = 1.0,
+        rated_torque: ArrayLike = 1.0,
+        torque_constant: ArrayLike | None = None,
+    ) -> None:
         self.counts_per_rev = np.asarray(counts_per_rev, dtype=np.float64)
         self.gear_ratio = np.asarray(gear_ratio, dtype=np.float64)
         self.rated_torque = np.asarray(rated_torque, dtype=np.float64)
@@ -482,14 +515,20 @@ class DriveUnits:
         self._scratch: dict[tuple, np.ndarray] = {}
 
     @classmethod
-    def from_objects(cls, encoder_increments: ArrayLike, motor_revolutions: ArrayLike = 1,
-                     shaft_revolutions: ArrayLike = 1, rated_torque_mnm: ArrayLike = 1000,
-                     torque_constant: ArrayLike | None = None) -> DriveUnits:
+    def from_objects(
+        cls,
+        encoder_increments: ArrayLike,
+        motor_revolutions: ArrayLike = 1,
+        shaft_revolutions: ArrayLike = 1,
+        rated_torque_mnm: ArrayLike = 1000,
+        torque_constant: ArrayLike | None = None,
+    ) -> DriveUnits:
         """From the drive's objects: 0x608F:01, 0x6091:01/02 and 0x6076 (mN·m)."""
         motor = np.asarray(motor_revolutions, dtype=np.float64)
         shaft = np.asarray(shaft_revolutions, dtype=np.float64)
-        return cls(encoder_increments, motor / shaft, np.asarray(rated_torque_mnm, dtype=np.float64) / 1000.0,
-                   torque_constant)
+        return cls(
+            encoder_increments, motor / shaft, np.asarray(rated_torque_mnm, dtype=np.float64) / 1000.0, torque_constant
+        )
 
     @classmethod
     def stack(cls, units: Sequence[DriveUnits]) -> DriveUnits:
@@ -498,9 +537,12 @@ class DriveUnits:
             raise ValueError("no drive units to stack")
         kts = [u.torque_constant for u in units if u.torque_constant is not None]
         kt = np.array([float(k) for k in kts]) if len(kts) == len(units) else None
-        return cls(np.array([float(u.counts_per_rev) for u in units]),
-                   np.array([float(u.gear_ratio) for u in units]),
-                   np.array([float(u.rated_torque) for u in units]), kt)
+        return cls(
+            np.array([float(u.counts_per_rev) for u in units]),
+            np.array([float(u.gear_ratio) for u in units]),
+            np.array([float(u.rated_torque) for u in units]),
+            kt,
+        )
 
     # ------------------------------------------------------------ conversions
 

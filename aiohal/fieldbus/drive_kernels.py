@@ -82,7 +82,11 @@ def _clamp(value, low, high):
 # strided array it meets (a driver's columns of the robot's state): seconds without a cycle.
 # Arguments a kernel only reads are typed read-only: numba then takes writable and read-only
 # arrays alike (a read-only view of the command would otherwise not match).
-_U8, _I64_2D, _F64_2D = types.Array(types.uint8, 1, "A"), types.Array(types.int64, 2, "A"), types.Array(types.float64, 2, "A")
+_U8, _I64_2D, _F64_2D = (
+    types.Array(types.uint8, 1, "A"),
+    types.Array(types.int64, 2, "A"),
+    types.Array(types.float64, 2, "A"),
+)
 _RO_U8, _RO_I64_2D, _RO_F64_2D = (types.Array(t.dtype, t.ndim, "A", readonly=True) for t in (_U8, _I64_2D, _F64_2D))
 _RO_I8 = types.Array(types.int8, 1, "A", readonly=True)
 _I64_1D = types.Array(types.int64, 1, "A")
@@ -100,8 +104,13 @@ def decode_drives(inputs, layout, constants, ints, state, ticks, stamps, tick, n
     changed = False
     for i in range(layout.shape[0]):
         o = layout[i]
-        status, raw, speed, torque, error = (_u16(inputs, o[IN]), _i32(inputs, o[IN + 1]), _i32(inputs, o[IN + 2]),
-                                             _i16(inputs, o[IN + 3]), _u16(inputs, o[IN + 4]))
+        status, raw, speed, torque, error = (
+            _u16(inputs, o[IN]),
+            _i32(inputs, o[IN + 1]),
+            _i32(inputs, o[IN + 2]),
+            _i16(inputs, o[IN + 3]),
+            _u16(inputs, o[IN + 4]),
+        )
         if status != ints[i, STATUSWORD] or error != ints[i, ERROR_CODE]:
             changed = True
         ints[i, STATUSWORD] = status

@@ -54,8 +54,9 @@ def check_types(image: ProcessImage, slave: str, names: Sequence[str], types: Se
     for name, want in zip(names, types, strict=True):
         var = image.variable(f"{slave}.{name}")
         if var.type != want or var.shape != ():
-            raise VariableTypeError(f'"{var.full_name}" is {var.type}{list(var.shape) or ""}, a CiA 402 drive '
-                                    f"maps it as {want}")
+            raise VariableTypeError(
+                f'"{var.full_name}" is {var.type}{list(var.shape) or ""}, a CiA 402 drive maps it as {want}'
+            )
 
 
 class DriveGroup:
@@ -65,8 +66,9 @@ class DriveGroup:
     (:mod:`.drive_kernels`) over the buffers' bytes and the robot's arrays; the state machines stay
     in Python and run only when a statusword changed or a drive is not steadily enabled."""
 
-    def __init__(self, image: ProcessImage, specs: Sequence[DriveSpec], *, stuck_after: int,
-                 target: Target = Target.ENABLED) -> None:
+    def __init__(
+        self, image: ProcessImage, specs: Sequence[DriveSpec], *, stuck_after: int, target: Target = Target.ENABLED
+    ) -> None:
         """On a process image whose slaves map every variable of :data:`DRIVE_INPUTS` and
         :data:`DRIVE_OUTPUTS` with its type (checked here, by name), and those of
         :data:`DRIVE_OFFSETS` they offer."""
@@ -83,13 +85,24 @@ class DriveGroup:
                     continue
                 check_types(image, s.slave, (name,), (kind,))
                 extra += image.byte_offsets(s.slave, (name,), writable=True)
-            offsets.append(image.byte_offsets(s.slave, DRIVE_INPUTS)
-                           + image.byte_offsets(s.slave, DRIVE_OUTPUTS, writable=True) + extra)
+            offsets.append(
+                image.byte_offsets(s.slave, DRIVE_INPUTS)
+                + image.byte_offsets(s.slave, DRIVE_OUTPUTS, writable=True)
+                + extra
+            )
         self._setup(image.inputs, image.outputs, offsets, specs, stuck_after, target)
 
     @classmethod
-    def on_buffers(cls, inputs: np.ndarray, outputs: np.ndarray, offsets: Sequence[Sequence[int]],
-                   specs: Sequence[DriveSpec], *, stuck_after: int, target: Target = Target.ENABLED) -> DriveGroup:
+    def on_buffers(
+        cls,
+        inputs: np.ndarray,
+        outputs: np.ndarray,
+        offsets: Sequence[Sequence[int]],
+        specs: Sequence[DriveSpec],
+        *,
+        stuck_after: int,
+        target: Target = Target.ENABLED,
+    ) -> DriveGroup:
         """On plain ``uint8`` buffers: per drive, the byte offsets of the variables of
         :data:`DRIVE_INPUTS` in ``inputs`` then of :data:`DRIVE_OUTPUTS` in ``outputs``,
         optionally followed by those of :data:`DRIVE_OFFSETS` (``NOT_MAPPED`` where the drive
@@ -100,20 +113,31 @@ class DriveGroup:
         offsets = [list(o) + [NOT_MAPPED] * len(DRIVE_OFFSETS) if len(o) == required else list(o) for o in offsets]
         for i, o in enumerate(offsets):
             if len(o) != required + len(DRIVE_OFFSETS):
-                raise ValueError(f"drive {i}: {required} or {required + len(DRIVE_OFFSETS)} offsets expected, got {len(o)}")
+                raise ValueError(
+                    f"drive {i}: {required} or {required + len(DRIVE_OFFSETS)} offsets expected, got {len(o)}"
+                )
             for k, (offset, size) in enumerate(zip(o, DRIVE_SIZES, strict=True)):
                 buf = inputs if k < len(DRIVE_INPUTS) else outputs
                 if k >= required and offset == NOT_MAPPED:
                     continue
                 if not 0 <= offset <= len(buf) - size:
-                    raise ValueError(f"drive {i}: offset {offset} of {(DRIVE_INPUTS + DRIVE_OUTPUTS + DRIVE_OFFSETS)[k]!r} is outside "
-                                     f"its buffer of {len(buf)} bytes")
+                    raise ValueError(
+                        f"drive {i}: offset {offset} of {(DRIVE_INPUTS + DRIVE_OUTPUTS + DRIVE_OFFSETS)[k]!r} is outside "
+                        f"its buffer of {len(buf)} bytes"
+                    )
         group = cls.__new__(cls)
         group._setup(inputs, outputs, offsets, specs, stuck_after, target)
         return group
 
-    def _setup(self, inputs: np.ndarray, outputs: np.ndarray, offsets: Sequence[Sequence[int]],
-               specs: Sequence[DriveSpec], stuck_after: int, target: Target) -> None:
+    def _setup(
+        self,
+        inputs: np.ndarray,
+        outputs: np.ndarray,
+        offsets: Sequence[Sequence[int]],
+        specs: Sequence[DriveSpec],
+        stuck_after: int,
+        target: Target,
+    ) -> None:
         self.specs = list(specs)
         self._inputs, self._outputs = inputs, outputs
         self.rows = [s.row for s in specs]
@@ -160,11 +184,13 @@ class DriveGroup:
 
     def _check_decode(self, state: np.ndarray, ticks: np.ndarray, stamps: np.ndarray) -> None:
         self._decode = kernel_call.compiled_for(
-            kernels.decode_drives, (self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps, 0, 0))
+            kernels.decode_drives, (self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps, 0, 0)
+        )
 
     def _check_encode(self, block: np.ndarray, mode: np.ndarray) -> None:
         self._encode = kernel_call.compiled_for(
-            kernels.encode_drives, (self._outputs, self._layout, self._constants, self.ints, block, mode, False))
+            kernels.encode_drives, (self._outputs, self._layout, self._constants, self.ints, block, mode, False)
+        )
 
     def __len__(self) -> int:
         return len(self.specs)
@@ -227,11 +253,11 @@ class DriveGroup:
         block, mode = command.block, command.mode
         if block is not self._checked_block or mode is not self._checked_mode:  # the kernel checks nothing
             if block.shape[-1] <= max(self.rows) or mode.shape[-1] <= max(self.rows):
-                raise ValueError(f"the joint command has {block.shape[-1]} joints, a drive reads row "
-                                 f"{max(self.rows)}")
+                raise ValueError(f"the joint command has {block.shape[-1]} joints, a drive reads row {max(self.rows)}")
             if block.ndim != 2 or block.shape[0] < len(JOINT_COMMAND_FIELDS):
-                raise ValueError(f"the joint command block has shape {block.shape}, "
-                                 f"{len(JOINT_COMMAND_FIELDS)} rows are needed")
+                raise ValueError(
+                    f"the joint command block has shape {block.shape}, {len(JOINT_COMMAND_FIELDS)} rows are needed"
+                )
             self._check_encode(block, mode)
             self._checked_block, self._checked_mode = block, mode
         self._encode(self._outputs, self._layout, self._constants, self.ints, block, mode, False)
@@ -270,8 +296,9 @@ class DriveGroup:
         return all(m.enabled and not m.hold_target for m in self.machines)
 
 
-def respond_to_event(drives: DriveGroup, i: int, event: DriveEvent, view: DriverView, mask: np.ndarray,
-                     who: str, detail: str = "") -> None:
+def respond_to_event(
+    drives: DriveGroup, i: int, event: DriveEvent, view: DriverView, mask: np.ndarray, who: str, detail: str = ""
+) -> None:
     """What the HAL does on a drive's event, for every bus: a fault, a drive that left
     Operation enabled unasked (parked: enabling it again is the application's decision) or a
     stall faults its joint, is reported and holds the robot; a drive enabled again clears its
@@ -288,13 +315,18 @@ def respond_to_event(drives: DriveGroup, i: int, event: DriveEvent, view: Driver
         reason = f"joint {spec.joint}: {event}{detail}"
         view.report_fault("read", reason)
         view.request_hold(reason)
-    elif kind is EventKind.LOST_ENABLED and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT) \
-            and machine.target is Target.ENABLED:
+    elif (
+        kind is EventKind.LOST_ENABLED
+        and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT)
+        and machine.target is Target.ENABLED
+    ):
         machine.target = Target.DISABLED
         drives.invalidate()
         fault[row] |= Fault.HARDWARE
-        reason = (f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label}); "
-                  "reset_faults() enables it again")
+        reason = (
+            f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label}); "
+            "reset_faults() enables it again"
+        )
         view.report_fault("read", reason)
         view.request_hold(reason)
     elif kind is EventKind.STUCK:

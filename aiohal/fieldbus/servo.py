@@ -64,4 +64,6 @@ class ServoModel:
         self.target = np.where(moving, self.target, self.position)
         np.subtract(self.position, self._previous, out=self.velocity)
         self.velocity /= dt
-        self.effort = self.command_effort + self.stiffness * (self.target - self.position) - self.damping * self.velocity
+        self.effort = (
+            self.command_effort + self.stiffness * (self.target - self.position) - self.damping * self.velocity
+        )

@@ -15,8 +15,9 @@ class SimulatorStartError(RuntimeError):
 
 async def start(args: list[str], timeout_s: float) -> tuple[asyncio.subprocess.Process, dict[str, Any]]:
     """Start ``args``; the process and the JSON object of its first stdout line."""
-    process = await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE,
-                                                   stderr=asyncio.subprocess.PIPE)
+    process = await asyncio.create_subprocess_exec(
+        *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
+    )
     try:
         stdout = cast(asyncio.StreamReader, process.stdout)  # stdout=PIPE
         line = await asyncio.wait_for(stdout.readline(), timeout_s)

@@ -22,7 +22,6 @@ _CODES = {code: 0 for code in "bBhHiIlLqQ"} | {code: 0.0 for code in "efd"} | {"
 _RESERVED = frozenset({"seq", "stamp_ns", "TYPE", "FIELDS"})
 
 
-
 class PipeError(AiohalError):
     """Base of the pipe's errors."""
 
@@ -78,12 +77,13 @@ class Message:
             raise MessageDefinitionError(f"{name}: duplicate field names in {names}")
         layout = struct.Struct(HEADER.format + "".join(c for _, c in fields))
         if layout.size > MAX_MESSAGE:
-            raise MessageDefinitionError(f"{name}: {layout.size} bytes with the header, more than MAX_MESSAGE = {MAX_MESSAGE}")
+            raise MessageDefinitionError(
+                f"{name}: {layout.size} bytes with the header, more than MAX_MESSAGE = {MAX_MESSAGE}"
+            )
         other = _REGISTRY.get(type_id)
         # the same class defined again (a module reloaded) replaces itself; any other is a clash
         if other is not None and (other.__module__, other.__qualname__) != (cls.__module__, cls.__qualname__):
-            raise MessageDefinitionError(
-                f"{name}: TYPE {type_id} is already {other.__module__}.{other.__qualname__}")
+            raise MessageDefinitionError(f"{name}: TYPE {type_id} is already {other.__module__}.{other.__qualname__}")
         cls.FIELDS = fields
         cls._names = tuple(names)
         cls._defaults = {n: _CODES[c] for n, c in fields}
@@ -101,8 +101,9 @@ class Message:
 
     def encode(self) -> bytes:
         try:
-            return self._struct.pack(MAGIC, VERSION, self.TYPE, self.seq, self.stamp_ns,
-                                     *[getattr(self, n) for n in self._names])
+            return self._struct.pack(
+                MAGIC, VERSION, self.TYPE, self.seq, self.stamp_ns, *[getattr(self, n) for n in self._names]
+            )
         except (struct.error, OverflowError) as exc:  # a value out of its field's range or of the wrong kind
             raise MalformedMessage(f"cannot encode {self!r}: {exc}") from None
 

@@ -65,8 +65,9 @@ class NrtPeer:
         self._thread_exitcode: int | None = None
 
     @classmethod
-    def start(cls, target: str, options: dict[str, Any] | None = None, *, mode: str = "subprocess",
-              capacity: int = 32) -> NrtPeer:
+    def start(
+        cls, target: str, options: dict[str, Any] | None = None, *, mode: str = "subprocess", capacity: int = 32
+    ) -> NrtPeer:
         """Start ``target`` ("package.module:function") with JSON-serialisable ``options``.
 
         Thread mode imports the target here (errors raise now); a subprocess imports it itself
@@ -79,8 +80,12 @@ class NrtPeer:
             fn = _load_target(target)
             fast, nrt = pipe_pair(capacity)
             peer = cls(fast, mode)
-            peer._thread = threading.Thread(target=peer._run_thread, args=(fn, nrt, json.loads(options_json)),
-                                            name=f"aiohal-nrt:{target}", daemon=True)
+            peer._thread = threading.Thread(
+                target=peer._run_thread,
+                args=(fn, nrt, json.loads(options_json)),
+                name=f"aiohal-nrt:{target}",
+                daemon=True,
+            )
             peer._thread.start()
             return peer
         fast, nrt = pipe_pair(capacity)
@@ -88,7 +93,8 @@ class NrtPeer:
             fd = nrt.fileno()
             process = subprocess.Popen(
                 [sys.executable, "-m", "aiohal.pipe", "--fd", str(fd), "--target", target, "--options", options_json],
-                pass_fds=(fd,), stdin=subprocess.DEVNULL,
+                pass_fds=(fd,),
+                stdin=subprocess.DEVNULL,
             )
         except BaseException:
             fast.close()
@@ -159,8 +165,9 @@ class NrtPeer:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m aiohal.pipe --fd N --target mod:func --options JSON``: the child of an NrtPeer."""
-    parser = argparse.ArgumentParser(prog="python -m aiohal.pipe",
-                                     description="Run an NRT target on a pipe end inherited from the parent.")
+    parser = argparse.ArgumentParser(
+        prog="python -m aiohal.pipe", description="Run an NRT target on a pipe end inherited from the parent."
+    )
     parser.add_argument("--fd", type=int, required=True)
     parser.add_argument("--target", required=True)
     parser.add_argument("--options", default="{}")
@@ -170,8 +177,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         _run_target(_load_target(args.target), end, json.loads(args.options))
     except Exception as exc:
-        print(f"aiohal.pipe: target {args.target} failed: {type(exc).__name__}: {' '.join(str(exc).split())}",
-              file=sys.stderr, flush=True)
+        print(
+            f"aiohal.pipe: target {args.target} failed: {type(exc).__name__}: {' '.join(str(exc).split())}",
+            file=sys.stderr,
+            flush=True,
+        )
         return 1
     finally:
         end.close()

@@ -47,7 +47,7 @@ class Layout:
                     raise ValueError(f"{name}.{field}: a sequence needs at least one element")
                 pos = _align(pos, 4)
                 template += bytes(pos + 4 - len(template))
-                template[4 + pos: 8 + pos] = np.uint32(count).tobytes()
+                template[4 + pos : 8 + pos] = np.uint32(count).tobytes()
                 pos += 4
             pos = _align(pos, dtype.itemsize)
             self.fields[field] = (dtype, count, 4 + pos)
@@ -59,8 +59,13 @@ class Layout:
     @property
     def schema(self) -> str:
         """The ROS 2 message definition."""
-        return "\n".join(f"{ROS_TYPES[dtype]}{'[]' if count is not None else ''} {field}"
-                         for field, (dtype, count, _) in self.fields.items()) + "\n"
+        return (
+            "\n".join(
+                f"{ROS_TYPES[dtype]}{'[]' if count is not None else ''} {field}"
+                for field, (dtype, count, _) in self.fields.items()
+            )
+            + "\n"
+        )
 
     def encode(self, values: Mapping[str, np.ndarray], n: int) -> np.ndarray:
         """``n`` messages as an ``(n, size)`` byte array; ``values[field]`` has one row per message."""
@@ -69,7 +74,7 @@ class Layout:
         for field, (dtype, count, offset) in self.fields.items():
             width = dtype.itemsize * (count or 1)
             column = np.ascontiguousarray(values[field], dtype=dtype).reshape(n, count or 1)
-            out[:, offset: offset + width] = column.view(np.uint8)
+            out[:, offset : offset + width] = column.view(np.uint8)
         return out
 
     def decode(self, messages: np.ndarray) -> dict[str, np.ndarray]:
@@ -77,7 +82,7 @@ class Layout:
         out = {}
         for field, (dtype, count, offset) in self.fields.items():
             width = dtype.itemsize * (count or 1)
-            column = np.ascontiguousarray(messages[:, offset: offset + width]).view(dtype)
+            column = np.ascontiguousarray(messages[:, offset : offset + width]).view(dtype)
             out[field] = column[:, 0] if count is None else column
         return out
 
@@ -98,7 +103,7 @@ class Layout:
             count = None
             if is_sequence:
                 pos = _align(pos, 4)
-                count = int(np.frombuffer(body[pos: pos + 4], dtype=np.uint32)[0])
+                count = int(np.frombuffer(body[pos : pos + 4], dtype=np.uint32)[0])
                 pos += 4
             pos = _align(pos, dtype.itemsize) + dtype.itemsize * (count or 1)
             fields.append((field, dtype, count))

@@ -19,7 +19,9 @@ class LiveServer:
         try:
             import foxglove
         except ImportError as exc:
-            raise MissingDependencyError(f"--foxglove needs foxglove-sdk: pip install 'aiohal[foxglove]' ({exc})") from None
+            raise MissingDependencyError(
+                f"--foxglove needs foxglove-sdk: pip install 'aiohal[foxglove]' ({exc})"
+            ) from None
         self._foxglove = foxglove
         self.context = foxglove.Context()
         self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context)
@@ -28,8 +30,12 @@ class LiveServer:
 
     def channel(self, topic: str, schema_name: str, schema_encoding: str, schema: bytes, message_encoding: str) -> Any:
         fg = self._foxglove
-        return fg.Channel(topic, schema=fg.Schema(name=schema_name, encoding=schema_encoding, data=schema),
-                          message_encoding=message_encoding, context=self.context)
+        return fg.Channel(
+            topic,
+            schema=fg.Schema(name=schema_name, encoding=schema_encoding, data=schema),
+            message_encoding=message_encoding,
+            context=self.context,
+        )
 
     @staticmethod
     def log(channel: Any, data: bytes, log_time_ns: int) -> None:

@@ -33,12 +33,16 @@ class RecordSection(Options):
         description="Keep every n-th tick of a channel (default 1: every tick), e.g. { imu = 10 }.",
     )
     flush_ms: float = Field(
-        250.0, ge=10, le=10_000,
+        250.0,
+        ge=10,
+        le=10_000,
         description="Close the chunk in progress and write it to the file at least this often: how "
         "far behind the file can be when the process is killed.",
     )
     buffer_ticks: int = Field(
-        4096, ge=64, le=1 << 20,
+        4096,
+        ge=64,
+        le=1 << 20,
         description="Ticks the ring buffer between the tick and the writer holds (a power of 2 is used); "
         "when the writer is that far behind, ticks are dropped and counted.",
     )

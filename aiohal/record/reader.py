@@ -81,15 +81,24 @@ class Recording:
     def summary(self) -> dict[str, Any]:
         """What ``aiohal replay`` prints: ticks per channel, gaps, timing, safety, faults."""
         info = self.info
-        out: dict[str, Any] = {"path": str(self.path), "robot": info.get("robot"), "rate_hz": info.get("rate_hz"),
-                               "truncated": self.truncated}
+        out: dict[str, Any] = {
+            "path": str(self.path),
+            "robot": info.get("robot"),
+            "rate_hz": info.get("rate_hz"),
+            "truncated": self.truncated,
+        }
         state = self.series.get("/joint_state")
         if state is not None and len(state):
             ticks = state.tick
             every = int(info.get("decimate", {}).get("joint_state", 1))
             expected = (int(ticks[-1]) - int(ticks[0])) // every + 1
-            out.update(ticks=len(state), first_tick=int(ticks[0]), last_tick=int(ticks[-1]),
-                       duration_s=round(float(state.t[-1] - state.t[0]), 4), missing_ticks=expected - len(state))
+            out.update(
+                ticks=len(state),
+                first_tick=int(ticks[0]),
+                last_tick=int(ticks[-1]),
+                duration_s=round(float(state.t[-1] - state.t[0]), 4),
+                missing_ticks=expected - len(state),
+            )
         out["channels"] = {topic: len(s) for topic, s in sorted(self.series.items())}
         timing = self.series.get("/timing")
         if timing is not None and len(timing):
@@ -99,8 +108,9 @@ class Recording:
         safety = self.series.get("/safety")
         if safety is not None and len(safety):
             levels, counts = np.unique(safety.level, return_counts=True)
-            out["safety_ticks"] = {LEVELS[int(v)] if v < len(LEVELS) else str(v): int(c)
-                                   for v, c in zip(levels, counts, strict=True)}
+            out["safety_ticks"] = {
+                LEVELS[int(v)] if v < len(LEVELS) else str(v): int(c) for v, c in zip(levels, counts, strict=True)
+            }
             out["safety_last"] = LEVELS[int(safety.level[-1])]
         out["faults"] = self.faults
         return out
@@ -150,8 +160,12 @@ def load(path: str | Path) -> Recording:
                 raw = np.frombuffer(b"".join(messages), dtype=np.uint8).reshape(len(messages), layout.size)
                 s.fields = layout.decode(raw)
             else:  # sequence lengths changed within the channel: one message at a time
-                rows = [Layout.from_schema(schema.name, schema.data.decode(), m).decode(
-                    np.frombuffer(m, dtype=np.uint8)[None, :]) for m in messages]
+                rows = [
+                    Layout.from_schema(schema.name, schema.data.decode(), m).decode(
+                        np.frombuffer(m, dtype=np.uint8)[None, :]
+                    )
+                    for m in messages
+                ]
                 s.fields = {k: np.array([r[k][0] for r in rows], dtype=object) for k in rows[0]}
         elif channel.message_encoding == "json":
             s.messages = [json.loads(m) for m in messages]
@@ -161,12 +175,19 @@ def load(path: str | Path) -> Recording:
 
 def format_summary(summary: dict[str, Any]) -> str:
     """The summary as text for people."""
-    lines = [f"recording {summary['path']}: robot {summary.get('robot')} at {summary.get('rate_hz')} Hz"
-             + ("  (TRUNCATED: the writer did not finish; read up to its last complete chunk)"
-                if summary["truncated"] else "")]
+    lines = [
+        f"recording {summary['path']}: robot {summary.get('robot')} at {summary.get('rate_hz')} Hz"
+        + (
+            "  (TRUNCATED: the writer did not finish; read up to its last complete chunk)"
+            if summary["truncated"]
+            else ""
+        )
+    ]
     if "ticks" in summary:
-        lines.append(f"  ticks        {summary['ticks']} ({summary['first_tick']}..{summary['last_tick']}) in "
-                     f"{summary['duration_s']} s, missing {summary['missing_ticks']}")
+        lines.append(
+            f"  ticks        {summary['ticks']} ({summary['first_tick']}..{summary['last_tick']}) in "
+            f"{summary['duration_s']} s, missing {summary['missing_ticks']}"
+        )
     for key, label in (("lateness_us", "lateness µs"), ("work_us", "work µs")):
         if key in summary:
             p = summary[key]
@@ -174,8 +195,10 @@ def format_summary(summary: dict[str, Any]) -> str:
     if "phases_us_p50" in summary:
         lines.append("  phases µs    " + "  ".join(f"{k} {v}" for k, v in summary["phases_us_p50"].items()) + "  (p50)")
     if "safety_ticks" in summary:
-        lines.append(f"  safety       last {summary['safety_last']}; ticks per level "
-                     + ", ".join(f"{k} {v}" for k, v in summary["safety_ticks"].items()))
+        lines.append(
+            f"  safety       last {summary['safety_last']}; ticks per level "
+            + ", ".join(f"{k} {v}" for k, v in summary["safety_ticks"].items())
+        )
     lines.append("  channels     " + ", ".join(f"{k} {v}" for k, v in summary["channels"].items()))
     for fault in summary["faults"]:
         lines.append(f"  FAULT        {fault['source']} in {fault['phase']} at tick {fault['tick']}: {fault['error']}")

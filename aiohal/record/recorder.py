@@ -42,19 +42,31 @@ SCHEMA_PACKAGE = "aiohal/msg/"
 #: JSON channels: events and slow samples, encoding "json" with a JSON Schema
 FAULT_SCHEMA = {
     "type": "object",
-    "properties": {"tick": {"type": "integer"}, "source": {"type": "string"}, "phase": {"type": "string"},
-                   "error": {"type": "string"}},
+    "properties": {
+        "tick": {"type": "integer"},
+        "source": {"type": "string"},
+        "phase": {"type": "string"},
+        "error": {"type": "string"},
+    },
 }
 HEALTH_SCHEMA = {
     "type": "object",
-    "properties": {"tick": {"type": "integer"}, "safety_level": {"type": "string"},
-                   "drivers": {"type": "object"}, "controller": {"type": "object"}},
+    "properties": {
+        "tick": {"type": "integer"},
+        "safety_level": {"type": "string"},
+        "drivers": {"type": "object"},
+        "controller": {"type": "object"},
+    },
 }
 ROBOT_SCHEMA = {
     "type": "object",
-    "properties": {"robot": {"type": "string"}, "rate_hz": {"type": "number"},
-                   "joint_names": {"type": "array", "items": {"type": "string"}},
-                   "devices": {"type": "object"}, "clock": {"type": "string"}},
+    "properties": {
+        "robot": {"type": "string"},
+        "rate_hz": {"type": "number"},
+        "joint_names": {"type": "array", "items": {"type": "string"}},
+        "devices": {"type": "object"},
+        "clock": {"type": "string"},
+    },
 }
 
 
@@ -84,8 +96,12 @@ def snapshot_health(control: ControlLoop) -> dict[str, Any]:
         metrics = control.controller.metrics() if control.controller is not None else {}
     except Exception as exc:
         metrics = {"metrics_error": str(exc)}
-    return {"tick": control.robot.clock.tick, "safety_level": control.level.name.lower(),
-            "drivers": drivers, "controller": {"type": control.controller_type, **metrics}}
+    return {
+        "tick": control.robot.clock.tick,
+        "safety_level": control.level.name.lower(),
+        "drivers": drivers,
+        "controller": {"type": control.controller_type, **metrics},
+    }
 
 
 def _jsonable(value: Any) -> Any:
@@ -115,8 +131,9 @@ class Recorder:
     #: the writer's sleep when it has caught up (a couple of ticks accumulate meanwhile)
     IDLE_S = 0.002
 
-    def __init__(self, control: ControlLoop, path: str | Path | None, options: RecordSection | None = None,
-                 *, live: Any = None) -> None:
+    def __init__(
+        self, control: ControlLoop, path: str | Path | None, options: RecordSection | None = None, *, live: Any = None
+    ) -> None:
         from mcap.writer import CompressionType, Writer  # the extra 'record'
 
         self.control = control
@@ -127,18 +144,21 @@ class Recorder:
         self._arrays: list[np.ndarray] = []
         self.channels: list[TickChannel] = []
         self._build_channels(robot)
-        self.ring = R.TickRing(self._arrays, self.options.buffer_ticks,
-                               [stats.lateness, stats.work, *stats.phases], stats.mask)
+        self.ring = R.TickRing(
+            self._arrays, self.options.buffer_ticks, [stats.lateness, stats.work, *stats.phases], stats.mask
+        )
         from .. import kernel_call
 
-        self._kernel = kernel_call.compiled_for(R.record_tick, (self.ring.data, self.ring.sources, self.ring.state,
-                                                                0, 0, 0, 0))
+        self._kernel = kernel_call.compiled_for(
+            R.record_tick, (self.ring.data, self.ring.sources, self.ring.state, 0, 0, 0, 0)
+        )
         self._file = None
         self._writer = None
         if self.path is not None:
             self._file = open(self.path, "wb")  # noqa: SIM115 - open for the recorder's life, closed in close()
-            compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-                           "none": CompressionType.NONE}[self.options.compression]
+            compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
+                self.options.compression
+            ]
             # chunks are closed by time (flush_ms), not by size: the size bound is only a backstop
             self._writer = Writer(self._file, chunk_size=64 << 20, compression=compression)
             self._writer.start(profile="aiohal", library="aiohal")
@@ -173,27 +193,42 @@ class Recorder:
         i_cmd, i_mode = self._add_array(command.block), self._add_array(command.mode)
         tick_field = [("tick", np.int64, None)]
 
-        state_layout = Layout(SCHEMA_PACKAGE + "JointState", tick_field + [
-            (f, np.float64, n) for f in ("position", "velocity", "effort", "motor_position", "motor_velocity",
-                                         "temperature")] + [("fault", np.uint32, n)])
+        state_layout = Layout(
+            SCHEMA_PACKAGE + "JointState",
+            tick_field
+            + [
+                (f, np.float64, n)
+                for f in ("position", "velocity", "effort", "motor_position", "motor_velocity", "temperature")
+            ]
+            + [("fault", np.uint32, n)],
+        )
 
         def state_fields(meta, data):
             block = ring().field(data, i_state)
-            out = {f: block[:, r] for r, f in enumerate(
-                ("position", "velocity", "effort", "motor_position", "motor_velocity", "temperature"))}
+            out = {
+                f: block[:, r]
+                for r, f in enumerate(
+                    ("position", "velocity", "effort", "motor_position", "motor_velocity", "temperature")
+                )
+            }
             out["fault"] = ring().field(data, i_sfault)
             return out
 
         self.channels.append(TickChannel("/joint_state", "joint_state", state_layout, state_fields))
 
-        command_layout = Layout(SCHEMA_PACKAGE + "JointCommand", tick_field + [
-            (f, np.float64, n) for f in ("position", "velocity", "effort", "stiffness", "damping", "feedforward")
-        ] + [("mode", np.int8, n)])
+        command_layout = Layout(
+            SCHEMA_PACKAGE + "JointCommand",
+            tick_field
+            + [(f, np.float64, n) for f in ("position", "velocity", "effort", "stiffness", "damping", "feedforward")]
+            + [("mode", np.int8, n)],
+        )
 
         def command_fields(meta, data):
             block = ring().field(data, i_cmd)
-            out = {f: block[:, r] for r, f in enumerate(
-                ("position", "velocity", "effort", "stiffness", "damping", "feedforward"))}
+            out = {
+                f: block[:, r]
+                for r, f in enumerate(("position", "velocity", "effort", "stiffness", "damping", "feedforward"))
+            }
             out["mode"] = ring().field(data, i_mode)
             return out
 
@@ -213,11 +248,15 @@ class Recorder:
             for f in group.fields:
                 shape, dtype = group.shapes[f]
                 fields.append((f, dtype, shape[0] if shape else None))
-            layout = Layout(SCHEMA_PACKAGE + {"imu": "Imu", "force_torque": "ForceTorque", "hand": "Hand"}[kind],
-                            tick_field + fields + [("fault", np.uint32, None)])
+            layout = Layout(
+                SCHEMA_PACKAGE + {"imu": "Imu", "force_torque": "ForceTorque", "hand": "Hand"}[kind],
+                tick_field + fields + [("fault", np.uint32, None)],
+            )
             for d, name in enumerate(group.names):
-                def device_fields(meta, data, d=d, group=group, i_fault=i_fault, i_values=i_values,
-                                  field_arrays=field_arrays):
+
+                def device_fields(
+                    meta, data, d=d, group=group, i_fault=i_fault, i_values=i_values, field_arrays=field_arrays
+                ):
                     if i_values is not None:
                         values = ring().field(data, i_values)[:, d]
                         out = {f: values[:, cols] for f, cols in group.columns.items()}
@@ -228,9 +267,12 @@ class Recorder:
 
                 self.channels.append(TickChannel(f"/{kind}/{name}", kind, layout, device_fields))
 
-        timing_layout = Layout(SCHEMA_PACKAGE + "TickTiming", tick_field + [
-            ("lateness_ns", np.int64, None), ("work_ns", np.int64, None)] + [
-            (f"{p}_ns", np.int64, None) for p in PHASES])
+        timing_layout = Layout(
+            SCHEMA_PACKAGE + "TickTiming",
+            tick_field
+            + [("lateness_ns", np.int64, None), ("work_ns", np.int64, None)]
+            + [(f"{p}_ns", np.int64, None) for p in PHASES],
+        )
 
         def timing_fields(meta, data):
             out = {"lateness_ns": meta[:, R.TIMING], "work_ns": meta[:, R.TIMING + 1]}
@@ -241,8 +283,9 @@ class Recorder:
         self.channels.append(TickChannel("/timing", "timing", timing_layout, timing_fields, timing=True))
 
         safety_layout = Layout(SCHEMA_PACKAGE + "Safety", [*tick_field, ("level", np.uint8, None)])
-        self.channels.append(TickChannel("/safety", "safety", safety_layout,
-                                         lambda meta, data: {"level": meta[:, R.LEVEL]}))
+        self.channels.append(
+            TickChannel("/safety", "safety", safety_layout, lambda meta, data: {"level": meta[:, R.LEVEL]})
+        )
 
     def _register(self) -> None:
         writer, live = self._writer, self.live
@@ -253,8 +296,11 @@ class Recorder:
             if live is not None:
                 ch.live = live.channel(ch.topic, ch.layout.name, "ros2msg", ch.layout.schema.encode(), "cdr")
         self._json_channels: dict[str, tuple[int, Any]] = {}
-        for topic, name, schema in (("/faults", "aiohal.Fault", FAULT_SCHEMA), ("/health", "aiohal.Health", HEALTH_SCHEMA),
-                                    ("/robot", "aiohal.Robot", ROBOT_SCHEMA)):
+        for topic, name, schema in (
+            ("/faults", "aiohal.Fault", FAULT_SCHEMA),
+            ("/health", "aiohal.Health", HEALTH_SCHEMA),
+            ("/robot", "aiohal.Robot", ROBOT_SCHEMA),
+        ):
             data = json.dumps(schema).encode()
             cid = 0
             if writer is not None:
@@ -274,9 +320,14 @@ class Recorder:
         robot = control.robot
         self._attached = True
         devices = {kind: list(group.names) for kind, group in robot.device_groups.items() if len(group)}
-        info = {"robot": robot.name, "rate_hz": 1e9 / control.period_ns, "joint_names": list(robot.joint_names),
-                "devices": devices, "clock": control.source.kind,
-                "decimate": {k: self.options.decimate.get(k, 1) for k in sorted({c.key for c in self.channels})}}
+        info = {
+            "robot": robot.name,
+            "rate_hz": 1e9 / control.period_ns,
+            "joint_names": list(robot.joint_names),
+            "devices": devices,
+            "clock": control.source.kind,
+            "decimate": {k: self.options.decimate.get(k, 1) for k in sorted({c.key for c in self.channels})},
+        }
         if self._writer is not None:
             self._writer.add_metadata("aiohal", {k: json.dumps(v) for k, v in info.items()})
         self._events.append(("/robot", control.source.now_ns(), info))
@@ -417,7 +468,7 @@ class Recorder:
                 continue
             a = ring.tail & ring.mask
             n = min(head - ring.tail, self.BATCH, ring.slots - a)
-            data = ring.data[a: a + n]
+            data = ring.data[a : a + n]
             meta = ring.meta(data)
             ticks = meta[:, R.TICK]
             recent = meta[:, R.TIMING] + meta[:, R.TIMING + 1]
@@ -442,7 +493,7 @@ class Recorder:
                 times = (stamps + offset).tolist()
                 tick_list = chan_ticks.tolist()
                 for i in range(count):
-                    msg = blob[i * size: (i + 1) * size]
+                    msg = blob[i * size : (i + 1) * size]
                     if writer is not None:
                         writer.add_message(ch.channel_id, times[i], msg, times[i], tick_list[i] & 0xFFFFFFFF)
                     if ch.live is not None and tick_list[i] % live_every == 0:
@@ -491,10 +542,13 @@ class Recorder:
             return
         j = (count - 1) & stats.mask
         ch = next(c for c in self.channels if c.timing)
-        values = {"tick": np.array([ring.state[R.LAST_TICK]]), "lateness_ns": stats.lateness[j: j + 1],
-                  "work_ns": stats.work[j: j + 1]}
+        values = {
+            "tick": np.array([ring.state[R.LAST_TICK]]),
+            "lateness_ns": stats.lateness[j : j + 1],
+            "work_ns": stats.work[j : j + 1],
+        }
         for i, p in enumerate(PHASES):
-            values[f"{p}_ns"] = stats.phases[i, j: j + 1]
+            values[f"{p}_ns"] = stats.phases[i, j : j + 1]
         every = self.options.decimate.get("timing", 1)
         if int(values["tick"][0]) % every:
             return

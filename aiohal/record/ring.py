@@ -44,8 +44,12 @@ def _pointer(typingctx, address):
 
 
 # not nogil: releasing the GIL for the call would let the writer thread take it mid-tick
-@njit(types.void(types.uint8[:, ::1], types.int64[:, ::1], types.int64[::1], types.int64, types.int64,
-                 types.int64, types.int64), cache=True)
+@njit(
+    types.void(
+        types.uint8[:, ::1], types.int64[:, ::1], types.int64[::1], types.int64, types.int64, types.int64, types.int64
+    ),
+    cache=True,
+)
 def record_tick(data, sources, state, count, tick, now_ns, level):  # pragma: no cover
     """Copy one tick into the next free slot, or count a drop when the ring is full.
 
@@ -77,7 +81,7 @@ def record_tick(data, sources, state, count, tick, now_ns, level):  # pragma: no
     offset = META_BYTES
     for i in range(sources.shape[0]):
         size = sources[i, 1]
-        row[offset: offset + size] = carray(_pointer(sources[i, 0]), size)
+        row[offset : offset + size] = carray(_pointer(sources[i, 0]), size)
         offset += size
     state[HEAD] = head + 1
 
@@ -132,4 +136,3 @@ class TickRing:
         a = self.arrays[index]
         cols = data[:, self.columns[index]]
         return np.ascontiguousarray(cols).view(a.dtype).reshape(len(data), *a.shape)
-

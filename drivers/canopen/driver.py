@@ -53,8 +53,15 @@ DRIVE_EDS = DATA / "aiohal_drive.eds"
 MODES = {"csp": 8, "csv": 9, "cst": 10}
 # (index, subindex, bits) of each drive variable, in DRIVE_INPUTS / DRIVE_OUTPUTS (+ DRIVE_OFFSETS) order
 INPUT_OBJECTS = ((0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16), (0x603F, 0, 16))
-OUTPUT_OBJECTS = ((0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8),
-                  (0x60B1, 0, 32), (0x60B2, 0, 16))  # then DRIVE_OFFSETS, where a drive maps them
+OUTPUT_OBJECTS = (
+    (0x6040, 0, 16),
+    (0x607A, 0, 32),
+    (0x60FF, 0, 32),
+    (0x6071, 0, 16),
+    (0x6060, 0, 8),
+    (0x60B1, 0, 32),
+    (0x60B2, 0, 16),
+)  # then DRIVE_OFFSETS, where a drive maps them
 REQUIRED = {0x6041, 0x6064, 0x6040, 0x607A}
 SPARE = 8  # zero bytes past each buffer's data, where unmapped variables point
 SYNC_COB_ID = 0x80
@@ -85,9 +92,11 @@ class NodeOptions(Options):
     rated_torque: FiniteFloat | None = Field(None, gt=0)
     position_offset: FiniteFloat = Field(0.0, description="rad added to the drive's position.")
     rx_pdos: dict[str, list[str]] | None = Field(
-        None, description="Remap the RPDOs: per mapping object (0x1600..), its entries 'index:subindex:bits' "
-                          "(e.g. '0x607A:0:32'); written by SDO in PRE-OPERATIONAL and read back. RPDOs not "
-                          "listed are disabled. Leave out to use the node's own mapping.")
+        None,
+        description="Remap the RPDOs: per mapping object (0x1600..), its entries 'index:subindex:bits' "
+        "(e.g. '0x607A:0:32'); written by SDO in PRE-OPERATIONAL and read back. RPDOs not "
+        "listed are disabled. Leave out to use the node's own mapping.",
+    )
     tx_pdos: dict[str, list[str]] | None = Field(None, description="Remap the TPDOs (0x1A00..), as rx_pdos.")
 
     @property
@@ -100,8 +109,15 @@ class NodeOptions(Options):
         out = []
         for kind, pdos, base in (("rpdo", self.rx_pdos, 0x1600), ("tpdo", self.tx_pdos, 0x1A00)):
             if pdos is not None:
-                out.append((kind, {parse_number(m) - base + 1: [decode_mapping(parse_pdo_entry(e)) for e in entries]
-                                   for m, entries in pdos.items()}))
+                out.append(
+                    (
+                        kind,
+                        {
+                            parse_number(m) - base + 1: [decode_mapping(parse_pdo_entry(e)) for e in entries]
+                            for m, entries in pdos.items()
+                        },
+                    )
+                )
         return out
 
 
@@ -109,30 +125,43 @@ class CanopenOptions(Options):
     interface: str = Field(min_length=1, description="python-can interface: socketcan, pcan, kvaser, virtual, ...")
     channel: str = Field(min_length=1, description="python-can channel, e.g. can0.")
     bitrate: int = Field(1_000_000, ge=10_000, le=1_000_000, description="Nominal bitrate (bit/s).")
-    data_bitrate: int | None = Field(None, ge=10_000, le=8_000_000,
-                                     description="CAN FD data bitrate, where the interface has it (enables FD).")
+    data_bitrate: int | None = Field(
+        None, ge=10_000, le=8_000_000, description="CAN FD data bitrate, where the interface has it (enables FD)."
+    )
     nodes: list[NodeOptions] = Field(default_factory=list, description="Every CiA 402 drive on this bus.")
-    dbc: ConfigPath | None = Field(None, description="DBC file of the sensors' frames; default: aiohal's simulated "
-                                                     "gateway's.")
-    sensors: list[SensorOptions] = Field(default_factory=list, description="IMU and force/torque sensors whose "
-                                                                           "frames the DBC describes.")
+    dbc: ConfigPath | None = Field(
+        None, description="DBC file of the sensors' frames; default: aiohal's simulated gateway's."
+    )
+    sensors: list[SensorOptions] = Field(
+        default_factory=list, description="IMU and force/torque sensors whose frames the DBC describes."
+    )
     drive_defaults: DriveUnitOptions = Field(default_factory=DriveUnitOptions)
     heartbeat_ms: int = Field(50, ge=1, le=65535, description="Heartbeat producer time written to every node (0x1017).")
     heartbeat_timeout_ms: FiniteFloat = Field(200.0, gt=0, description="A node silent this long is lost.")
     sdo_timeout_s: FiniteFloat = Field(0.5, gt=0, description="SDO response timeout at bring-up.")
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
-    tx_error_limit: int = Field(10, ge=1, le=10_000, description="Cycles in a row whose frames could not all be "
-                                                                 "sent (bus-off, no ACK) before the driver fails.")
-    simulate: bool = Field(False, description="Start aiohal's simulated drives on this bus in this process "
-                                              "(interface virtual: a demo with one command).")
-    initial_position: JointValues = Field(0.0, description="simulate: where the simulated joints start (rad), "
-                                                           "scalar or per joint.")
+    tx_error_limit: int = Field(
+        10,
+        ge=1,
+        le=10_000,
+        description="Cycles in a row whose frames could not all be sent (bus-off, no ACK) before the driver fails.",
+    )
+    simulate: bool = Field(
+        False,
+        description="Start aiohal's simulated drives on this bus in this process "
+        "(interface virtual: a demo with one command).",
+    )
+    initial_position: JointValues = Field(
+        0.0, description="simulate: where the simulated joints start (rad), scalar or per joint."
+    )
     estop_frame: str | None = Field(
-        None, pattern=r"^([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#([0-9A-Fa-f]{2}){0,8}$",
+        None,
+        pattern=r"^([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#([0-9A-Fa-f]{2}){0,8}$",
         description="The frame the watchdog process sends when the tick stops, candump style: 'ID#DATA' (3 hex "
-                    "digits: 11-bit id, 8: 29-bit), e.g. a safety relay's e-stop message. Default: NMT Stop to "
-                    "every node (000#0200). socketcan only: other interfaces are not reachable from another process.")
+        "digits: 11-bit id, 8: 29-bit), e.g. a safety relay's e-stop message. Default: NMT Stop to "
+        "every node (000#0200). socketcan only: other interfaces are not reachable from another process.",
+    )
 
 
 def estop_can_frame(spec: str | None) -> bytes:
@@ -242,7 +271,9 @@ class CanopenDriver(Driver):
         for i, sensor in enumerate(options.sensors):
             issues += sensor_issues(f"options.sensors[{i}]", sensor, devices.get(sensor.device), db)
             served.add(sensor.device)
-        issues += [("devices", f'device "{name}" has no entry in options.sensors') for name in devices if name not in served]
+        issues += [
+            ("devices", f'device "{name}" has no entry in options.sensors') for name in devices if name not in served
+        ]
         return issues
 
     @classmethod
@@ -260,10 +291,15 @@ class CanopenDriver(Driver):
         per_cycle = sum(busload.frame_bits(n) for n in cyclic)
         fits = per_cycle / max(1e-9, (1.0 - sensor_load) * options.bitrate)  # seconds per cycle needed
         needed = max(every + 1, int(np.ceil(fits * cycle_hz * every)))
-        return [("every", f"the CAN bus would be {100 * load:.0f} % loaded: {len(cyclic)} frames of {per_cycle} bits "
-                          f"per cycle (worst-case bit stuffing) at {cycle_hz:g} Hz, and the sensors' frames, on "
-                          f"{options.bitrate} bit/s; run this driver on fewer ticks (every = {needed}), raise the "
-                          "bitrate, map fewer PDOs or slow the sensors")]
+        return [
+            (
+                "every",
+                f"the CAN bus would be {100 * load:.0f} % loaded: {len(cyclic)} frames of {per_cycle} bits "
+                f"per cycle (worst-case bit stuffing) at {cycle_hz:g} Hz, and the sensors' frames, on "
+                f"{options.bitrate} bit/s; run this driver on fewer ticks (every = {needed}), raise the "
+                "bitrate, map fewer PDOs or slow the sensors",
+            )
+        ]
 
     def __init__(self, name, view, options) -> None:
         super().__init__(name, view, options)
@@ -332,13 +368,21 @@ class CanopenDriver(Driver):
         if opts.simulate:
             from .sim import SimBus
 
-            self.sim = SimBus(opts.interface, opts.channel, [n.node_id for n in opts.nodes], bitrate=opts.bitrate,
-                              sensors={self.view.device_kinds[s.device]: s.period_ms * 1e-3 for s in opts.sensors}
-                              if opts.sensors else None)
+            self.sim = SimBus(
+                opts.interface,
+                opts.channel,
+                [n.node_id for n in opts.nodes],
+                bitrate=opts.bitrate,
+                sensors={self.view.device_kinds[s.device]: s.period_ms * 1e-3 for s in opts.sensors}
+                if opts.sensors
+                else None,
+            )
             start = self.view.per_joint(opts.initial_position)
             for node, units in zip(opts.nodes, self._units(), strict=True):
                 q = start[self.view.joint_names.index(node.joint)]
-                self.sim.drives[node.node_id].model.configure(position=(q - node.position_offset) * units.counts_per_rad)
+                self.sim.drives[node.node_id].model.configure(
+                    position=(q - node.position_offset) * units.counts_per_rad
+                )
         try:
             self.bus = can.Bus(**self._bus_options())
         except (can.CanError, OSError, ValueError) as exc:
@@ -374,21 +418,26 @@ class CanopenDriver(Driver):
         self._inputs = np.zeros(in_size + SPARE, dtype=np.uint8)
         self._outputs = np.zeros(out_size + SPARE, dtype=np.uint8)
         self._out_view = memoryview(self._outputs.data).cast("B")
-        resolved = [[in_size if o is None else o for o in inputs] + [out_size if o is None else o for o in outputs]
-                    for inputs, outputs in offsets]
+        resolved = [
+            [in_size if o is None else o for o in inputs] + [out_size if o is None else o for o in outputs]
+            for inputs, outputs in offsets
+        ]
         if opts.nodes:
             self._link(resolved)
-        self._rpdos = [(can.Message(arbitration_id=cob, data=bytearray(size), is_extended_id=False), start, start + size)
-                       for cob, start, size in rpdo_slices]
+        self._rpdos = [
+            (can.Message(arbitration_id=cob, data=bytearray(size), is_extended_id=False), start, start + size)
+            for cob, start, size in rpdo_slices
+        ]
         self._tpdos_per_cycle = len(tpdo_slices)
         self._frame_sizes = [size for _, _, size in rpdo_slices] + [0] + [size for _, _, size in tpdo_slices]
         inputs_view = memoryview(self._inputs.data).cast("B")
         for cob, start, size in tpdo_slices:
-            network.subscribe(cob, self._tpdo_callback(inputs_view[start:start + size], size))
+            network.subscribe(cob, self._tpdo_callback(inputs_view[start : start + size], size))
         if opts.sensors:
             db = load_dbc(str(opts.dbc or SENSORS_DBC))
-            sensors = [DbcSensor(s, self.view.devices[s.device], self.view.device_kinds[s.device], db)
-                       for s in opts.sensors]
+            sensors = [
+                DbcSensor(s, self.view.devices[s.device], self.view.device_kinds[s.device], db) for s in opts.sensors
+            ]
             self.gateway = SensorGateway(sensors, db, self.name)
             self.gateway.subscribe(network)
         self._heard[:] = time.monotonic()
@@ -407,12 +456,18 @@ class CanopenDriver(Driver):
         except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as exc:
             raise CanopenError(f"node {want.node_id} ({want.label}) does not answer its SDOs: {exc}") from exc
         if device_type & 0xFFFF != 402:
-            raise CanopenError(f"node {want.node_id} ({want.label}): device type 0x{device_type:08X} is not a "
-                               "CiA 402 drive (profile 402 in 0x1000)")
-        for what, got, expected in (("vendor id", vendor, want.vendor_id), ("product code", product, want.product_code)):
+            raise CanopenError(
+                f"node {want.node_id} ({want.label}): device type 0x{device_type:08X} is not a "
+                "CiA 402 drive (profile 402 in 0x1000)"
+            )
+        for what, got, expected in (
+            ("vendor id", vendor, want.vendor_id),
+            ("product code", product, want.product_code),
+        ):
             if expected is not None and got != expected:
-                raise CanopenError(f"node {want.node_id} ({want.label}): {what} 0x{got:08X}, the config says "
-                                   f"0x{expected:08X}")
+                raise CanopenError(
+                    f"node {want.node_id} ({want.label}): {what} 0x{got:08X}, the config says 0x{expected:08X}"
+                )
 
     def _remap(self, k: int, node: canopen.RemoteNode, kind: str, pdos: dict[int, list[tuple[int, int, int]]]) -> None:
         """Write the configured mapping (the others disabled), then read it back: a node that
@@ -431,8 +486,10 @@ class CanopenDriver(Driver):
                 for index, subindex, bits in entries:
                     pdo.add_variable(index, subindex, bits)
             except KeyError as exc:
-                raise CanopenError(f"node {want.node_id} ({want.label}): {kind.upper()}{number}: {exc.args[0]} is not "
-                                   "in the node's EDS") from None
+                raise CanopenError(
+                    f"node {want.node_id} ({want.label}): {kind.upper()}{number}: {exc.args[0]} is not "
+                    "in the node's EDS"
+                ) from None
             pdo.enabled = True
             pdo.trans_type = 1
             pdo.save()
@@ -443,8 +500,10 @@ class CanopenDriver(Driver):
         for number, entries in pdos.items():
             got = [(v.index, v.subindex, v.length) for v in maps.map[number].map]
             if got != entries or not maps.map[number].enabled:
-                raise CanopenError(f"node {want.node_id} ({want.label}): {kind.upper()}{number} reads back as {got} "
-                                   f"after writing {entries}: the node kept its own mapping")
+                raise CanopenError(
+                    f"node {want.node_id} ({want.label}): {kind.upper()}{number} reads back as {got} "
+                    f"after writing {entries}: the node kept its own mapping"
+                )
 
     def _place(self, k: int, maps, objects, slices: list, kind: str) -> list[int | None]:
         """Lay this node's enabled synchronous PDOs end to end in its direction's buffer; the
@@ -455,8 +514,10 @@ class CanopenDriver(Driver):
             if not pdo.enabled or not pdo.map:
                 continue
             if pdo.trans_type is not None and pdo.trans_type > 240:
-                raise CanopenError(f"node {want.node_id} ({want.label}): {kind} 0x{pdo.cob_id:03X} has transmission "
-                                   f"type {pdo.trans_type}; this driver needs synchronous PDOs (1..240)")
+                raise CanopenError(
+                    f"node {want.node_id} ({want.label}): {kind} 0x{pdo.cob_id:03X} has transmission "
+                    f"type {pdo.trans_type}; this driver needs synchronous PDOs (1..240)"
+                )
             start = sum(size for _, _, size in slices)
             bit = 0
             for var in pdo.map:
@@ -471,25 +532,41 @@ class CanopenDriver(Driver):
         for index, subindex, bits in objects:
             place = found.get((index, subindex))
             if place is not None and place[1] != bits:
-                raise CanopenError(f"node {want.node_id} ({want.label}): 0x{index:04X} is mapped with {place[1]} bits "
-                                   f"in a {kind}, a CiA 402 drive has {bits}")
+                raise CanopenError(
+                    f"node {want.node_id} ({want.label}): 0x{index:04X} is mapped with {place[1]} bits "
+                    f"in a {kind}, a CiA 402 drive has {bits}"
+                )
             if place is None and index in REQUIRED:
-                raise CanopenError(f"node {want.node_id} ({want.label}): 0x{index:04X} is in no {kind}: "
-                                   f"a CiA 402 drive must map it")
+                raise CanopenError(
+                    f"node {want.node_id} ({want.label}): 0x{index:04X} is in no {kind}: a CiA 402 drive must map it"
+                )
             offsets.append(None if place is None else place[0])
         return offsets
 
     def _units(self) -> list[DriveUnits]:
         defaults = self.options.drive_defaults
-        return [DriveUnits(n.counts_per_rev or defaults.counts_per_rev, n.gear_ratio or defaults.gear_ratio,
-                           n.rated_torque or defaults.rated_torque) for n in self.options.nodes]
+        return [
+            DriveUnits(
+                n.counts_per_rev or defaults.counts_per_rev,
+                n.gear_ratio or defaults.gear_ratio,
+                n.rated_torque or defaults.rated_torque,
+            )
+            for n in self.options.nodes
+        ]
 
     def _link(self, offsets: list[list[int]]) -> None:
         opts, view = self.options, self.view
         specs = []
         for node_opts, units in zip(opts.nodes, self._units(), strict=True):
-            specs.append(DriveSpec(node_opts.label, node_opts.joint, view.joint_names.index(node_opts.joint), units,
-                                   node_opts.position_offset))
+            specs.append(
+                DriveSpec(
+                    node_opts.label,
+                    node_opts.joint,
+                    view.joint_names.index(node_opts.joint),
+                    units,
+                    node_opts.position_offset,
+                )
+            )
         stuck = max(1, round(opts.stuck_after_ms * 1e6 / self._cycle_ns()))
         self.drives = DriveGroup.on_buffers(self._inputs, self._outputs, offsets, specs, stuck_after=stuck)
         self.drives.bind_state(view.state)
@@ -500,8 +577,14 @@ class CanopenDriver(Driver):
         def on_tpdo(can_id: int, data: bytearray, timestamp: float) -> None:
             if len(data) != size:
                 self.malformed += 1
-                self._warn.warning(f"dlc{can_id}", "canopen %s: TPDO 0x%03X of %d bytes, %d expected: dropped",
-                                   self.name, can_id, len(data), size)
+                self._warn.warning(
+                    f"dlc{can_id}",
+                    "canopen %s: TPDO 0x%03X of %d bytes, %d expected: dropped",
+                    self.name,
+                    can_id,
+                    len(data),
+                    size,
+                )
                 return
             target[:] = data
             self.rx_tpdos += 1
@@ -607,19 +690,28 @@ class CanopenDriver(Driver):
     def _bus_failed(self) -> None:
         opts = self.options
         if self.bus_off:
-            raise CanopenError(f"{opts.interface}:{opts.channel} is bus-off (an error frame said so): no frame "
-                               "reaches the drives")
-        raise CanopenError(f"{opts.interface}:{opts.channel}: {self._failed_cycles} cycles in a row could not send "
-                           f"their frames ({self.tx_errors} frames in all): bus-off, no ACK or the interface down")
+            raise CanopenError(
+                f"{opts.interface}:{opts.channel} is bus-off (an error frame said so): no frame reaches the drives"
+            )
+        raise CanopenError(
+            f"{opts.interface}:{opts.channel}: {self._failed_cycles} cycles in a row could not send "
+            f"their frames ({self.tx_errors} frames in all): bus-off, no ACK or the interface down"
+        )
 
     def _lost(self, now: float) -> None:
-        silent = [self.options.nodes[k] for k in np.flatnonzero(now - self._heard > self.options.heartbeat_timeout_ms * 1e-3)]
+        silent = [
+            self.options.nodes[k] for k in np.flatnonzero(now - self._heard > self.options.heartbeat_timeout_ms * 1e-3)
+        ]
         self.lost_nodes = [n.label for n in silent]
         for node in silent:
             self.view.state.fault[self.view.joint_names.index(node.joint)] |= Fault.HARDWARE
-        raise CanopenError("heartbeat lost: " + ", ".join(
-            f"node {n.node_id} ({n.label}, joint {n.joint}) silent for more than {self.options.heartbeat_timeout_ms:g} ms"
-            for n in silent))
+        raise CanopenError(
+            "heartbeat lost: "
+            + ", ".join(
+                f"node {n.node_id} ({n.label}, joint {n.joint}) silent for more than {self.options.heartbeat_timeout_ms:g} ms"
+                for n in silent
+            )
+        )
 
     def _handle_emergencies(self) -> None:
         pending, self._emcy = self._emcy, []
@@ -630,8 +722,11 @@ class CanopenDriver(Driver):
                 log.info("canopen %s: node %d (%s): error reset", self.name, node.node_id, node.label)
                 continue
             self.emergencies += 1
-            self.view.report_fault("read", f"joint {node.joint}: EMCY from node {node.node_id} ({node.label}): "
-                                   f"error code 0x{code:04X}, register 0x{register:02X}")
+            self.view.report_fault(
+                "read",
+                f"joint {node.joint}: EMCY from node {node.node_id} ({node.label}): "
+                f"error code 0x{code:04X}, register 0x{register:02X}",
+            )
 
     def _on_drive_event(self, i: int, event: DriveEvent) -> None:
         if not self._active:
@@ -714,8 +809,9 @@ class CanopenDriver(Driver):
                 while time.monotonic() < deadline:
                     with self._lock:
                         self._cycle_holding()
-                    if not any(m.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
-                               for m in self.drives.machines):
+                    if not any(
+                        m.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE) for m in self.drives.machines
+                    ):
                         break
                     time.sleep(period_s)
                 for node in self.remotes:
@@ -732,16 +828,24 @@ class CanopenDriver(Driver):
     def health(self) -> dict[str, Any]:
         opts = self.options
         out: dict[str, Any] = {
-            "bus": f"{opts.interface}:{opts.channel}", "nodes": len(opts.nodes), "cycles": self.cycles,
-            "tx_frames": self.tx_frames, "tx_errors": self.tx_errors, "rx_tpdos": self.rx_tpdos,
-            "malformed": self.malformed, "late_cycles": self.late_cycles, "error_frames": self.error_frames, "emergencies": self.emergencies,
+            "bus": f"{opts.interface}:{opts.channel}",
+            "nodes": len(opts.nodes),
+            "cycles": self.cycles,
+            "tx_frames": self.tx_frames,
+            "tx_errors": self.tx_errors,
+            "rx_tpdos": self.rx_tpdos,
+            "malformed": self.malformed,
+            "late_cycles": self.late_cycles,
+            "error_frames": self.error_frames,
+            "emergencies": self.emergencies,
             "drive_faults": self.drive_faults,
         }
         if self._frame_sizes:
             rate = 1e9 / self._cycle_ns()
             sensors = self.gateway.frame_sizes() if self.gateway is not None else []
-            out["bus_load_configured_pct"] = round(100 * (busload.load(self._frame_sizes, rate, opts.bitrate)
-                                                          + busload.load_at(sensors, opts.bitrate)), 1)
+            out["bus_load_configured_pct"] = round(
+                100 * (busload.load(self._frame_sizes, rate, opts.bitrate) + busload.load_at(sensors, opts.bitrate)), 1
+            )
             elapsed = (time.monotonic_ns() - self._started_ns) * 1e-9
             if self.cycles and elapsed > 0:
                 achieved = busload.load(self._frame_sizes, self.cycles / elapsed, opts.bitrate)

@@ -23,10 +23,19 @@ from canopen.objectdictionary import ObjectDictionary
 from .driver import INPUT_OBJECTS, OUTPUT_OBJECTS, REQUIRED
 
 NMT_STATES = {0: "BOOT-UP", 4: "STOPPED", 5: "OPERATIONAL", 127: "PRE-OPERATIONAL"}
-DRIVE_NAMES = {0x6041: "Statusword", 0x6064: "Position actual value", 0x606C: "Velocity actual value",
-               0x6077: "Torque actual value", 0x603F: "Error code", 0x6040: "Controlword",
-               0x607A: "Target position", 0x60FF: "Target velocity", 0x6071: "Target torque",
-               0x6060: "Modes of operation", 0x6061: "Modes of operation display"}
+DRIVE_NAMES = {
+    0x6041: "Statusword",
+    0x6064: "Position actual value",
+    0x606C: "Velocity actual value",
+    0x6077: "Torque actual value",
+    0x603F: "Error code",
+    0x6040: "Controlword",
+    0x607A: "Target position",
+    0x60FF: "Target velocity",
+    0x6071: "Target torque",
+    0x6060: "Modes of operation",
+    0x6061: "Modes of operation display",
+}
 
 
 @dataclass
@@ -117,9 +126,19 @@ def scan(network: canopen.Network, *, limit: int = 127, listen_s: float = 0.3) -
         except canopen.SdoAbortedError:
             serial = None
         state = states.get(node_id)
-        found.append(NodeInfo(node_id, device_type, vendor, product, revision, serial,
-                              None if state is None else NMT_STATES.get(state, f"state {state}"),
-                              _pdos(sdo, 0x1400, 0x1600), _pdos(sdo, 0x1800, 0x1A00)))
+        found.append(
+            NodeInfo(
+                node_id,
+                device_type,
+                vendor,
+                product,
+                revision,
+                serial,
+                None if state is None else NMT_STATES.get(state, f"state {state}"),
+                _pdos(sdo, 0x1400, 0x1600),
+                _pdos(sdo, 0x1800, 0x1A00),
+            )
+        )
     for node_id in range(1, limit + 1):
         network.unsubscribe(0x700 + node_id, heartbeat)
     return found
@@ -129,16 +148,21 @@ def describe(nodes: list[NodeInfo]) -> str:
     lines = []
     for n in nodes:
         kind = "CiA 402 drive" if n.is_drive else f"device type 0x{n.device_type:08X}"
-        lines.append(f"node {n.node_id}: {kind}, vendor 0x{n.vendor_id:08X}, product 0x{n.product_code:08X}, "
-                     f"revision 0x{n.revision:08X}" + (f", serial {n.serial}" if n.serial is not None else "")
-                     + f", NMT {n.nmt_state or 'unknown (no heartbeat heard)'}")
+        lines.append(
+            f"node {n.node_id}: {kind}, vendor 0x{n.vendor_id:08X}, product 0x{n.product_code:08X}, "
+            f"revision 0x{n.revision:08X}"
+            + (f", serial {n.serial}" if n.serial is not None else "")
+            + f", NMT {n.nmt_state or 'unknown (no heartbeat heard)'}"
+        )
         for kind_name, pdos in (("RPDO", n.rpdos), ("TPDO", n.tpdos)):
             for p in pdos:
                 lines.append(f"  {kind_name}{p.number} {p.describe()}")
         if n.is_drive:
             used, missing = n.drive_mapping()
-            lines.append(f"  the driver would use: {', '.join(used) or 'nothing'}"
-                         + (f"; missing (required): {', '.join(missing)}" if missing else ""))
+            lines.append(
+                f"  the driver would use: {', '.join(used) or 'nothing'}"
+                + (f"; missing (required): {', '.join(missing)}" if missing else "")
+            )
     return "\n".join(lines)
 
 
@@ -147,14 +171,25 @@ def to_toml(nodes: list[NodeInfo], interface: str, channel: str, bitrate: int) -
     EDS and units (counts_per_rev, gear_ratio, rated_torque)."""
     drives = [n for n in nodes if n.is_drive]
     joints = [f"joint{n.node_id}" for n in drives]
-    lines = ["[[driver]]", 'type = "canopen"', 'name = "can"', "joints = [" + ", ".join(f'"{j}"' for j in joints) + "]",
-             "", "[driver.options]", f'interface = "{interface}"', f'channel = "{channel}"', f"bitrate = {bitrate}",
-             "nodes = ["]
+    lines = [
+        "[[driver]]",
+        'type = "canopen"',
+        'name = "can"',
+        "joints = [" + ", ".join(f'"{j}"' for j in joints) + "]",
+        "",
+        "[driver.options]",
+        f'interface = "{interface}"',
+        f'channel = "{channel}"',
+        f"bitrate = {bitrate}",
+        "nodes = [",
+    ]
     for n, joint in zip(drives, joints, strict=True):
         _used, missing = n.drive_mapping()
         note = f"  # missing: {', '.join(missing)}" if missing else ""
-        lines.append(f'    {{ node_id = {n.node_id}, joint = "{joint}", vendor_id = 0x{n.vendor_id:08X}, '
-                     f"product_code = 0x{n.product_code:08X} }},{note}")
+        lines.append(
+            f'    {{ node_id = {n.node_id}, joint = "{joint}", vendor_id = 0x{n.vendor_id:08X}, '
+            f"product_code = 0x{n.product_code:08X} }},{note}"
+        )
     lines.append("]")
     for n in nodes:
         if not n.is_drive:

@@ -41,8 +41,9 @@ class SensorOptions(Options):
     device: str = Field(description="The robot's imu or force_torque device this sensor fills.")
     period_ms: FiniteFloat = Field(gt=0, description="The sensor's own period (ms).")
     stale_periods: FiniteFloat = Field(3.0, ge=1, description="Stale after this many periods without a frame.")
-    signals: dict[str, list[str]] = Field(description="Per field of the record (e.g. quaternion), its signals "
-                                                      "'Message.Signal' in order.")
+    signals: dict[str, list[str]] = Field(
+        description="Per field of the record (e.g. quaternion), its signals 'Message.Signal' in order."
+    )
     status: str | None = Field(None, description="'Message.Signal' whose bit 0 says the values are valid.")
 
 
@@ -147,9 +148,14 @@ class SensorGateway:
             if sensor.status is not None:
                 self.messages[sensor.status[0].frame_id] = sensor.status[0]
         self._bits = {frame_id: frame_bits(m.length) for frame_id, m in self.messages.items()}
-        self.takers = {frame_id: [s for s in sensors if frame_id in s.columns
-                                  or (s.status is not None and s.status[0].frame_id == frame_id)]
-                       for frame_id in self.messages}
+        self.takers = {
+            frame_id: [
+                s
+                for s in sensors
+                if frame_id in s.columns or (s.status is not None and s.status[0].frame_id == frame_id)
+            ]
+            for frame_id in self.messages
+        }
 
     def subscribe(self, network) -> None:
         for frame_id in self.messages:
@@ -167,8 +173,14 @@ class SensorGateway:
         message = self.messages[can_id]
         if len(data) != message.length:
             self.malformed += 1
-            self._warn.warning(f"dlc{can_id}", "canopen %s: %s of %d bytes, %d expected: dropped", self.name,
-                               message.name, len(data), message.length)
+            self._warn.warning(
+                f"dlc{can_id}",
+                "canopen %s: %s of %d bytes, %d expected: dropped",
+                self.name,
+                message.name,
+                len(data),
+                message.length,
+            )
             return
         try:
             values = message.decode(bytes(data), decode_choices=False)
@@ -203,9 +215,14 @@ class SensorGateway:
                 sensor.stale = True
                 sensor.stale_events += 1
                 record.set_fault(Fault.STALE)
-                report_fault("read", f"sensor {record.name}: no frame for {sensor.stale_s * 1e3:g} ms "
-                                     f"({sensor.options.stale_periods:g} periods): stale")
+                report_fault(
+                    "read",
+                    f"sensor {record.name}: no frame for {sensor.stale_s * 1e3:g} ms "
+                    f"({sensor.options.stale_periods:g} periods): stale",
+                )
 
     def health(self) -> dict:
-        return {s.record.name: {"frames": s.frames, "invalid": s.invalid, "stale_events": s.stale_events,
-                                "stale": s.stale} for s in self.sensors} | {"malformed": self.malformed}
+        return {
+            s.record.name: {"frames": s.frames, "invalid": s.invalid, "stale_events": s.stale_events, "stale": s.stale}
+            for s in self.sensors
+        } | {"malformed": self.malformed}

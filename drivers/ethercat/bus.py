@@ -135,7 +135,9 @@ class Bus:
         for attempt in range(1, IDENTITY_READS + 1):
             found = self.master.config_init(release_gil=True)
             if found < 0:
-                raise TransientBringUpError(f"no EtherCAT frame came back on {self.ifname!r}: nothing connected, or the link is down")
+                raise TransientBringUpError(
+                    f"no EtherCAT frame came back on {self.ifname!r}: nothing connected, or the link is down"
+                )
             self.slaves = list(self.master.slaves)
             # vendor id 0 is no vendor's, and no product is numbered 0 in practice: SOEM reads a
             # zero when an EEPROM read does not finish in time (a stall of the host), so the bus
@@ -143,8 +145,13 @@ class Bus:
             unread = [i for i, slave in enumerate(self.slaves) if slave.man == 0 or slave.id == 0]
             if not unread or attempt == IDENTITY_READS:
                 break
-            log.warning("ethercat %s: the identity of slave(s) %s read as zero; scanning the bus again (%d of %d)",
-                        self.ifname, ", ".join(map(str, unread)), attempt + 1, IDENTITY_READS)
+            log.warning(
+                "ethercat %s: the identity of slave(s) %s read as zero; scanning the bus again (%d of %d)",
+                self.ifname,
+                ", ".join(map(str, unread)),
+                attempt + 1,
+                IDENTITY_READS,
+            )
         return len(self.slaves)
 
     def _hold_interface(self) -> None:
@@ -154,15 +161,18 @@ class Bus:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
-            raise BringUpError(f"cannot create the interface lock {path} ({exc}); AIOHAL_LOCK_DIR names "
-                               "another directory") from exc
+            raise BringUpError(
+                f"cannot create the interface lock {path} ({exc}); AIOHAL_LOCK_DIR names another directory"
+            ) from exc
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
             os.close(fd)
-            raise BringUpError(f"interface {self.ifname!r} is held by another aiohal process (pid {holder}, lock "
-                               f"{path}): a second master would knock it off the bus; stop that one first") from None
+            raise BringUpError(
+                f"interface {self.ifname!r} is held by another aiohal process (pid {holder}, lock "
+                f"{path}): a second master would knock it off the bus; stop that one first"
+            ) from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         self._lock_fd = fd
@@ -191,9 +201,11 @@ class Bus:
                 break
         if seen & OP:
             self.close()
-            raise BringUpError(f"slaves on {self.ifname!r} are in OP (AL states ORed: 0x{seen:02X}): another master "
-                               "is running this bus, and bringing it up would knock that one off; stop it, or set "
-                               "options.take_over = true")
+            raise BringUpError(
+                f"slaves on {self.ifname!r} are in OP (AL states ORed: 0x{seen:02X}): another master "
+                "is running this bus, and bringing it up would knock that one off; stop it, or set "
+                "options.take_over = true"
+            )
 
     def read_layout(self, position: int, names_overrides: dict | None = None) -> PdoLayout:
         """The slave's PDO layout, named from its name table; in PREOP, before the master maps
@@ -207,8 +219,9 @@ class Bus:
             # device type 0: no object 0x1000 to say CiA 402, so no drive names are assumed
             names = names_for(slave.man, slave.id, device_type=0, overrides=names_overrides, known=KNOWN_DEVICES)
             return PdoLayout.from_sii(rx, tx, names)
-        names = names_for(slave.man, slave.id, device_type=self.device_type(position), overrides=names_overrides,
-                          known=KNOWN_DEVICES)
+        names = names_for(
+            slave.man, slave.id, device_type=self.device_type(position), overrides=names_overrides, known=KNOWN_DEVICES
+        )
         try:
             rx_assign = self._assignment(slave, where, 0x1C12)
             tx_assign = self._assignment(slave, where, 0x1C13)
@@ -219,12 +232,19 @@ class Bus:
                 rx, tx = sii_layout.read_pdos(sii)
                 if rx or tx:
                     self.sii_mapped.add(position)
-                    log.info("ethercat %s: %s has no PDO assignment object (0x1C12/0x1C13); its PDOs are "
-                             "read from its SII", self.ifname, where)
+                    log.info(
+                        "ethercat %s: %s has no PDO assignment object (0x1C12/0x1C13); its PDOs are read from its SII",
+                        self.ifname,
+                        where,
+                    )
                     return PdoLayout.from_sii(rx, tx, names)
-            raise LayoutError(f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}") from exc
+            raise LayoutError(
+                f"{where}: reading its PDO mapping failed: abort 0x{exc.abort_code:08X} {exc.desc}"
+            ) from exc
         except self.lost_frame as exc:
-            raise TransientBringUpError(f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc})") from exc
+            raise TransientBringUpError(
+                f"{where}: reading its PDO mapping failed ({type(exc).__name__}: {exc})"
+            ) from exc
         try:
             return PdoLayout.from_coe(rx_assign, tx_assign, mappings, names)
         except LayoutError as exc:
@@ -247,21 +267,28 @@ class Bus:
             try:
                 return slave.eeprom_read(word)
             except Exception as exc:
-                raise TransientBringUpError(f"slave {position} ({slave.name}): reading SII word 0x{word:04X} failed "
-                                            f"({type(exc).__name__}: {exc})") from exc
+                raise TransientBringUpError(
+                    f"slave {position} ({slave.name}): reading SII word 0x{word:04X} failed "
+                    f"({type(exc).__name__}: {exc})"
+                ) from exc
+
         return sii_layout.SiiReader(read)
 
     def _sdo_retried(self, slave: Any, index: int, subindex: int, size: int = 0) -> bytes:
         """An SDO read, tried again when its mailbox frame was lost: a read changes nothing."""
-        return self._again_if_lost(lambda: slave.sdo_read(index, subindex, size, release_gil=True),
-                                   f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}")
+        return self._again_if_lost(
+            lambda: slave.sdo_read(index, subindex, size, release_gil=True),
+            f"SDO read 0x{index:04X}:{subindex:02X} of {slave.name}",
+        )
 
     def _sdo_write_again_if_lost(self, slave: Any, index: int, subindex: int, data: bytes) -> None:
         """An SDO write of a value, tried again when its mailbox frame was lost. Only for writes
         that set a value, where a second one changes nothing if the first got through (the PDO
         mapping at bring-up); not for commands."""
-        self._again_if_lost(lambda: slave.sdo_write(index, subindex, data, release_gil=True),
-                            f"SDO write 0x{index:04X}:{subindex:02X} to {slave.name}")
+        self._again_if_lost(
+            lambda: slave.sdo_write(index, subindex, data, release_gil=True),
+            f"SDO write 0x{index:04X}:{subindex:02X} to {slave.name}",
+        )
 
     def _again_if_lost(self, transfer: Any, what: str, attempts: int = 3) -> Any:
         """``transfer()``, tried again when its frame was lost (not when the slave refused it):
@@ -279,11 +306,15 @@ class Bus:
         each PDO given entries (CiA 301's sequence: count 0, entries, count); in PREOP."""
         slave = self.slaves[position]
         if not sii_layout.has_coe(self.sii(position)):
-            raise LayoutError(f"slave {position} ({slave.name}) has no CoE: its PDOs are fixed in its SII and "
-                              "cannot be remapped (leave out its rx_pdos / tx_pdos)")
+            raise LayoutError(
+                f"slave {position} ({slave.name}) has no CoE: its PDOs are fixed in its SII and "
+                "cannot be remapped (leave out its rx_pdos / tx_pdos)"
+            )
 
         def write(index: int, subindex: int, data: bytes) -> None:
-            with self._sdo_errors(f"slave {position} ({slave.name}): PDO remapping, SDO write 0x{index:04X}:{subindex:02X}"):
+            with self._sdo_errors(
+                f"slave {position} ({slave.name}): PDO remapping, SDO write 0x{index:04X}:{subindex:02X}"
+            ):
                 self._sdo_write_again_if_lost(slave, index, subindex, data)
 
         write(assign, 0, b"\0")
@@ -296,8 +327,14 @@ class Bus:
         for k, (pdo, _) in enumerate(pdos, 1):
             write(assign, k, struct.pack("<H", pdo))
         write(assign, 0, bytes([len(pdos)]))
-        log.info("ethercat %s: slave %d (%s) 0x%04X = %s", self.ifname, position, slave.name, assign,
-                 ", ".join(f"0x{pdo:04X}" for pdo, _ in pdos))
+        log.info(
+            "ethercat %s: slave %d (%s) 0x%04X = %s",
+            self.ifname,
+            position,
+            slave.name,
+            assign,
+            ", ".join(f"0x{pdo:04X}" for pdo, _ in pdos),
+        )
 
     def _assignment(self, slave: Any, where: str, index: int) -> list[int]:
         """A PDO assignment (0x1C12 outputs, 0x1C13 inputs): the PDO mapping objects, in order."""
@@ -309,8 +346,9 @@ class Bus:
         count = sdo_count(where, index, self._sdo_retried(slave, index, 0))
         return [mapping_entry(where, index, sub, self._sdo_retried(slave, index, sub)) for sub in range(1, count + 1)]
 
-    def map(self, dc: bool, sync0: Sequence[int] = (), cycle_ns: int = 0, shift_ns: int = 0,
-            safeop_timeout_s: float = 2.0) -> int:
+    def map(
+        self, dc: bool, sync0: Sequence[int] = (), cycle_ns: int = 0, shift_ns: int = 0, safeop_timeout_s: float = 2.0
+    ) -> int:
         """Map the process data (the masters's IO map), set DC up (SYNC0 on the slaves at
         ``sync0``), reach SAFEOP; the map's size."""
         size = 0
@@ -324,8 +362,11 @@ class Bus:
                 raise error(f"mapping process data failed: {exc}") from exc
             # SOEM logs the aborts of the slaves without 0x1C12/0x1C13 and maps them from their
             # SII; pysoem raises them after the map is complete. Their sizes are checked below.
-            log.info("ethercat %s: mapped slave(s) %s from the SII", self.ifname,
-                     ", ".join(sorted({str(e.slave_pos - 1) for e in errors})))
+            log.info(
+                "ethercat %s: mapped slave(s) %s from the SII",
+                self.ifname,
+                ", ".join(sorted({str(e.slave_pos - 1) for e in errors})),
+            )
         if dc:
             self.master.config_dc()
             for position in sync0:
@@ -338,8 +379,12 @@ class Bus:
     def _missing_assignment(self, error: Any) -> bool:
         """A ConfigMapError item that is SOEM finding no 0x1C12/0x1C13 on a slave whose PDOs
         this bus read from its SII (SOEM's ``slave_pos`` counts from 1)."""
-        return (isinstance(error, self.pysoem.SdoError) and error.abort_code == ABORT_NO_OBJECT
-                and error.index in (0x1C12, 0x1C13) and error.slave_pos - 1 in self.sii_mapped)
+        return (
+            isinstance(error, self.pysoem.SdoError)
+            and error.abort_code == ABORT_NO_OBJECT
+            and error.index in (0x1C12, 0x1C13)
+            and error.slave_pos - 1 in self.sii_mapped
+        )
 
     def _activate_sync0(self, position: int, cycle_ns: int, shift_ns: int) -> None:
         """SYNC0 every ``cycle_ns`` (SOEM starts it about 100 ms ahead), read back: pysoem's
@@ -353,8 +398,10 @@ class Bus:
         except self.pysoem.WkcError:
             active, cycle = False, 0
         if not active or cycle != cycle_ns:
-            raise BringUpError(f"slave {position} ({slave.name}) did not take SYNC0 at {cycle_ns} ns (no distributed "
-                               f"clock?); options.slaves[{position}].sync0 = false leaves it out")
+            raise BringUpError(
+                f"slave {position} ({slave.name}) did not take SYNC0 at {cycle_ns} ns (no distributed "
+                f"clock?); options.slaves[{position}].sync0 = false leaves it out"
+            )
 
     def set_pd_watchdog(self, position: int, ms: float) -> None:
         """The slave's process-data watchdog time (register 0x0420, in units of its divider
@@ -365,8 +412,10 @@ class Bus:
         slave._fpwr(0x0420, struct.pack("<H", units))
         back = struct.unpack("<H", slave._fprd(0x0420, 2))[0]
         if back != units:
-            raise BringUpError(f"slave {position} ({slave.name}) kept its process-data watchdog at {back} units, "
-                               f"not the {units} written ({ms:g} ms)")
+            raise BringUpError(
+                f"slave {position} ({slave.name}) kept its process-data watchdog at {back} units, "
+                f"not the {units} written ({ms:g} ms)"
+            )
 
     def request_op(self, exchange: Any, timeout_s: float, period_s: float, again_s: float = 0.1) -> None:
         """SAFEOP → OP (:func:`reach_op`), or a :class:`BringUpError` naming the slaves short of it."""
@@ -381,8 +430,10 @@ class Bus:
         for i, s in enumerate(self.slaves):
             if s.state != state:
                 code = s.al_status
-                bad.append(f"slave {i} ({s.name}) in {state_name(s.state)}, AL status 0x{code:04X} "
-                           f"({self.pysoem.al_status_code_to_string(code)})")
+                bad.append(
+                    f"slave {i} ({s.name}) in {state_name(s.state)}, AL status 0x{code:04X} "
+                    f"({self.pysoem.al_status_code_to_string(code)})"
+                )
         return "; ".join(bad) or "(all there now)"
 
     # ------------------------------------------------------------ the cyclic frame
@@ -400,8 +451,10 @@ class Bus:
         """``send()`` and ``receive()`` for the tick, bound to pysoem once: on a tick that starts
         on cold caches, each Python frame between the loop and pysoem costs more than the call."""
         send = self.master.send_overlap_processdata if self.overlap else self.master.send_processdata
-        return (functools.partial(send, release_gil=True),
-                functools.partial(self.master.receive_processdata, timeout_us, release_gil=True))
+        return (
+            functools.partial(send, release_gil=True),
+            functools.partial(self.master.receive_processdata, timeout_us, release_gil=True),
+        )
 
     # ------------------------------------------------------------ after a bus error
 
@@ -490,13 +543,16 @@ def sdo_count(where: str, index: int, data: bytes) -> int:
 def pdo_index(where: str, index: int, subindex: int, data: bytes) -> int:
     """Subindex n of 0x1C12 / 0x1C13: a PDO mapping object in the range of its direction."""
     if len(data) < 2:
-        raise SlaveDataError(f"{where}: 0x{index:04X}:{subindex:02X} came back with {len(data)} byte(s), "
-                             "a PDO index needs 2")
+        raise SlaveDataError(
+            f"{where}: 0x{index:04X}:{subindex:02X} came back with {len(data)} byte(s), a PDO index needs 2"
+        )
     pdo = struct.unpack_from("<H", data)[0]
     low, high = RX_PDO_RANGE if index == 0x1C12 else TX_PDO_RANGE
     if not low <= pdo <= high:
-        raise SlaveDataError(f"{where}: 0x{index:04X}:{subindex:02X} = 0x{pdo:04X}, not a PDO of this "
-                             f"direction (0x{low:04X}..0x{high:04X})")
+        raise SlaveDataError(
+            f"{where}: 0x{index:04X}:{subindex:02X} = 0x{pdo:04X}, not a PDO of this "
+            f"direction (0x{low:04X}..0x{high:04X})"
+        )
     return pdo
 
 
@@ -504,12 +560,14 @@ def mapping_entry(where: str, index: int, subindex: int, data: bytes) -> int:
     """Subindex n of a PDO mapping object: index << 16 | subindex << 8 | bit length (1..64;
     index 0 pads)."""
     if len(data) < 4:
-        raise SlaveDataError(f"{where}: 0x{index:04X}:{subindex:02X} came back with {len(data)} byte(s), "
-                             "a mapping entry needs 4")
+        raise SlaveDataError(
+            f"{where}: 0x{index:04X}:{subindex:02X} came back with {len(data)} byte(s), a mapping entry needs 4"
+        )
     entry = struct.unpack_from("<I", data)[0]
     if not 1 <= entry & 0xFF <= 64:
-        raise SlaveDataError(f"{where}: 0x{index:04X}:{subindex:02X} = 0x{entry:08X}, a bit length of "
-                             f"{entry & 0xFF} (1..64)")
+        raise SlaveDataError(
+            f"{where}: 0x{index:04X}:{subindex:02X} = 0x{entry:08X}, a bit length of {entry & 0xFF} (1..64)"
+        )
     return entry
 
 
@@ -570,16 +628,28 @@ def reach_op(master: Any, exchange: Any, timeout_s: float, period_s: float, agai
     return False
 
 
-def check_identity(position: int, device_name: str, name: str, vendor_id: int, product_code: int,
-                   want_vendor: int | None, want_product: int | None) -> None:
+def check_identity(
+    position: int,
+    device_name: str,
+    name: str,
+    vendor_id: int,
+    product_code: int,
+    want_vendor: int | None,
+    want_product: int | None,
+) -> None:
     """The slave at a position must be the configured device, when the config says which."""
     for what, want, got in (("vendor id", want_vendor, vendor_id), ("product code", want_product, product_code)):
         if want is not None and want != got:
-            why = (f" (read as zero in {IDENTITY_READS} scans of the bus: its EEPROM did not answer in time)"
-                   if got == 0 else "")
+            why = (
+                f" (read as zero in {IDENTITY_READS} scans of the bus: its EEPROM did not answer in time)"
+                if got == 0
+                else ""
+            )
             error = TransientBringUpError if got == 0 else BringUpError
-            raise error(f"slave {position} ({device_name}): {what} 0x{got:08X}, "
-                               f"but the config expects 0x{want:08X} for {name!r}{why}")
+            raise error(
+                f"slave {position} ({device_name}): {what} 0x{got:08X}, "
+                f"but the config expects 0x{want:08X} for {name!r}{why}"
+            )
 
 
 def expected_wkc(infos: Sequence[SlaveInfo]) -> int:

@@ -82,16 +82,23 @@ class ForceTorqueDevice(SensorDevice):
     GROUPS = (("wrench", 6),)
     TARE_CYCLES = 10
 
-    def __init__(self, image: ProcessImage, slave: str, record: DeviceRecord, variables: dict[str, str],
-                 control: str | None = None) -> None:
+    def __init__(
+        self,
+        image: ProcessImage,
+        slave: str,
+        record: DeviceRecord,
+        variables: dict[str, str],
+        control: str | None = None,
+    ) -> None:
         super().__init__(image, slave, record, variables)
         self.control = image.codec(slave, [control], writable=True) if control else None
         self.tare_left = 0  # cycles the control bit stays set
 
     def tare(self) -> None:
         if self.control is None:
-            raise VariableTypeError(f'"{self.slave}" has no control output to tare with '
-                                    "(its slave's variables.control names one)")
+            raise VariableTypeError(
+                f'"{self.slave}" has no control output to tare with (its slave\'s variables.control names one)'
+            )
         self.tare_left = self.TARE_CYCLES
 
     def write_control(self) -> None:
@@ -113,5 +120,6 @@ class ForceTorqueDevice(SensorDevice):
 def _check_group(image: ProcessImage, slave: str, name: str, n: int) -> None:
     var = image.variable(f"{slave}.{name}")
     if var.shape != (n,) or not var.byte_aligned:
-        raise VariableTypeError(f'"{var.full_name}" must be {n} contiguous values, it is '
-                                f"{var.type}{list(var.shape) or ''}")
+        raise VariableTypeError(
+            f'"{var.full_name}" must be {n} contiguous values, it is {var.type}{list(var.shape) or ""}'
+        )

@@ -67,8 +67,12 @@ from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 log = logging.getLogger(__name__)
 
 RING = 1 << 16  # per-cycle timings kept for the report (the last 65 s at 1 kHz)
-IMU_VARIABLES = {"quaternion": "Orientation", "angular_velocity": "Angular velocity",
-                 "linear_acceleration": "Linear acceleration", "status": "Status"}
+IMU_VARIABLES = {
+    "quaternion": "Orientation",
+    "angular_velocity": "Angular velocity",
+    "linear_acceleration": "Linear acceleration",
+    "status": "Status",
+}
 FT_VARIABLES = {"wrench": "Wrench", "status": "Status"}
 FT_CONTROL = "Control"  # the F/T output that tares, used when the slave maps one (variables.control)
 
@@ -109,18 +113,24 @@ class SlaveOptions(Options):
     position_offset: FiniteFloat = Field(0.0, description="rad added to the drive's position.")
     names: dict[str, str | list[str]] = Field(default_factory=dict, description="Bus variable names by address.")
     variables: dict[str, str] = Field(default_factory=dict, description="imu / force_torque: which variables to read.")
-    sync0: bool | None = Field(None, description="SYNC0 on this slave (default: options.sync0 for a cia402 drive, "
-                                                 "off for others).")
+    sync0: bool | None = Field(
+        None, description="SYNC0 on this slave (default: options.sync0 for a cia402 drive, off for others)."
+    )
     rx_pdos: dict[str, list[str]] | None = Field(
-        None, description="Remap the outputs: the RxPDOs assigned (0x1C12), in order, each with its entries "
-                          "'index:subindex:bits' (e.g. '0x607A:0:32'; an empty list assigns the PDO as the slave "
-                          "maps it). Written over CoE in PREOP, before the mapping is read.")
+        None,
+        description="Remap the outputs: the RxPDOs assigned (0x1C12), in order, each with its entries "
+        "'index:subindex:bits' (e.g. '0x607A:0:32'; an empty list assigns the PDO as the slave "
+        "maps it). Written over CoE in PREOP, before the mapping is read.",
+    )
     tx_pdos: dict[str, list[str]] | None = Field(None, description="Remap the inputs: the TxPDOs (0x1C13), as rx_pdos.")
 
     def pdo_assignments(self) -> list[tuple[int, list[tuple[int, list[int]]]]]:
         """(0x1C12 or 0x1C13, [(PDO, mapping entries)]) to write; checked by check_config."""
-        return [(assign, [(_number(pdo), [parse_pdo_entry(e) for e in entries]) for pdo, entries in pdos.items()])
-                for assign, pdos in ((0x1C12, self.rx_pdos), (0x1C13, self.tx_pdos)) if pdos is not None]
+        return [
+            (assign, [(_number(pdo), [parse_pdo_entry(e) for e in entries]) for pdo, entries in pdos.items()])
+            for assign, pdos in ((0x1C12, self.rx_pdos), (0x1C13, self.tx_pdos))
+            if pdos is not None
+        ]
 
 
 class EthercatOptions(Options):
@@ -130,39 +140,64 @@ class EthercatOptions(Options):
     exchange: Literal["split", "immediate"] = "split"
     receive_timeout_us: int = Field(200, ge=10, le=100_000, description="Wait for the cyclic frame in read().")
     bringup_receive_timeout_us: int = Field(50_000, ge=1000, le=1_000_000)
-    frame_timeout_us: int | None = Field(None, ge=500, le=100_000,
-                                         description="pysoem.settings.timeouts.ret (process-wide) for bring-up frames.")
-    take_over: bool = Field(False, description="Bring up a bus whose slaves are in OP under another master (not "
-                                               "aiohal), knocking that one off; refused otherwise.")
+    frame_timeout_us: int | None = Field(
+        None, ge=500, le=100_000, description="pysoem.settings.timeouts.ret (process-wide) for bring-up frames."
+    )
+    take_over: bool = Field(
+        False,
+        description="Bring up a bus whose slaves are in OP under another master (not "
+        "aiohal), knocking that one off; refused otherwise.",
+    )
     overlap_map: bool = Field(False, description="config_overlap_map (inputs and outputs share logical addresses).")
     dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
-    sync0: bool = Field(False, description="Activate SYNC0 at the loop's period on every cia402 drive (DC-synchronous "
-                                           "drives need it, e.g. in CSP); needs dc.")
+    sync0: bool = Field(
+        False,
+        description="Activate SYNC0 at the loop's period on every cia402 drive (DC-synchronous "
+        "drives need it, e.g. in CSP); needs dc.",
+    )
     sync0_shift_us: FiniteFloat = Field(0.0, ge=0, description="SYNC0 pulses this long after the period's DC time.")
-    wkc_error_limit: int = Field(10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read.")
+    wkc_error_limit: int = Field(
+        10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read."
+    )
     al_check_interval_ms: FiniteFloat = Field(
-        20.0, ge=1, le=10_000, description="Every slave's AL state is read this often, off the tick: a slave in SAFEOP "
-                                           "(+ERROR) keeps its working counter, so only its state tells.")
+        20.0,
+        ge=1,
+        le=10_000,
+        description="Every slave's AL state is read this often, off the tick: a slave in SAFEOP "
+        "(+ERROR) keeps its working counter, so only its state tells.",
+    )
     recover_interval_s: FiniteFloat = Field(1.0, gt=0, description="Between two recovery steps of a lost sensor.")
     bringup_attempts: int = Field(2, ge=1, le=10, description="A bring-up that fails is tried again from scratch.")
     enable_on_open: bool = Field(True, description="Enable the drives at bring-up; else enable_drives() does.")
-    keepalive_after_ms: FiniteFloat = Field(20.0, gt=0, le=1000,
-                                            description="The driver cycles the bus itself when the loop has not for this long.")
+    keepalive_after_ms: FiniteFloat = Field(
+        20.0, gt=0, le=1000, description="The driver cycles the bus itself when the loop has not for this long."
+    )
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
-    safeop_timeout_s: FiniteFloat = Field(2.0, gt=0, description="Mapped slaves reach SAFEOP within this (a request "
-                                                                   "lost in a stall is sent again).")
-    op_timeout_s: FiniteFloat = Field(10.0, gt=0, description="SAFEOP -> OP within this (a slave's ESI gives its "
-                                                               "SafeopOpTimeout; drives can take seconds).")
+    safeop_timeout_s: FiniteFloat = Field(
+        2.0, gt=0, description="Mapped slaves reach SAFEOP within this (a request lost in a stall is sent again)."
+    )
+    op_timeout_s: FiniteFloat = Field(
+        10.0,
+        gt=0,
+        description="SAFEOP -> OP within this (a slave's ESI gives its SafeopOpTimeout; drives can take seconds).",
+    )
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
     sm_watchdog_ms: FiniteFloat | None = Field(
-        None, ge=0.1, le=6000, description="The process-data (SM) watchdog time written to every slave with "
+        None,
+        ge=0.1,
+        le=6000,
+        description="The process-data (SM) watchdog time written to every slave with "
         "outputs before OP: when no frame reaches it for this long (the whole process frozen), the slave leaves "
-        "OP and its drive goes to its safe state (0x6007) on its own. Default: the slaves' own setting.")
+        "OP and its drive goes to its safe state (0x6007) on its own. Default: the slaves' own setting.",
+    )
 
     def sync0_slaves(self) -> list[int]:
         """Bus positions of the slaves whose SYNC0 is activated."""
-        return [i for i, s in enumerate(self.slaves)
-                if (s.sync0 if s.sync0 is not None else self.sync0 and s.kind == "cia402")]
+        return [
+            i
+            for i, s in enumerate(self.slaves)
+            if (s.sync0 if s.sync0 is not None else self.sync0 and s.kind == "cia402")
+        ]
 
 
 class EthercatDriver(Driver):
@@ -177,8 +212,13 @@ class EthercatDriver(Driver):
         drives_for: dict[str, int] = {}
         # the keep-alive cycles the bus within 1.5 x keepalive_after_ms of the last tick
         if options.sm_watchdog_ms is not None and options.sm_watchdog_ms < 1.5 * options.keepalive_after_ms + 2:
-            issues.append(("options.sm_watchdog_ms", f"{options.sm_watchdog_ms:g} ms would trip between runs: make it "
-                           f"at least 1.5 x keepalive_after_ms + 2 ms ({1.5 * options.keepalive_after_ms + 2:g})"))
+            issues.append(
+                (
+                    "options.sm_watchdog_ms",
+                    f"{options.sm_watchdog_ms:g} ms would trip between runs: make it "
+                    f"at least 1.5 x keepalive_after_ms + 2 ms ({1.5 * options.keepalive_after_ms + 2:g})",
+                )
+            )
         for i, s in enumerate(options.slaves):
             where = f"options.slaves[{i}]"
             key = s.name.strip().lower().replace(" ", "_")
@@ -247,8 +287,11 @@ class EthercatDriver(Driver):
                 elif exc is not first:
                     log.warning("ethercat %s: bring-up attempt %d failed too: %s", self.name, attempt, exc)
                     raise first  # noqa: B904 - the first failure is the one to report (chained to this one)
-                if not (attempt < opts.bringup_attempts and not self._estop_requested
-                        and isinstance(exc, (TransientBringUpError, *self.bus.lost_frame))):
+                if not (
+                    attempt < opts.bringup_attempts
+                    and not self._estop_requested
+                    and isinstance(exc, (TransientBringUpError, *self.bus.lost_frame))
+                ):
                     raise
                 log.warning("ethercat %s: bring-up attempt %d failed (%s), trying again", self.name, attempt, exc)
 
@@ -307,8 +350,9 @@ class EthercatDriver(Driver):
         found = bus.open()
         if found != len(opts.slaves):
             names = ", ".join(f"{i}: {s.name}" for i, s in enumerate(bus.slaves)) or "none"
-            raise BringUpError(f"found {found} slave(s) on {opts.interface!r} ({names}), "
-                               f"options.slaves lists {len(opts.slaves)}")
+            raise BringUpError(
+                f"found {found} slave(s) on {opts.interface!r} ({names}), options.slaves lists {len(opts.slaves)}"
+            )
         for i, (s, slave) in enumerate(zip(opts.slaves, bus.slaves, strict=True)):  # before any mailbox traffic
             check_identity(i, slave.name, s.name, slave.man, slave.id, s.vendor_id, s.product_code)
         bus.watch_emergencies(self._on_emergency)
@@ -321,24 +365,37 @@ class EthercatDriver(Driver):
                 raise BringUpError(
                     f"slave {i} ({bus.slaves[i].name}) has {layout.output_bits} output and {layout.input_bits} input "
                     "bits: SOEM packs a slave of fewer than 8 bits into a byte it shares with its neighbours, "
-                    "which this driver does not support (pysoem reads and writes whole bytes per slave)")
-        bus.map(opts.dc, sync0=opts.sync0_slaves(), cycle_ns=self.view.clock.period_ns,
-                shift_ns=round(opts.sync0_shift_us * 1000), safeop_timeout_s=opts.safeop_timeout_s)
+                    "which this driver does not support (pysoem reads and writes whole bytes per slave)"
+                )
+        bus.map(
+            opts.dc,
+            sync0=opts.sync0_slaves(),
+            cycle_ns=self.view.clock.period_ns,
+            shift_ns=round(opts.sync0_shift_us * 1000),
+            safeop_timeout_s=opts.safeop_timeout_s,
+        )
         if opts.sm_watchdog_ms is not None:
             for i, slave in enumerate(bus.slaves):
                 if len(slave.output):
                     bus.set_pd_watchdog(i, opts.sm_watchdog_ms)
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
-            self.infos.append(SlaveInfo(i, s.name, slave.name, slave.man, slave.id, slave.rev, layout,
-                                        len(slave.output), len(slave.input)))
+            self.infos.append(
+                SlaveInfo(
+                    i, s.name, slave.name, slave.man, slave.id, slave.rev, layout, len(slave.output), len(slave.input)
+                )
+            )
         self.image = image = ProcessImage([(s.name, layout) for s, layout in zip(opts.slaves, layouts, strict=True)])
         for info in self.infos:
             image.slave(info.name).check_sizes(info.output_bytes, info.input_bytes)
         self._link_devices()
         self._expected = expected_wkc(self.infos)
         if self._expected != self.bus.master.expected_wkc:
-            log.info("ethercat %s: expected working counter %d (pysoem says %d)", self.name, self._expected,
-                     self.bus.master.expected_wkc)
+            log.info(
+                "ethercat %s: expected working counter %d (pysoem says %d)",
+                self.name,
+                self._expected,
+                self.bus.master.expected_wkc,
+            )
         # inputs are copied in image order with one join; outputs sliced per slave
         by_input = sorted((i for i in self.infos if i.input_bytes), key=lambda i: image.slave(i.name).input_offset)
         # pysoem's property getters/setters, bound once: a property lookup per slave per cycle costs more
@@ -346,16 +403,29 @@ class EthercatDriver(Driver):
         self._in_parts = [(i.position, bus.slaves[i.position], image.slave(i.name)) for i in by_input]
         self._contiguous_inputs = sum(i.input_bytes for i in by_input) == len(image.inputs)
         self._inputs_bytes = image.inputs.data.cast("B")  # bytes in with a memcpy, no numpy call
-        self._out_parts = [(bus.slaves[i.position]._set_output, image.slave(i.name).output_offset,
-                            image.slave(i.name).output_offset + i.output_bytes) for i in self.infos if i.output_bytes]
+        self._out_parts = [
+            (
+                bus.slaves[i.position]._set_output,
+                image.slave(i.name).output_offset,
+                image.slave(i.name).output_offset + i.output_bytes,
+            )
+            for i in self.infos
+            if i.output_bytes
+        ]
         self._send_now, self._receive_now = bus.cyclic_calls(opts.receive_timeout_us)
         self._split = opts.exchange == "split"
         self._on_event = self._on_drive_event  # bound once, not on every read
         period_s = self.view.clock.period_ns * 1e-9
         bus.request_op(self._bringup_cycle, opts.op_timeout_s, period_s)
         self._in_op = True
-        log.info("ethercat %s: %d slave(s) in OP on %s, %d B out / %d B in", self.name, len(self.infos),
-                 opts.interface, len(image.outputs), len(image.inputs))
+        log.info(
+            "ethercat %s: %d slave(s) in OP on %s, %d B out / %d B in",
+            self.name,
+            len(self.infos),
+            opts.interface,
+            len(image.outputs),
+            len(image.inputs),
+        )
         self._start_keepalive(period_s)
         if self.drives is not None and opts.enable_on_open:
             self._wait_enabled(opts.enable_timeout_s)
@@ -367,13 +437,18 @@ class EthercatDriver(Driver):
         defaults = opts.drive_defaults
         for i, s in enumerate(opts.slaves):
             if s.kind == "cia402":
-                units = DriveUnits(s.counts_per_rev or defaults.counts_per_rev, s.gear_ratio or defaults.gear_ratio,
-                                   s.rated_torque or defaults.rated_torque)
+                units = DriveUnits(
+                    s.counts_per_rev or defaults.counts_per_rev,
+                    s.gear_ratio or defaults.gear_ratio,
+                    s.rated_torque or defaults.rated_torque,
+                )
                 joint = cast(str, s.joint)  # check_config: every cia402 slave names its joint
                 specs.append(DriveSpec(s.name, joint, view.joint_names.index(joint), units, s.position_offset))
             elif s.kind == "imu":
                 device = cast(str, s.device)  # check_config: every sensor slave names its device
-                self.sensors.append((i, ImuDevice(image, s.name, view.devices[device], {**IMU_VARIABLES, **s.variables})))
+                self.sensors.append(
+                    (i, ImuDevice(image, s.name, view.devices[device], {**IMU_VARIABLES, **s.variables}))
+                )
             elif s.kind == "force_torque":
                 control = s.variables.get("control")  # named: must exist; else the default if mapped
                 if control is None and _has_variable(image, s.name, FT_CONTROL):
@@ -382,8 +457,10 @@ class EthercatDriver(Driver):
                 device = cast(str, s.device)
                 self.sensors.append((i, ForceTorqueDevice(image, s.name, view.devices[device], variables, control)))
         if sorted(s.row for s in specs) != list(range(view.dof)):  # check_config says so; decode relies on it
-            raise BringUpError(f"every joint of an ethercat driver needs one cia402 drive: joints "
-                               f"{list(view.joint_names)}, drives for {[s.joint for s in specs]}")
+            raise BringUpError(
+                f"every joint of an ethercat driver needs one cia402 drive: joints "
+                f"{list(view.joint_names)}, drives for {[s.joint for s in specs]}"
+            )
         if specs:
             stuck = max(1, round(opts.stuck_after_ms * 1e6 / self.view.clock.period_ns))
             target = Target.ENABLED if opts.enable_on_open and not self._estop_requested else Target.DISABLED
@@ -493,8 +570,11 @@ class EthercatDriver(Driver):
     def _not_enabled(self) -> str:
         if self.drives is None:
             return ""
-        return ", ".join(f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")
-                         for m in self.drives.machines if not m.enabled)
+        return ", ".join(
+            f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")
+            for m in self.drives.machines
+            if not m.enabled
+        )
 
     # ------------------------------------------------------------ the tick
 
@@ -571,8 +651,9 @@ class EthercatDriver(Driver):
                 break
         else:
             why = "no frame came back" if max(wkcs) < 0 else self._states_not_op()
-            raise EthercatError(f"no good process-data cycle at activation (working counters {wkcs}, expected "
-                                f"{self._expected}): {why}")
+            raise EthercatError(
+                f"no good process-data cycle at activation (working counters {wkcs}, expected {self._expected}): {why}"
+            )
         if self.drives is not None and self.options.enable_on_open and not self.drives.all_enabled():
             raise EthercatError(f"drives not enabled at activation: {self._not_enabled()}")
         self._written = False
@@ -652,9 +733,15 @@ class EthercatDriver(Driver):
     def _on_emergency(self, position: int, emcy: Any) -> None:
         """An EMCY message (during an SDO); never raises."""
         self.emergencies += 1
-        self._warn.warning(f"emcy{position}", "ethercat %s: emergency from slave %d (%s): error code 0x%04X, "
-                           "register 0x%02X", self.name, position, self.options.slaves[position].name,
-                           getattr(emcy, "error_code", 0), getattr(emcy, "error_reg", 0))
+        self._warn.warning(
+            f"emcy{position}",
+            "ethercat %s: emergency from slave %d (%s): error code 0x%04X, register 0x%02X",
+            self.name,
+            position,
+            self.options.slaves[position].name,
+            getattr(emcy, "error_code", 0),
+            getattr(emcy, "error_reg", 0),
+        )
 
     def _diagnose(self, wkc: int) -> None:
         """``wkc_error_limit`` bad cycles in a row: which slaves are not in OP?"""
@@ -663,8 +750,9 @@ class EthercatDriver(Driver):
         expected = self._expected  # the failing cycle's, before the states change it
         states = self.bus.states()  # holds the GIL for a frame or two
         if wkc != expected and all(st == OP for st in states):
-            self._warn.warning("wkc", "ethercat %s: working counter %d instead of %d, every slave in OP",
-                               self.name, wkc, expected)
+            self._warn.warning(
+                "wkc", "ethercat %s: working counter %d instead of %d, every slave in OP", self.name, wkc, expected
+            )
         self._judge(states, f"working counter {wkc}/{expected}")
 
     def _check_al_states(self) -> None:
@@ -693,17 +781,22 @@ class EthercatDriver(Driver):
         if not lost:
             return
         slaves = self.bus.slaves
-        describe = {i: f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
-                       f"{slaves[i].al_status:04X} ({pysoem.al_status_code_to_string(slaves[i].al_status)})"
-                    for i in sorted(lost)}
+        describe = {
+            i: f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
+            f"{slaves[i].al_status:04X} ({pysoem.al_status_code_to_string(slaves[i].al_status)})"
+            for i in sorted(lost)
+        }
         drives_lost = [i for i in sorted(lost) if self.options.slaves[i].kind == "cia402"]
         if drives_lost:
             joints = ", ".join(self.options.slaves[i].joint or "?" for i in drives_lost)
             raise EthercatError(f"{why}: drive(s) of joint(s) {joints} out of OP: " + "; ".join(describe.values()))
         new = lost - self._reported
         for i in sorted(new):
-            self.view.report_fault("read", f"{describe[i]}: lost; the run goes on without it, "
-                                   f"recovery every {self.options.recover_interval_s:g} s")
+            self.view.report_fault(
+                "read",
+                f"{describe[i]}: lost; the run goes on without it, "
+                f"recovery every {self.options.recover_interval_s:g} s",
+            )
         self._reported = set(lost)
         if new:  # (a check finding it still lost does not put its recovery off)
             self._next_recover = time.monotonic() + self.options.recover_interval_s
@@ -728,9 +821,12 @@ class EthercatDriver(Driver):
         for i in sorted(lost - self._unrecoverable):
             if states[i] & 0x0F < SAFEOP:
                 self._unrecoverable.add(i)
-                self.view.report_fault("read", f"slave {i} ({self.infos[i].name}) is in {state_name(states[i])}: "
-                                       "bringing it back needs a reconfiguration, which would stop the bus "
-                                       "for too long; it stays lost until the driver is opened again")
+                self.view.report_fault(
+                    "read",
+                    f"slave {i} ({self.infos[i].name}) is in {state_name(states[i])}: "
+                    "bringing it back needs a reconfiguration, which would stop the bus "
+                    "for too long; it stays lost until the driver is opened again",
+                )
         self._update_lost(states, lost)
 
     def _recovered(self, i: int) -> None:
@@ -760,8 +856,10 @@ class EthercatDriver(Driver):
         slave: its control output is set for a few cycles of the loop (the sensor tares on
         the edge), so the zeroed wrench shows a few ticks later."""
         for _, sensor in self.sensors:
-            if isinstance(sensor, ForceTorqueDevice) and device.lower() in (sensor.record.name.lower(),
-                                                                            sensor.slave.lower()):
+            if isinstance(sensor, ForceTorqueDevice) and device.lower() in (
+                sensor.record.name.lower(),
+                sensor.slave.lower(),
+            ):
                 with self._lock:
                     try:
                         sensor.tare()
@@ -787,13 +885,15 @@ class EthercatDriver(Driver):
         """Upload an object over CoE; runs in the driver's thread, not on the tick."""
         position = self._position(slave)
         return await asyncio.get_running_loop().run_in_executor(
-            self._executor, self.bus.sdo_read, position, index, subindex, size)
+            self._executor, self.bus.sdo_read, position, index, subindex, size
+        )
 
     async def sdo_write(self, slave: str | int, index: int, subindex: int, data: bytes) -> None:
         """Download an object over CoE; runs in the driver's thread, not on the tick."""
         position = self._position(slave)
         await asyncio.get_running_loop().run_in_executor(
-            self._executor, self.bus.sdo_write, position, index, subindex, bytes(data))
+            self._executor, self.bus.sdo_write, position, index, subindex, bytes(data)
+        )
 
     # ------------------------------------------------------------ safety and shutdown
 
@@ -842,9 +942,13 @@ class EthercatDriver(Driver):
                 period_s = self.view.clock.period_ns * 1e-9
                 timeout_us = min(self.options.bringup_receive_timeout_us, 10_000)
                 moving = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
-                for target, done in ((Target.QUICK_STOP, lambda m: m.state not in moving),
-                                     (Target.DISABLED, lambda m: m.state in (State.SWITCH_ON_DISABLED,
-                                                                             State.NOT_READY_TO_SWITCH_ON, State.FAULT))):
+                for target, done in (
+                    (Target.QUICK_STOP, lambda m: m.state not in moving),
+                    (
+                        Target.DISABLED,
+                        lambda m: m.state in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT),
+                    ),
+                ):
                     drives.request(target)
                     while time.monotonic() < deadline:
                         with self._lock:
@@ -862,8 +966,12 @@ class EthercatDriver(Driver):
             return {}
         n = min(self.cycles, RING)
         out: dict[str, Any] = {
-            "interface": self.options.interface, "slaves": len(self.infos), "cycles": self.cycles,
-            "wkc_errors": self.wkc_errors, "frames_lost": self.frames_lost, "expected_wkc": self._expected,
+            "interface": self.options.interface,
+            "slaves": len(self.infos),
+            "cycles": self.cycles,
+            "wkc_errors": self.wkc_errors,
+            "frames_lost": self.frames_lost,
+            "expected_wkc": self._expected,
             "exchange": self.options.exchange,
         }
         if self.image is not None:
@@ -873,7 +981,9 @@ class EthercatDriver(Driver):
             rtt = self._rtt_ns[:n] if self.cycles < RING else self._rtt_ns
             cpu = self._cpu_ns[:n] if self.cycles < RING else self._cpu_ns
             out[key] = [round(float(v) / 1e3, 1) for v in np.percentile(rtt, (50, 99))]
-            out["cpu_us"] = [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
+            out["cpu_us"] = (
+                [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
+            )
         if self._keepalive_cycles:
             out["keepalive_cycles"] = self._keepalive_cycles
         out["al_checks"] = self.al_checks

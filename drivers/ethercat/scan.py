@@ -121,8 +121,9 @@ def scan(ifname: str, pysoem: Any | None = None) -> list[ScannedSlave]:
                 layout = bus.read_layout(position)
             except (BusVarError, EthercatError) as exc:
                 error = str(exc)
-            found.append(ScannedSlave(position, slave.name, slave.man, slave.id, slave.rev, 0, coe, device_type,
-                                      layout, error))
+            found.append(
+                ScannedSlave(position, slave.name, slave.man, slave.id, slave.rev, 0, coe, device_type, layout, error)
+            )
         for entry, state in zip(found, bus.states(), strict=True):
             entry.state = state
         return found
@@ -138,17 +139,21 @@ def describe(ifname: str, slaves: Sequence[ScannedSlave]) -> str:
     lines = [f"{ifname}: {len(slaves)} slave(s)"]
     for s in slaves:
         device_type = f" device type 0x{s.device_type:08X}" if s.device_type is not None else ""
-        lines.append(f"{s.position:3}  {s.device_name or '?'}  vendor 0x{s.vendor_id:08X} product 0x{s.product_code:08X} "
-                     f"revision 0x{s.revision:08X}  {state_name(s.state)}  {'CoE' if s.coe else 'no CoE'}"
-                     f"{device_type}  kind {s.kind}")
+        lines.append(
+            f"{s.position:3}  {s.device_name or '?'}  vendor 0x{s.vendor_id:08X} product 0x{s.product_code:08X} "
+            f"revision 0x{s.revision:08X}  {state_name(s.state)}  {'CoE' if s.coe else 'no CoE'}"
+            f"{device_type}  kind {s.kind}"
+        )
         if s.layout is None:
             lines.append(f"     mapping not read: {s.error}")
             continue
         if not s.layout.outputs and not s.layout.inputs:
             lines.append("     no process data")
         if s.kind == "other" and s.device_type is not None and s.device_type & 0xFFFF == 402:
-            lines.append(f"     a CiA 402 device (0x1000), not usable as a drive as mapped: {why_not(s.layout, 'cia402')}; "
-                         "remap it with rx_pdos / tx_pdos (docs/ethercat.md)")
+            lines.append(
+                f"     a CiA 402 device (0x1000), not usable as a drive as mapped: {why_not(s.layout, 'cia402')}; "
+                "remap it with rx_pdos / tx_pdos (docs/ethercat.md)"
+            )
         elif shares_a_byte(s.layout):
             lines.append(f"     {SHARES_A_BYTE}")
         for row in s.layout.describe().splitlines():
@@ -185,7 +190,9 @@ def to_toml(ifname: str, slaves: Sequence[ScannedSlave]) -> str:
     """The ``[[driver]]`` table for these slaves, with a joint per drive and a device per sensor."""
     names = config_names(slaves)
     joints = [served for s, (_, served) in zip(slaves, names, strict=True) if s.kind == "cia402"]
-    devices = [(served, s.kind) for s, (_, served) in zip(slaves, names, strict=True) if s.kind in ("imu", "force_torque")]
+    devices = [
+        (served, s.kind) for s, (_, served) in zip(slaves, names, strict=True) if s.kind in ("imu", "force_torque")
+    ]
     lines = [
         f"# Made by `python -m aiohal.drivers.ethercat.scan {ifname} --toml` from what the bus reported.",
         "# Not measured, to fill in from the robot's data before it runs: each joint's limits",
@@ -223,20 +230,42 @@ def to_json(ifname: str, slaves: Sequence[ScannedSlave]) -> str:
     def entries(layout: PdoLayout | None, direction: str) -> list[dict]:
         if layout is None:
             return []
-        return [{"address": e.address, "bit_offset": e.bit_offset, "bits": e.bits, "type": e.type, "name": e.name}
-                for e in getattr(layout, direction)]
-    return json.dumps({"interface": ifname, "slaves": [
-        {"position": s.position, "device_name": s.device_name, "vendor_id": s.vendor_id,
-         "product_code": s.product_code, "revision": s.revision, "state": state_name(s.state), "coe": s.coe,
-         "device_type": s.device_type, "kind": s.kind, "error": s.error,
-         "outputs": entries(s.layout, "outputs"), "inputs": entries(s.layout, "inputs")}
-        for s in slaves]}, indent=2)
+        return [
+            {"address": e.address, "bit_offset": e.bit_offset, "bits": e.bits, "type": e.type, "name": e.name}
+            for e in getattr(layout, direction)
+        ]
+
+    return json.dumps(
+        {
+            "interface": ifname,
+            "slaves": [
+                {
+                    "position": s.position,
+                    "device_name": s.device_name,
+                    "vendor_id": s.vendor_id,
+                    "product_code": s.product_code,
+                    "revision": s.revision,
+                    "state": state_name(s.state),
+                    "coe": s.coe,
+                    "device_type": s.device_type,
+                    "kind": s.kind,
+                    "error": s.error,
+                    "outputs": entries(s.layout, "outputs"),
+                    "inputs": entries(s.layout, "inputs"),
+                }
+                for s in slaves
+            ],
+        },
+        indent=2,
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m aiohal.drivers.ethercat.scan",
-                                description="List the slaves on one EtherCAT interface and what each maps "
-                                            "(nothing moves: no slave goes beyond PREOP). Needs root.")
+    p = argparse.ArgumentParser(
+        prog="python -m aiohal.drivers.ethercat.scan",
+        description="List the slaves on one EtherCAT interface and what each maps "
+        "(nothing moves: no slave goes beyond PREOP). Needs root.",
+    )
     p.add_argument("interface", help="the network interface the slaves hang on (the only one opened)")
     out = p.add_mutually_exclusive_group()
     out.add_argument("--toml", action="store_true", help="print a [[driver]] config for these slaves")

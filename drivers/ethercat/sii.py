@@ -55,7 +55,7 @@ class SiiReader:
                     raise LayoutError(f"SII word 0x{pair:04X}: {len(data)} bytes read, 4 expected")
                 self._cache[pair] = data[:4]
             half = (word - pair) * 2
-            out += self._cache[pair][half:half + 2]
+            out += self._cache[pair][half : half + 2]
         return bytes(out)
 
     def word(self, address: int) -> int:
@@ -92,7 +92,7 @@ def parse_strings(data: bytes) -> list[str]:
         if pos >= len(data):
             break
         n = data[pos]
-        out.append(data[pos + 1:pos + 1 + n].decode("latin-1"))
+        out.append(data[pos + 1 : pos + 1 + n].decode("latin-1"))
         pos += 1 + n
     return out
 
@@ -125,5 +125,7 @@ def read_pdos(reader: SiiReader) -> tuple[dict[int, list[RawEntry]], dict[int, l
     """(RxPDOs, TxPDOs) of the slave, named from its strings."""
     found = categories(reader, {CAT_STRINGS, CAT_TXPDO, CAT_RXPDO})
     strings = parse_strings(found.get(CAT_STRINGS, b""))
-    return (parse_pdos(found.get(CAT_RXPDO, b""), strings, "RxPDO"),
-            parse_pdos(found.get(CAT_TXPDO, b""), strings, "TxPDO"))
+    return (
+        parse_pdos(found.get(CAT_RXPDO, b""), strings, "RxPDO"),
+        parse_pdos(found.get(CAT_TXPDO, b""), strings, "TxPDO"),
+    )

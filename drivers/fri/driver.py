@@ -72,19 +72,25 @@ class KrlOptions(Options):
 class KrcSimulation(Options):
     cycle_ms: int = Field(5, ge=1, le=100, description="The simulated KRC's FRI cycle (friOpen's argument).")
     time_constant: FiniteFloat = Field(0.004, gt=0, description="Its joints' servo time constant (s).")
-    drop_answers: FiniteFloat = Field(0.0, ge=0, le=1, description="Probability that an answer is lost (fault injection).")
+    drop_answers: FiniteFloat = Field(
+        0.0, ge=0, le=1, description="Probability that an answer is lost (fault injection)."
+    )
     priority: int | None = Field(70, ge=1, le=99, description="SCHED_FIFO priority of the KRC's process, when allowed.")
 
 
 class FriOptions(Options):
     port: int = Field(DEFAULT_PORT, ge=0, le=0xFFFF, description="Local UDP port (FRISOCK; 0: the OS picks).")
     bind_address: str = Field("0.0.0.0", description="Local address.")
-    krc_address: str | None = Field(None, description="Take measurements only from this host (default: the first sender's).")
+    krc_address: str | None = Field(
+        None, description="Take measurements only from this host (default: the first sender's)."
+    )
     control: Literal["position", "joint_impedance"] = Field("position", description="The KRC's control strategy.")
     stiffness: JointValues = Field(1000.0, ge=0, description="Joint impedance: N·m/rad where the command gives none.")
     damping: JointValues = Field(0.7, ge=0, description="Joint impedance: damping ratio where the command gives none.")
     min_quality: Literal["bad", "ok", "perfect"] = Field(
-        "bad", description="Below it, commands are refused and the robot holds (FRI: commanding is allowed from BAD up).")
+        "bad",
+        description="Below it, commands are refused and the robot holds (FRI: commanding is allowed from BAD up).",
+    )
     krl: KrlOptions = Field(default_factory=KrlOptions)
     start: bool = Field(True, description="Request command mode at open (else stay in monitor mode: read only).")
     open_timeout_s: FiniteFloat = Field(10.0, gt=0, description="The KRC must reach command mode within this.")
@@ -159,8 +165,9 @@ class FriDriver(Driver):
         self._previous_stamp = 0.0
         self._fault = ""  # the KRC-side fault being held, "" when none
         self._answer_ns = np.zeros(1 << 12, dtype=np.int64)
-        self.counters = dict.fromkeys(("received", "sent", "lost", "duplicated", "reordered", "malformed",
-                                       "unauthenticated", "refused"), 0)
+        self.counters = dict.fromkeys(
+            ("received", "sent", "lost", "duplicated", "reordered", "malformed", "unauthenticated", "refused"), 0
+        )
 
     # ------------------------------------------------------------ the answer, at once
 
@@ -198,8 +205,13 @@ class FriDriver(Driver):
         head = self._cmd_head
         head[0] = (int(head[0]) + 1) & 0xFFFF  # send_seq
         head[1] = seq  # refl_seq
-        ok = (self.commanding and not self.estopped and msr["state"] == STATE_CMD and msr["power"] != 0
-              and msr["quality"] >= self.min_quality)
+        ok = (
+            self.commanding
+            and not self.estopped
+            and msr["state"] == STATE_CMD
+            and msr["power"] != 0
+            and msr["quality"] >= self.min_quality
+        )
         if ok:
             cmd["jnt_pos"][:] = self.target
             cmd["add_jnt_trq"][:] = self.torque
@@ -236,9 +248,14 @@ class FriDriver(Driver):
         if opts.start:
             await self._wait(lambda: self.msr["state"] == State.MON, "the KRC is not in monitor mode")
             self.cmd["krl_int"][opts.krl.command_int - 1] = opts.krl.start
-            await self._wait(lambda: (self.msr["state"] == State.CMD and self.msr["power"] != 0
-                                      and self.msr["krl_int"][opts.krl.status_int - 1] == opts.krl.started),
-                             "the KRC did not reach command mode (quality, or the KRL program?)")
+            await self._wait(
+                lambda: (
+                    self.msr["state"] == State.CMD
+                    and self.msr["power"] != 0
+                    and self.msr["krl_int"][opts.krl.status_int - 1] == opts.krl.started
+                ),
+                "the KRC did not reach command mode (quality, or the KRL program?)",
+            )
             self.running = True
             self._take_measurement()
         np.copyto(self.target, self.view.state.position, casting="same_kind")
@@ -247,19 +264,38 @@ class FriDriver(Driver):
         deadline = time.monotonic() + self.options.open_timeout_s
         while not condition():
             if time.monotonic() > deadline:
-                raise FriDriverError(f"{what} within {self.options.open_timeout_s:g} s "
-                                     f"(state {int(self.msr['state'])}, quality {int(self.msr['quality'])})")
+                raise FriDriverError(
+                    f"{what} within {self.options.open_timeout_s:g} s "
+                    f"(state {int(self.msr['state'])}, quality {int(self.msr['quality'])})"
+                )
             await asyncio.sleep(0.005)
 
     async def _start_simulation(self, remote: tuple[str, int]) -> int:
         sim = self.options.simulation
-        initial = np.clip(self.view.per_joint(self.options.initial_position), self.view.position_min, self.view.position_max)
+        initial = np.clip(
+            self.view.per_joint(self.options.initial_position), self.view.position_min, self.view.position_max
+        )
         krl = self.options.krl
-        args = [sys.executable, "-m", "aiohal.drivers.fri.sim", "--remote", f"{remote[0]}:{remote[1]}",
-                "--cycle-ms", str(sim.cycle_ms), "--initial=" + ",".join(repr(float(x)) for x in initial),
-                "--strategy-int", str(krl.strategy_int), "--command-int", str(krl.command_int),
-                "--status-int", str(krl.status_int), "--drop-answers", repr(sim.drop_answers),
-                "--time-constant", repr(sim.time_constant)]
+        args = [
+            sys.executable,
+            "-m",
+            "aiohal.drivers.fri.sim",
+            "--remote",
+            f"{remote[0]}:{remote[1]}",
+            "--cycle-ms",
+            str(sim.cycle_ms),
+            "--initial=" + ",".join(repr(float(x)) for x in initial),
+            "--strategy-int",
+            str(krl.strategy_int),
+            "--command-int",
+            str(krl.command_int),
+            "--status-int",
+            str(krl.status_int),
+            "--drop-answers",
+            repr(sim.drop_answers),
+            "--time-constant",
+            repr(sim.time_constant),
+        ]
         if sim.priority is not None:
             args += ["--priority", str(sim.priority)]
         try:
@@ -303,8 +339,10 @@ class FriDriver(Driver):
 
     def _krc_fault(self) -> None:
         msr = self.msr
-        reason = (f"KRC: state {State(int(msr['state'])).name}, quality {Quality(int(msr['quality'])).name}, "
-                  f"power 0x{int(msr['power']):02x}, error 0x{int(msr['error']):02x}")
+        reason = (
+            f"KRC: state {State(int(msr['state'])).name}, quality {Quality(int(msr['quality'])).name}, "
+            f"power 0x{int(msr['power']):02x}, error 0x{int(msr['error']):02x}"
+        )
         if reason != self._fault:
             self._fault = reason
             self.view.state.fault |= np.uint32(Fault.HARDWARE)
@@ -317,7 +355,9 @@ class FriDriver(Driver):
         if self.control == Control.JNT_IMP:
             impedance = command.mode == Mode.IMPEDANCE
             np.add(command.effort, command.feedforward, out=self.torque, casting="same_kind")
-            np.copyto(self.stiffness, np.where(impedance, command.stiffness, self._default_stiffness), casting="same_kind")
+            np.copyto(
+                self.stiffness, np.where(impedance, command.stiffness, self._default_stiffness), casting="same_kind"
+            )
             np.copyto(self.damping, np.where(impedance, command.damping, self._default_damping), casting="same_kind")
         self.commanding = self.running
 
@@ -349,7 +389,9 @@ class FriDriver(Driver):
             **self.counters,
             "answer_us_p50": None if answer is None else round(float(answer[n // 2]), 1),
             "answer_us_max": None if answer is None else round(float(answer[-1]), 1),
-            "krc_state": State(int(msr["state"])).name if int(msr["state"]) in State._value2member_map_ else int(msr["state"]),
+            "krc_state": State(int(msr["state"])).name
+            if int(msr["state"]) in State._value2member_map_
+            else int(msr["state"]),
             "krc_quality": Quality(int(msr["quality"])).name if int(msr["quality"]) <= 3 else int(msr["quality"]),
             "krc_cycle_ms": round(float(msr["desired_msr_sample_time"]) * 1e3, 3),
             "krc_answer_rate": round(float(msr["answer_rate"]), 4),

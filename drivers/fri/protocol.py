@@ -25,36 +25,68 @@ def _struct(fields: list[tuple[str, str, int]], size: int) -> np.dtype:
 
 
 _HEAD_AND_KRL = [
-    ("send_seq", "<u2", 0), ("refl_seq", "<u2", 2), ("packet_size", "<u2", 4), ("datagram_id", "<u2", 6),
-    ("krl_real", ("<f4", USER_SIZE), 8), ("krl_int", ("<i4", USER_SIZE), 72), ("krl_bool", "<u2", 136),
+    ("send_seq", "<u2", 0),
+    ("refl_seq", "<u2", 2),
+    ("packet_size", "<u2", 4),
+    ("datagram_id", "<u2", 6),
+    ("krl_real", ("<f4", USER_SIZE), 8),
+    ("krl_int", ("<i4", USER_SIZE), 72),
+    ("krl_bool", "<u2", 136),
     ("krl_fill", "<u2", 138),
 ]
 
 #: tFriMsrData, KRC -> remote.
-MSR = _struct([
-    *_HEAD_AND_KRL,
-    ("timestamp", "<f4", 140), ("state", "<u2", 144), ("quality", "<u2", 146),
-    ("desired_msr_sample_time", "<f4", 148), ("desired_cmd_sample_time", "<f4", 152), ("safety_limits", "<f4", 156),
-    ("answer_rate", "<f4", 160), ("latency", "<f4", 164), ("jitter", "<f4", 168), ("miss_rate", "<f4", 172),
-    ("miss_counter", "<u4", 176),
-    ("power", "<u2", 180), ("control", "<u2", 182), ("error", "<u2", 184), ("warning", "<u2", 186),
-    ("temperature", ("<f4", JOINTS), 188),
-    ("msr_jnt_pos", ("<f4", JOINTS), 216), ("msr_cart_pos", ("<f4", 12), 244),
-    ("cmd_jnt_pos", ("<f4", JOINTS), 292), ("cmd_jnt_pos_fri_offset", ("<f4", JOINTS), 320),
-    ("cmd_cart_pos", ("<f4", 12), 348), ("cmd_cart_pos_fri_offset", ("<f4", 12), 396),
-    ("msr_jnt_trq", ("<f4", JOINTS), 444), ("est_ext_jnt_trq", ("<f4", JOINTS), 472),
-    ("est_ext_tcp_ft", ("<f4", 6), 500), ("jacobian", ("<f4", 42), 524), ("mass_matrix", ("<f4", 49), 692),
-    ("gravity", ("<f4", JOINTS), 888),
-], MSR_SIZE)
+MSR = _struct(
+    [
+        *_HEAD_AND_KRL,
+        ("timestamp", "<f4", 140),
+        ("state", "<u2", 144),
+        ("quality", "<u2", 146),
+        ("desired_msr_sample_time", "<f4", 148),
+        ("desired_cmd_sample_time", "<f4", 152),
+        ("safety_limits", "<f4", 156),
+        ("answer_rate", "<f4", 160),
+        ("latency", "<f4", 164),
+        ("jitter", "<f4", 168),
+        ("miss_rate", "<f4", 172),
+        ("miss_counter", "<u4", 176),
+        ("power", "<u2", 180),
+        ("control", "<u2", 182),
+        ("error", "<u2", 184),
+        ("warning", "<u2", 186),
+        ("temperature", ("<f4", JOINTS), 188),
+        ("msr_jnt_pos", ("<f4", JOINTS), 216),
+        ("msr_cart_pos", ("<f4", 12), 244),
+        ("cmd_jnt_pos", ("<f4", JOINTS), 292),
+        ("cmd_jnt_pos_fri_offset", ("<f4", JOINTS), 320),
+        ("cmd_cart_pos", ("<f4", 12), 348),
+        ("cmd_cart_pos_fri_offset", ("<f4", 12), 396),
+        ("msr_jnt_trq", ("<f4", JOINTS), 444),
+        ("est_ext_jnt_trq", ("<f4", JOINTS), 472),
+        ("est_ext_tcp_ft", ("<f4", 6), 500),
+        ("jacobian", ("<f4", 42), 524),
+        ("mass_matrix", ("<f4", 49), 692),
+        ("gravity", ("<f4", JOINTS), 888),
+    ],
+    MSR_SIZE,
+)
 
 #: tFriCmdData, remote -> KRC.
-CMD = _struct([
-    *_HEAD_AND_KRL,
-    ("cmd_flags", "<u4", 140), ("jnt_pos", ("<f4", JOINTS), 144), ("cart_pos", ("<f4", 12), 172),
-    ("add_jnt_trq", ("<f4", JOINTS), 220), ("add_tcp_ft", ("<f4", 6), 248),
-    ("jnt_stiffness", ("<f4", JOINTS), 272), ("jnt_damping", ("<f4", JOINTS), 300),
-    ("cart_stiffness", ("<f4", 6), 328), ("cart_damping", ("<f4", 6), 352),
-], CMD_SIZE)
+CMD = _struct(
+    [
+        *_HEAD_AND_KRL,
+        ("cmd_flags", "<u4", 140),
+        ("jnt_pos", ("<f4", JOINTS), 144),
+        ("cart_pos", ("<f4", 12), 172),
+        ("add_jnt_trq", ("<f4", JOINTS), 220),
+        ("add_tcp_ft", ("<f4", 6), 248),
+        ("jnt_stiffness", ("<f4", JOINTS), 272),
+        ("jnt_damping", ("<f4", JOINTS), 300),
+        ("cart_stiffness", ("<f4", 6), 328),
+        ("cart_damping", ("<f4", 6), 352),
+    ],
+    CMD_SIZE,
+)
 
 
 class State(IntEnum):
@@ -94,9 +126,11 @@ class Flags:
 
 
 #: The command fields each strategy takes (the flag sets the public clients use).
-FLAGS = {Control.POSITION: Flags.JNTPOS,
-         Control.JNT_IMP: Flags.JNTPOS | Flags.JNTTRQ | Flags.JNTSTIFF | Flags.JNTDAMP,
-         Control.CART_IMP: Flags.CARTPOS | Flags.TCPFT | Flags.CARTSTIFF | Flags.CARTDAMP}
+FLAGS = {
+    Control.POSITION: Flags.JNTPOS,
+    Control.JNT_IMP: Flags.JNTPOS | Flags.JNTTRQ | Flags.JNTSTIFF | Flags.JNTDAMP,
+    Control.CART_IMP: Flags.CARTPOS | Flags.TCPFT | Flags.CARTSTIFF | Flags.CARTDAMP,
+}
 
 
 class FriError(ValueError):

@@ -74,8 +74,14 @@ class KrcOptions:
 
 
 class KrcSimulator:
-    def __init__(self, remote: tuple[str, int], options: KrcOptions | None = None, initial=None,
-                 host: str = "127.0.0.1", port: int = 0) -> None:
+    def __init__(
+        self,
+        remote: tuple[str, int],
+        options: KrcOptions | None = None,
+        initial=None,
+        host: str = "127.0.0.1",
+        port: int = 0,
+    ) -> None:
         self.options = opts = options or KrcOptions()
         self.remote = remote
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -99,8 +105,20 @@ class KrcSimulator:
         self.answered = True
         self.sent_at = 0.0
         self.random = random.Random(opts.seed)
-        self.counters = dict.fromkeys(("sent", "answers", "late", "malformed", "unauthenticated", "interpolation_errors",
-                                       "drops_to_monitor", "starts", "stops"), 0)
+        self.counters = dict.fromkeys(
+            (
+                "sent",
+                "answers",
+                "late",
+                "malformed",
+                "unauthenticated",
+                "interpolation_errors",
+                "drops_to_monitor",
+                "starts",
+                "stops",
+            ),
+            0,
+        )
         self.events: list[str] = []
         self._rx = bytearray(2048)
         self._stop = threading.Event()
@@ -248,8 +266,15 @@ class KrcSimulator:
                 target = self.cmd["jnt_pos"].astype(np.float64)
                 velocity = (target - self.setpoint) / opts.cycle_s
                 stiffness = self.cmd["jnt_stiffness"] if self.control == Control.JNT_IMP else 0.0
-                self.model.command(slice(None), Mode.POSITION, target, velocity,
-                                   self.cmd["add_jnt_trq"] if self.control == Control.JNT_IMP else 0.0, stiffness, 0.0)
+                self.model.command(
+                    slice(None),
+                    Mode.POSITION,
+                    target,
+                    velocity,
+                    self.cmd["add_jnt_trq"] if self.control == Control.JNT_IMP else 0.0,
+                    stiffness,
+                    0.0,
+                )
                 self.setpoint = target
 
     def answered_last(self) -> bool:
@@ -291,8 +316,14 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     if not 1 <= args.cycle_ms <= 100:
         p.error("--cycle-ms must be 1..100")
-    opts = KrcOptions(cycle_s=args.cycle_ms / 1e3, strategy_int=args.strategy_int, command_int=args.command_int,
-                      status_int=args.status_int, drop_answers=args.drop_answers, time_constant=args.time_constant)
+    opts = KrcOptions(
+        cycle_s=args.cycle_ms / 1e3,
+        strategy_int=args.strategy_int,
+        command_int=args.command_int,
+        status_int=args.status_int,
+        drop_answers=args.drop_answers,
+        time_constant=args.time_constant,
+    )
     initial = np.array([float(x) for x in args.initial.split(",")]) if args.initial else None
     sim = KrcSimulator(parse_address(args.remote), opts, initial, args.host, args.port)
     if args.priority:

@@ -242,9 +242,7 @@ class Robotiq2F85(HandBackend):
         registers = encode_command(action, position, speed, force)
         self._call(
             f"writing command (holding registers 0x{self.COMMAND_ADDRESS:04X}+{REGISTER_COUNT}, FC16)",
-            lambda: self._client.write_registers(
-                self.COMMAND_ADDRESS, registers, device_id=self.options.device_id
-            ),
+            lambda: self._client.write_registers(self.COMMAND_ADDRESS, registers, device_id=self.options.device_id),
         )
 
     def _call(self, what: str, request: Callable[[], ModbusPDU]) -> ModbusPDU:

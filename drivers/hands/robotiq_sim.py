@@ -470,14 +470,16 @@ def _in_range(kind: type, lo: float, hi: float):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m aiohal.drivers.hands.robotiq_sim",
-                                     description="A simulated Robotiq 2F-85 on Modbus TCP.")
+    parser = argparse.ArgumentParser(
+        prog="python -m aiohal.drivers.hands.robotiq_sim", description="A simulated Robotiq 2F-85 on Modbus TCP."
+    )
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=_in_range(int, 0, 65535), default=5020, help="0 picks a free port")
     parser.add_argument("--device-id", type=_in_range(int, 1, 247), default=9, help="Modbus unit id, 1-247")
     parser.add_argument("--framing", choices=sorted(FRAMERS), default="tcp")
-    parser.add_argument("--object", type=_in_range(float, 0.0, 1.0), default=None,
-                        help="object position, 0 open .. 1 closed")
+    parser.add_argument(
+        "--object", type=_in_range(float, 0.0, 1.0), default=None, help="object position, 0 open .. 1 closed"
+    )
     parser.add_argument("--activation-time", type=_in_range(float, 0.0, 3600.0), default=0.3, help="seconds")
     args = parser.parse_args(argv)
 
@@ -492,8 +494,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         async with server:
             print(
-                f"simulated Robotiq 2F-85 on {args.host}:{server.port} "
-                f"({args.framing}, device {args.device_id})",
+                f"simulated Robotiq 2F-85 on {args.host}:{server.port} ({args.framing}, device {args.device_id})",
                 flush=True,
             )
             await asyncio.Event().wait()

@@ -63,9 +63,7 @@ class SimHand(HandBackend):
         time.sleep(self._random.uniform(*self.io_time_s))
         self._advance()
         on_object = (
-            self.object_at is not None
-            and self._target > self.object_at
-            and abs(self._position - self.object_at) < 1e-9
+            self.object_at is not None and self._target > self.object_at and abs(self._position - self.object_at) < 1e-9
         )
         return HandStatus(
             position=self._position,

@@ -79,23 +79,31 @@ class SimulationOptions(Options):
     time_constant: FiniteFloat = Field(0.005, gt=0, description="Servo tracking time constant (s).")
     drop: FiniteFloat = Field(0.0, ge=0, le=1, description="Probability that a board drops a reply.")
     delay_ms: FiniteFloat = Field(0.0, ge=0, description="Every reply leaves this late.")
-    reorder: FiniteFloat = Field(0.0, ge=0, le=1, description="Probability that a reply is held and sent after the next.")
+    reorder: FiniteFloat = Field(
+        0.0, ge=0, le=1, description="Probability that a reply is held and sent after the next."
+    )
     garbage: FiniteFloat = Field(0.0, ge=0, le=1, description="Probability that random bytes are sent besides a reply.")
     die_board: int | None = Field(None, description="This board goes silent ...")
     die_after_s: FiniteFloat = Field(0.0, ge=0, description="... this long after the first command.")
     seed: int = 0
-    priority: int | None = Field(70, ge=1, le=99, description="SCHED_FIFO priority of the boards' process, when allowed.")
+    priority: int | None = Field(
+        70, ge=1, le=99, description="SCHED_FIFO priority of the boards' process, when allowed."
+    )
 
 
 class UdpOptions(Options):
     boards: list[BoardOptions] = Field(default_factory=list, description="The boards (needed unless simulate).")
     simulate: bool = Field(False, description="Start simulated boards on loopback (boards: from joints_per_board).")
-    joints_per_board: int = Field(1, ge=1, le=MAX_JOINTS, description="With simulate and no boards listed: boards 1..N in joint order.")
+    joints_per_board: int = Field(
+        1, ge=1, le=MAX_JOINTS, description="With simulate and no boards listed: boards 1..N in joint order."
+    )
     simulation: SimulationOptions = Field(default_factory=SimulationOptions)
     initial_position: JointValues = Field(0.0, description="With simulate: where the simulated joints start.")
     bind_address: str = Field("0.0.0.0", description="Local address of the driver's socket.")
     bind_port: int = Field(0, ge=0, le=0xFFFF, description="Local port (0: the OS picks).")
-    key: str | None = Field(None, description="Shared HMAC key, hex, at least 16 bytes: every datagram is authenticated.")
+    key: str | None = Field(
+        None, description="Shared HMAC key, hex, at least 16 bytes: every datagram is authenticated."
+    )
     silent_ticks: int = Field(20, ge=1, description="A board silent this many ticks fails the driver (safe state).")
     open_timeout_s: FiniteFloat = Field(2.0, gt=0, description="Every board must answer within this at open.")
 
@@ -128,9 +136,11 @@ def board_layout(options: UdpOptions, joints: list[str]) -> tuple[list[tuple[int
         if b.id in ids:
             problems.append(f"board {b.id}: the id is used twice")
         ids.add(b.id)
-        if names != joints[row:row + len(names)] or not names:
-            problems.append(f"board {b.id}: its joints {names} are not the next run of the driver's joints "
-                            f"(expected from {joints[row] if row < len(joints) else 'none left'!r})")
+        if names != joints[row : row + len(names)] or not names:
+            problems.append(
+                f"board {b.id}: its joints {names} are not the next run of the driver's joints "
+                f"(expected from {joints[row] if row < len(joints) else 'none left'!r})"
+            )
             return layout, problems
         if len(names) > MAX_JOINTS:
             problems.append(f"board {b.id}: {len(names)} joints, at most {MAX_JOINTS} per board")
@@ -170,11 +180,17 @@ class UdpDriver(Driver):
         self._tx = {f: self.tx_records[f] for f in cast(tuple[str, ...], COMMAND_RECORD.names)}
         self._rx = {f: self.rx_records[f] for f in cast(tuple[str, ...], STATE_RECORD.names)}
         tx_bytes, rx_bytes = self.tx_records.data.cast("B"), self.rx_records.data.cast("B")
-        self._tx_bodies = [tx_bytes[r.start * COMMAND_RECORD.itemsize:r.stop * COMMAND_RECORD.itemsize] for r in self.board_rows]
-        self._rx_bodies = [rx_bytes[r.start * STATE_RECORD.itemsize:r.stop * STATE_RECORD.itemsize] for r in self.board_rows]
+        self._tx_bodies = [
+            tx_bytes[r.start * COMMAND_RECORD.itemsize : r.stop * COMMAND_RECORD.itemsize] for r in self.board_rows
+        ]
+        self._rx_bodies = [
+            rx_bytes[r.start * STATE_RECORD.itemsize : r.stop * STATE_RECORD.itemsize] for r in self.board_rows
+        ]
         self._heads = [bytearray(HEADER_SIZE) for _ in layout]
         self._head_views = [memoryview(h) for h in self._heads]
-        self._rx_buf = bytearray(HEADER_SIZE + MAX_JOINTS * STATE_RECORD.itemsize + 64)  # room to see an oversize datagram
+        self._rx_buf = bytearray(
+            HEADER_SIZE + MAX_JOINTS * STATE_RECORD.itemsize + 64
+        )  # room to see an oversize datagram
         self._rx_view = memoryview(self._rx_buf)
         self._rx_bufs = [self._rx_view]
         self.joint_board = np.repeat(np.arange(nb), [r.stop - r.start for r in self.board_rows])
@@ -194,8 +210,20 @@ class UdpDriver(Driver):
         self.sim_process: asyncio.subprocess.Process | None = None
         self.sim_counters: dict[str, int] | None = None
         self.estopped = False
-        self.counters = dict.fromkeys(("sent", "received", "lost", "late", "duplicated", "reordered", "malformed",
-                                       "unauthenticated", "send_errors"), 0)
+        self.counters = dict.fromkeys(
+            (
+                "sent",
+                "received",
+                "lost",
+                "late",
+                "duplicated",
+                "reordered",
+                "malformed",
+                "unauthenticated",
+                "send_errors",
+            ),
+            0,
+        )
         self.silent_boards: list[int] = []
         self._warn = RateLimitedLogger(log)
 
@@ -215,14 +243,36 @@ class UdpDriver(Driver):
         else:
             loop = asyncio.get_running_loop()
             # an AF_INET address is (host, port), the host a str
-            self.addresses = [(cast(str, (await loop.getaddrinfo(b.address, b.port, family=socket.AF_INET,
-                                                               type=socket.SOCK_DGRAM))[0][4][0]), b.port)
-                              for b in opts.boards]
+            self.addresses = [
+                (
+                    cast(
+                        str,
+                        (await loop.getaddrinfo(b.address, b.port, family=socket.AF_INET, type=socket.SOCK_DGRAM))[0][
+                            4
+                        ][0],
+                    ),
+                    b.port,
+                )
+                for b in opts.boards
+            ]
         self._by_address = {addr: i for i, addr in enumerate(self.addresses)}
         for i, head in enumerate(self._heads):
             count = self.board_rows[i].stop - self.board_rows[i].start
-            HEADER.pack_into(head, 0, MAGIC, 0, VERSION, Kind.COMMAND, count, FLAG_MAC if self.key else 0,
-                             self.board_ids[i], 0, 0, 0, ZERO_MAC)
+            HEADER.pack_into(
+                head,
+                0,
+                MAGIC,
+                0,
+                VERSION,
+                Kind.COMMAND,
+                count,
+                FLAG_MAC if self.key else 0,
+                self.board_ids[i],
+                0,
+                0,
+                0,
+                ZERO_MAC,
+            )
         await self._reset_boards()
 
     async def _start_simulation(self) -> list[int]:
@@ -230,11 +280,28 @@ class UdpDriver(Driver):
         host, port = cast(socket.socket, self.sock).getsockname()  # open() made it
         initial = self.view.per_joint(opts.initial_position)
         np.clip(initial, self.view.position_min, self.view.position_max, out=initial)
-        args = [sys.executable, "-m", "aiohal.drivers.udp.sim",
-                "--layout", ",".join(str(r.stop - r.start) for r in self.board_rows),
-                "--master", f"{host}:{port}", "--initial=" + ",".join(repr(float(x)) for x in initial),
-                "--time-constant", repr(sim.time_constant), "--drop", repr(sim.drop), "--delay-ms", repr(sim.delay_ms),
-                "--reorder", repr(sim.reorder), "--garbage", repr(sim.garbage), "--seed", str(sim.seed)]
+        args = [
+            sys.executable,
+            "-m",
+            "aiohal.drivers.udp.sim",
+            "--layout",
+            ",".join(str(r.stop - r.start) for r in self.board_rows),
+            "--master",
+            f"{host}:{port}",
+            "--initial=" + ",".join(repr(float(x)) for x in initial),
+            "--time-constant",
+            repr(sim.time_constant),
+            "--drop",
+            repr(sim.drop),
+            "--delay-ms",
+            repr(sim.delay_ms),
+            "--reorder",
+            repr(sim.reorder),
+            "--garbage",
+            repr(sim.garbage),
+            "--seed",
+            str(sim.seed),
+        ]
         if sim.priority is not None:
             args += ["--priority", str(sim.priority)]
         if sim.die_board is not None:
@@ -331,7 +398,9 @@ class UdpDriver(Driver):
             counters["received"] += 1
             if anc:
                 sec, nsec = TIMESPEC.unpack_from(anc[0][2])
-                self._rtt_ns[self._rtt_count & (RTT_RING - 1)] = sec * 1_000_000_000 + nsec - self._tx_ns[head.ack & (SEND_RING - 1)]
+                self._rtt_ns[self._rtt_count & (RTT_RING - 1)] = (
+                    sec * 1_000_000_000 + nsec - self._tx_ns[head.ack & (SEND_RING - 1)]
+                )
                 self._rtt_count += 1
             taken.append(b)
 
@@ -401,7 +470,14 @@ class UdpDriver(Driver):
         """Every board its datagram: its header (seq, ack, CRC, MAC) and its run of records."""
         seq = self._seq = (self._seq + 1) & 0xFFFFFFFF
         self._tx_ns[seq & (SEND_RING - 1)] = time.time_ns()
-        sock, key, acks, bodies, addresses, counters = self.sock, self.key, self._ack, self._tx_bodies, self.addresses, self.counters
+        sock, key, acks, bodies, addresses, counters = (
+            self.sock,
+            self.key,
+            self._ack,
+            self._tx_bodies,
+            self.addresses,
+            self.counters,
+        )
         pack = SEQ_ACK.pack_into
         sent = 0
         for i, head in enumerate(self._head_views):
@@ -436,9 +512,12 @@ class UdpDriver(Driver):
         if self.sock is None or self.sock.fileno() < 0:
             return []
         fd = self.sock.fileno()
-        return [SendDatagram(host, port, bytes(encode(Kind.ESTOP, self.board_ids[i], self._seq, self._ack[i],
-                                                      key=self.key)), fd=fd)
-                for i, (host, port) in enumerate(self.addresses)]
+        return [
+            SendDatagram(
+                host, port, bytes(encode(Kind.ESTOP, self.board_ids[i], self._seq, self._ack[i], key=self.key)), fd=fd
+            )
+            for i, (host, port) in enumerate(self.addresses)
+        ]
 
     async def close(self) -> None:
         if self.sock is not None and self.sock.fileno() >= 0:

@@ -60,18 +60,30 @@ class BoardFault(IntEnum):
 
 
 #: Joint command record: the mode (aiohal.robot.Mode values), the targets and the gains.
-COMMAND_RECORD = np.dtype([
-    ("mode", "<u1"), ("reserved", "<u1", (3,)),
-    ("position", "<f4"), ("velocity", "<f4"), ("effort", "<f4"),
-    ("stiffness", "<f4"), ("damping", "<f4"),
-])
+COMMAND_RECORD = np.dtype(
+    [
+        ("mode", "<u1"),
+        ("reserved", "<u1", (3,)),
+        ("position", "<f4"),
+        ("velocity", "<f4"),
+        ("effort", "<f4"),
+        ("stiffness", "<f4"),
+        ("damping", "<f4"),
+    ]
+)
 #: Joint state record: the fault bits, the mode the board applies, the measurements.
-STATE_RECORD = np.dtype([
-    ("fault", "<u2"), ("mode", "<u1"), ("reserved", "<u1"),
-    ("position", "<f4"), ("velocity", "<f4"), ("effort", "<f4"), ("temperature", "<f4"),
-])
-RECORD_SIZE = {Kind.COMMAND: COMMAND_RECORD.itemsize, Kind.STATE: STATE_RECORD.itemsize,
-               Kind.ESTOP: 0, Kind.RESET: 0}
+STATE_RECORD = np.dtype(
+    [
+        ("fault", "<u2"),
+        ("mode", "<u1"),
+        ("reserved", "<u1"),
+        ("position", "<f4"),
+        ("velocity", "<f4"),
+        ("effort", "<f4"),
+        ("temperature", "<f4"),
+    ]
+)
+RECORD_SIZE = {Kind.COMMAND: COMMAND_RECORD.itemsize, Kind.STATE: STATE_RECORD.itemsize, Kind.ESTOP: 0, Kind.RESET: 0}
 assert COMMAND_RECORD.itemsize == 24 and STATE_RECORD.itemsize == 20 and HEADER_SIZE == 40
 
 
@@ -108,21 +120,35 @@ def seal_parts(head, body, key: bytes | None) -> None:
     """``seal`` for a datagram sent as two buffers (a board's header, its run of records in
     the driver's array of every record): the CRC and the MAC run over both, nothing is joined."""
     if key is not None:
-        head[MAC_OFFSET:MAC_OFFSET + MAC_SIZE] = ZERO_MAC
+        head[MAC_OFFSET : MAC_OFFSET + MAC_SIZE] = ZERO_MAC
         mac = hmac.new(key, head[CRC_START:], "sha256")
         mac.update(body)
-        head[MAC_OFFSET:MAC_OFFSET + MAC_SIZE] = mac.digest()[:MAC_SIZE]
+        head[MAC_OFFSET : MAC_OFFSET + MAC_SIZE] = mac.digest()[:MAC_SIZE]
     struct.pack_into("<I", head, 4, zlib.crc32(body, zlib.crc32(head[CRC_START:])))
 
 
-def encode(kind: int, board: int, seq: int, ack: int, records: np.ndarray | None = None,
-           key: bytes | None = None) -> bytearray:
+def encode(
+    kind: int, board: int, seq: int, ack: int, records: np.ndarray | None = None, key: bytes | None = None
+) -> bytearray:
     """One whole datagram (allocates: for tests, tools and the simulator's set-up)."""
     count = 0 if records is None else len(records)
     size = datagram_size(kind, count)
     buf = bytearray(size)
-    HEADER.pack_into(buf, 0, MAGIC, 0, VERSION, kind, count, FLAG_MAC if key is not None else 0,
-                     board, 0, seq & 0xFFFFFFFF, ack & 0xFFFFFFFF, ZERO_MAC)
+    HEADER.pack_into(
+        buf,
+        0,
+        MAGIC,
+        0,
+        VERSION,
+        kind,
+        count,
+        FLAG_MAC if key is not None else 0,
+        board,
+        0,
+        seq & 0xFFFFFFFF,
+        ack & 0xFFFFFFFF,
+        ZERO_MAC,
+    )
     if records is not None and count:
         buf[HEADER_SIZE:] = records.tobytes()
     seal(buf, size, key)
@@ -153,7 +179,7 @@ def check(data, size: int, key: bytes | None) -> Header:
         if not flags & FLAG_MAC:
             raise ProtocolError("unauthenticated", "no MAC")
         scratch = bytearray(mv[CRC_START:])
-        scratch[MAC_OFFSET - CRC_START:MAC_OFFSET - CRC_START + MAC_SIZE] = ZERO_MAC
+        scratch[MAC_OFFSET - CRC_START : MAC_OFFSET - CRC_START + MAC_SIZE] = ZERO_MAC
         expected = hmac.digest(key, scratch, "sha256")[:MAC_SIZE]
         if not hmac.compare_digest(expected, mac):
             raise ProtocolError("unauthenticated", "wrong MAC")

@@ -80,17 +80,33 @@ class SimBoard:
     faulted: bool = False  # fault bits were set in its records
     held: tuple[bytes, bytes] | None = None  # a reply held back to be reordered
     estops_at: list[tuple[float, float]] = field(default_factory=list)  # (arrival, last command's), monotonic s
-    counters: dict[str, int] = field(default_factory=lambda: dict.fromkeys(
-        ("commands", "replies", "estops", "resets", "malformed", "unauthenticated", "stale", "dropped", "garbage"), 0))
+    counters: dict[str, int] = field(
+        default_factory=lambda: dict.fromkeys(
+            ("commands", "replies", "estops", "resets", "malformed", "unauthenticated", "stale", "dropped", "garbage"),
+            0,
+        )
+    )
 
 
 class BoardSimulator:
     """``layout``: joints per board (board ids 1..N unless ``ids``); ``initial``: start positions."""
 
-    def __init__(self, layout: list[int], *, ids: list[int] | None = None, host: str = "127.0.0.1",
-                 ports: list[int] | None = None, master: tuple[str, int] | None = None, key: bytes | None = None,
-                 initial: list[float] | None = None, time_constant: float = 0.005, watchdog_ms: float = 100.0,
-                 temperature: float = 35.0, servo_period_s: float = 0.0005, faults: SimFaults | None = None) -> None:
+    def __init__(
+        self,
+        layout: list[int],
+        *,
+        ids: list[int] | None = None,
+        host: str = "127.0.0.1",
+        ports: list[int] | None = None,
+        master: tuple[str, int] | None = None,
+        key: bytes | None = None,
+        initial: list[float] | None = None,
+        time_constant: float = 0.005,
+        watchdog_ms: float = 100.0,
+        temperature: float = 35.0,
+        servo_period_s: float = 0.0005,
+        faults: SimFaults | None = None,
+    ) -> None:
         n = sum(layout)
         self.model = ServoModel(n, time_constant, np.asarray(initial, dtype=np.float64) if initial else None)
         self.master = master
@@ -101,7 +117,9 @@ class BoardSimulator:
         self.random = random.Random(self.faults.seed)
         self.selector = selectors.DefaultSelector()
         self.boards: list[SimBoard] = []
-        self._delayed: list[tuple[float, int, SimBoard, tuple[bytes, bytes], tuple]] = []  # heap of (due, n, board, bytes, addr)
+        self._delayed: list[
+            tuple[float, int, SimBoard, tuple[bytes, bytes], tuple]
+        ] = []  # heap of (due, n, board, bytes, addr)
         self._n_delayed = 0
         self._rx = bytearray(RECV_SIZE)
         self.commands = np.zeros(n, dtype=COMMAND_RECORD)  # the last command of every joint
@@ -120,9 +138,14 @@ class BoardSimulator:
             sock.bind((host, port))
             sock.setblocking(False)
             rows = slice(start, start + count)
-            board = SimBoard(board_id, rows, sock, bytearray(HEADER_SIZE),
-                             self.states[rows].data.cast("B"),
-                             self.commands[rows].data.cast("B"))
+            board = SimBoard(
+                board_id,
+                rows,
+                sock,
+                bytearray(HEADER_SIZE),
+                self.states[rows].data.cast("B"),
+                self.commands[rows].data.cast("B"),
+            )
             self.boards.append(board)
             self.selector.register(sock, selectors.EVENT_READ, board)
             start += count
@@ -242,8 +265,15 @@ class BoardSimulator:
         model.step(now - self._t_last)
         self._t_last = now
         if mask.any():
-            model.command(mask, cmd["mode"][mask], cmd["position"][mask], cmd["velocity"][mask], cmd["effort"][mask],
-                          cmd["stiffness"][mask], cmd["damping"][mask])
+            model.command(
+                mask,
+                cmd["mode"][mask],
+                cmd["position"][mask],
+                cmd["velocity"][mask],
+                cmd["effort"][mask],
+                cmd["stiffness"][mask],
+                cmd["damping"][mask],
+            )
             mask[:] = False
         states = self.states
         states["position"] = model.position
@@ -258,8 +288,21 @@ class BoardSimulator:
             self.states["fault"][board.rows] = bits
             board.faulted = bool(bits)
         board.seq = (board.seq + 1) & 0xFFFFFFFF
-        HEADER.pack_into(board.head, 0, MAGIC, 0, VERSION, Kind.STATE, board.rows.stop - board.rows.start,
-                         FLAG_MAC if self.key is not None else 0, board.id, 0, board.seq, ack, ZERO_MAC)
+        HEADER.pack_into(
+            board.head,
+            0,
+            MAGIC,
+            0,
+            VERSION,
+            Kind.STATE,
+            board.rows.stop - board.rows.start,
+            FLAG_MAC if self.key is not None else 0,
+            board.id,
+            0,
+            board.seq,
+            ack,
+            ZERO_MAC,
+        )
         seal_parts(board.head, board.body, self.key)
         self._send(board, (bytes(board.head), bytes(board.body)), addr, now)
 
@@ -332,17 +375,29 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--die-board", type=int, default=None)
     p.add_argument("--die-after-s", type=float, default=0.0)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--priority", type=int, default=None, help="SCHED_FIFO priority, when allowed (boards are hardware: they keep up)")
+    p.add_argument(
+        "--priority",
+        type=int,
+        default=None,
+        help="SCHED_FIFO priority, when allowed (boards are hardware: they keep up)",
+    )
     p.add_argument("--duration", type=float, default=None, help="serve this long (default: until SIGTERM)")
     args = p.parse_args(argv)
     layout = [int(x) for x in args.layout.split(",")] if args.layout else [args.joints_per_board] * args.boards
     ports = [0] * len(layout) if args.port == 0 else [args.port + i for i in range(len(layout))]
     sim = BoardSimulator(
-        layout, host=args.host, ports=ports, master=parse_address(args.master) if args.master else None,
+        layout,
+        host=args.host,
+        ports=ports,
+        master=parse_address(args.master) if args.master else None,
         key=bytes.fromhex(args.key) if args.key else None,
         initial=[float(x) for x in args.initial.split(",")] if args.initial else None,
-        time_constant=args.time_constant, watchdog_ms=args.watchdog_ms,
-        faults=SimFaults(args.drop, args.delay_ms, args.reorder, args.garbage, args.die_board, args.die_after_s, args.seed))
+        time_constant=args.time_constant,
+        watchdog_ms=args.watchdog_ms,
+        faults=SimFaults(
+            args.drop, args.delay_ms, args.reorder, args.garbage, args.die_board, args.die_after_s, args.seed
+        ),
+    )
     if args.priority:
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.priority))

@@ -57,7 +57,7 @@ class BitsVar:
         self._shift = bit_offset % 8
 
     def _raw(self) -> int:
-        return int.from_bytes(self._buf[self._first:self._last].tobytes(), "little")
+        return int.from_bytes(self._buf[self._first : self._last].tobytes(), "little")
 
     def get(self) -> int:
         return (self._raw() >> self._shift) & ((1 << self.bits) - 1)
@@ -70,7 +70,7 @@ class BitsVar:
             raise ValueError(f'"{self.name}" holds {self.bits} bits, {value} does not fit')
         mask = ((1 << self.bits) - 1) << self._shift
         raw = (self._raw() & ~mask) | (value << self._shift)
-        self._buf[self._first:self._last] = np.frombuffer(raw.to_bytes(self._last - self._first, "little"), np.uint8)
+        self._buf[self._first : self._last] = np.frombuffer(raw.to_bytes(self._last - self._first, "little"), np.uint8)
 
     def __getitem__(self, bit: int) -> bool:
         if not 0 <= bit < self.bits:
@@ -95,8 +95,15 @@ class Gather:
 
     __slots__ = ("_buf", "_index", "dtype", "name", "shape", "writable")
 
-    def __init__(self, name: str, buf: np.ndarray, byte_offsets: Sequence[int], dtype: np.dtype,
-                 element_shape: tuple[int, ...], writable: bool) -> None:
+    def __init__(
+        self,
+        name: str,
+        buf: np.ndarray,
+        byte_offsets: Sequence[int],
+        dtype: np.dtype,
+        element_shape: tuple[int, ...],
+        writable: bool,
+    ) -> None:
         self.name = name
         self.dtype = dtype
         self.shape = (len(byte_offsets), *element_shape)

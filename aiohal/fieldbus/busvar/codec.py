@@ -12,8 +12,18 @@ import numpy as np
 from .errors import VariableTypeError
 from .layout import Variable
 
-STRUCT_CODES = {"i8": "b", "u8": "B", "i16": "h", "u16": "H", "i32": "i", "u32": "I", "i64": "q", "u64": "Q",
-                "f32": "f", "f64": "d"}
+STRUCT_CODES = {
+    "i8": "b",
+    "u8": "B",
+    "i16": "h",
+    "u16": "H",
+    "i32": "i",
+    "u32": "I",
+    "i64": "q",
+    "u64": "Q",
+    "f32": "f",
+    "f64": "d",
+}
 
 
 class RecordCodec:
@@ -49,10 +59,12 @@ class RecordCodec:
         #: ``f(buf, offset) -> values`` and ``f(buf, offset, *values)``, values in the order the
         #: variables were given: ``struct``'s own functions when that is the bytes' order (the
         #: fast path of per-cycle loops)
-        self.unpack_from: Callable[..., tuple] = self.struct.unpack_from if in_order else \
-            _reordered_unpack(self.struct.unpack_from, tuple(slots))
-        self.pack_into: Callable[..., None] = self.struct.pack_into if in_order else \
-            _reordered_pack(self.struct.pack_into, tuple(slots), position)
+        self.unpack_from: Callable[..., tuple] = (
+            self.struct.unpack_from if in_order else _reordered_unpack(self.struct.unpack_from, tuple(slots))
+        )
+        self.pack_into: Callable[..., None] = (
+            self.struct.pack_into if in_order else _reordered_pack(self.struct.pack_into, tuple(slots), position)
+        )
 
     def unpack(self) -> tuple:
         return self.unpack_from(self.buf, self.offset)
@@ -65,6 +77,7 @@ def _reordered_unpack(unpack: Callable[..., tuple], slots: tuple) -> Callable[..
     def reordered(buf: Any, offset: int) -> tuple:
         raw = unpack(buf, offset)
         return tuple(raw[s] for s in slots)
+
     return reordered
 
 
@@ -74,4 +87,5 @@ def _reordered_pack(pack: Callable[..., None], slots: tuple, count: int) -> Call
         for value, slot in zip(values, slots, strict=True):
             raw[slot] = value
         pack(buf, offset, *raw)
+
     return reordered

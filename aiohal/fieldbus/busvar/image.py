@@ -24,8 +24,15 @@ _MEMBER = re.compile(r"(.+)\.(\d+)")
 class SlaveImage:
     """One slave's part of the process image: its layout and its slices of the two buffers."""
 
-    def __init__(self, name: str, layout: PdoLayout, output_offset: int, input_offset: int,
-                 outputs: np.ndarray, inputs: np.ndarray) -> None:
+    def __init__(
+        self,
+        name: str,
+        layout: PdoLayout,
+        output_offset: int,
+        input_offset: int,
+        outputs: np.ndarray,
+        inputs: np.ndarray,
+    ) -> None:
         self.name = name
         self.layout = layout
         self.output_offset = output_offset  # bytes, in ProcessImage.outputs
@@ -37,8 +44,10 @@ class SlaveImage:
         self._index()
 
     def __repr__(self) -> str:
-        return (f"SlaveImage({self.name!r}, outputs {self.output_offset}+{len(self.outputs)}, "
-                f"inputs {self.input_offset}+{len(self.inputs)})")
+        return (
+            f"SlaveImage({self.name!r}, outputs {self.output_offset}+{len(self.outputs)}, "
+            f"inputs {self.input_offset}+{len(self.inputs)})"
+        )
 
     def load_inputs(self, data: bytes | bytearray | memoryview) -> None:
         """Copy the master's input bytes of this slave in (one memcpy); the size is checked."""
@@ -55,13 +64,16 @@ class SlaveImage:
         if (output_bytes, input_bytes) != (len(self.outputs), len(self.inputs)):
             raise LayoutError(
                 f"slave {self.name!r}: the master maps {output_bytes} output and {input_bytes} input bytes, "
-                f"its PDO layout has {len(self.outputs)} and {len(self.inputs)}")
+                f"its PDO layout has {len(self.outputs)} and {len(self.inputs)}"
+            )
 
     def _index(self) -> None:
         """Every name (and address) of this slave → the variables it may mean."""
         groups: dict[tuple[str, str], list[tuple[int, PdoEntry]]] = {}
-        for direction, entries, base in (("output", self.layout.outputs, self.output_offset),
-                                         ("input", self.layout.inputs, self.input_offset)):
+        for direction, entries, base in (
+            ("output", self.layout.outputs, self.output_offset),
+            ("input", self.layout.inputs, self.input_offset),
+        ):
             for entry in entries:
                 if entry.is_padding:
                     continue
@@ -78,8 +90,18 @@ class SlaveImage:
             members.sort(key=lambda m: m[0])
             entries = tuple(e for _, e in members)
             base = self.output_offset if direction == "output" else self.input_offset
-            self._add(name, Variable(self.name, name, direction, entries, base * 8 + entries[0].bit_offset,
-                                     group=True, members=tuple(n for n, _ in members)))
+            self._add(
+                name,
+                Variable(
+                    self.name,
+                    name,
+                    direction,
+                    entries,
+                    base * 8 + entries[0].bit_offset,
+                    group=True,
+                    members=tuple(n for n, _ in members),
+                ),
+            )
 
     def _add(self, name: str, var: Variable, display: bool = True) -> None:
         key = normalise(name)
@@ -95,8 +117,9 @@ class SlaveImage:
             raise UnknownVariableError(f'unknown variable "{self.name}.{name}"{self._hint(key)}')
         if len(found) > 1:
             choices = ", ".join(f'"{self.name}.{v.entries[0].address}"' for v in found)
-            raise UnknownVariableError(f'"{self.name}.{name}" is ambiguous: it names {len(found)} entries; '
-                                       f"use an address: {choices}")
+            raise UnknownVariableError(
+                f'"{self.name}.{name}" is ambiguous: it names {len(found)} entries; use an address: {choices}'
+            )
         return found[0]
 
     def _hint(self, key: str) -> str:
@@ -148,9 +171,14 @@ class ProcessImage:
         self._by_key: dict[str, SlaveImage] = {}
         for i, (name, layout) in enumerate(items):
             out_off, in_off = offsets[i]
-            slave = SlaveImage(name, layout, out_off, in_off,
-                               self.outputs[out_off:out_off + layout.output_bytes],
-                               self.inputs[in_off:in_off + layout.input_bytes])
+            slave = SlaveImage(
+                name,
+                layout,
+                out_off,
+                in_off,
+                self.outputs[out_off : out_off + layout.output_bytes],
+                self.inputs[in_off : in_off + layout.input_bytes],
+            )
             self.slaves[name] = slave
             self._by_key[normalise(name)] = slave
 
@@ -179,7 +207,9 @@ class ProcessImage:
 
     # ------------------------------------------------------------ linking
 
-    def link(self, name: str, dtype: DTypeLike | None = None, *, writable: bool = False) -> np.ndarray | BitVar | BitsVar:
+    def link(
+        self, name: str, dtype: DTypeLike | None = None, *, writable: bool = False
+    ) -> np.ndarray | BitVar | BitsVar:
         """A zero-copy view of one variable: 0-d for a single entry, shape (n,) for an object's
         subindices. Bit variables give a :class:`BitVar` / :class:`BitsVar` instead. Outputs are
         read-only unless ``writable``; inputs are always read-only. ``dtype``, when given, must
@@ -189,13 +219,16 @@ class ProcessImage:
         buf = self.outputs if var.direction == "output" else self.inputs
         if not var.contiguous or var.type == "mixed":
             members = ", ".join(f'"{var.slave}.{e.name}"' for e in var.entries)
-            raise VariableTypeError(f'"{var.full_name}" cannot be linked as one variable: its subindices are '
-                                    f"not contiguous, not numbered 1..n or not of one type; link them one by one: {members}")
+            raise VariableTypeError(
+                f'"{var.full_name}" cannot be linked as one variable: its subindices are '
+                f"not contiguous, not numbered 1..n or not of one type; link them one by one: {members}"
+            )
         if not var.byte_aligned:
             if dtype is not None:
                 raise VariableTypeError(
                     f'"{var.full_name}" is {var.bits} bit(s) from bit {var.bit_offset % 8} of a byte: not whole '
-                    "bytes on a byte boundary, so it has no array view; link it without dtype for a bit accessor")
+                    "bytes on a byte boundary, so it has no array view; link it without dtype for a bit accessor"
+                )
             if var.bits == 1:
                 return BitVar(var.full_name, buf, var.bit_offset, writable)
             return BitsVar(var.full_name, buf, var.bit_offset, var.bits, writable)
@@ -204,8 +237,15 @@ class ProcessImage:
         view.flags.writeable = writable
         return view
 
-    def link_many(self, slaves: Sequence[str], name: str, dtype: DTypeLike | None = None, *, writable: bool = False,
-                  gather: bool = True) -> np.ndarray | Gather:
+    def link_many(
+        self,
+        slaves: Sequence[str],
+        name: str,
+        dtype: DTypeLike | None = None,
+        *,
+        writable: bool = False,
+        gather: bool = True,
+    ) -> np.ndarray | Gather:
         """The same variable of several slaves as one array of shape (len(slaves), ...), in the
         order given: a strided zero-copy view when the slaves are evenly spaced in the image
         (identical layouts listed in image order always are), else a :class:`Gather` (or an
@@ -220,8 +260,10 @@ class ProcessImage:
         for var in variables:
             self._check_writable(var, writable)
             if not var.byte_aligned:
-                raise VariableTypeError(f'"{var.full_name}" is not a byte-aligned numeric variable: bit variables '
-                                        "cannot be linked across slaves; link each with link()")
+                raise VariableTypeError(
+                    f'"{var.full_name}" is not a byte-aligned numeric variable: bit variables '
+                    "cannot be linked across slaves; link each with link()"
+                )
             if (var.type, var.shape, var.direction) != (first.type, first.shape, first.direction):
                 raise VariableTypeError(f'"{var.full_name}" is {_kind(var)}, but "{first.full_name}" is {_kind(first)}')
         dt = self._check_dtype(first, dtype)
@@ -236,13 +278,16 @@ class ProcessImage:
             stride = offsets[1] - offsets[0]
             evenly = stride > 0 and all(b - a == stride for a, b in itertools.pairwise(offsets))
         if evenly:
-            view = np.ndarray((len(offsets), *element), dtype=dt, buffer=buf, offset=offsets[0],
-                              strides=(stride, *element_strides))
+            view = np.ndarray(
+                (len(offsets), *element), dtype=dt, buffer=buf, offset=offsets[0], strides=(stride, *element_strides)
+            )
             view.flags.writeable = writable
             return view
         if not gather:
-            raise VariableTypeError(f'"{name}" of {list(slaves)} is not evenly spaced in the image (byte offsets '
-                                    f"{offsets}), so it has no single view; list the slaves in image order or allow gather")
+            raise VariableTypeError(
+                f'"{name}" of {list(slaves)} is not evenly spaced in the image (byte offsets '
+                f"{offsets}), so it has no single view; list the slaves in image order or allow gather"
+            )
         return Gather(f"{name} of {len(slaves)} slaves", buf, offsets, dt, element, writable)
 
     def codec(self, slave: str, names: Sequence[str], *, writable: bool = False) -> RecordCodec:
@@ -264,11 +309,14 @@ class ProcessImage:
         for var in variables:
             self._check_writable(var, writable)
             if not var.byte_aligned or var.type not in STRUCT_CODES:
-                raise VariableTypeError(f'"{var.full_name}" ({var.type}, {var.bits} bits) is not a byte-aligned '
-                                        "number: no struct codec")
+                raise VariableTypeError(
+                    f'"{var.full_name}" ({var.type}, {var.bits} bits) is not a byte-aligned number: no struct codec'
+                )
             if var.direction != variables[0].direction:
-                raise VariableTypeError(f'"{var.full_name}" is an {var.direction}, "{variables[0].full_name}" an '
-                                        f"{variables[0].direction}: a codec reads or writes one direction")
+                raise VariableTypeError(
+                    f'"{var.full_name}" is an {var.direction}, "{variables[0].full_name}" an '
+                    f"{variables[0].direction}: a codec reads or writes one direction"
+                )
         if writable and variables[0].direction == "input":
             raise ReadOnlyVariableError(f'"{variables[0].full_name}" is an input (slave to master): it is read-only')
         return variables
@@ -288,8 +336,10 @@ class ProcessImage:
         except TypeError as exc:
             raise VariableTypeError(f'"{var.full_name}": {dtype!r} is not a numpy dtype') from exc
         if wanted.itemsize != own.itemsize:
-            raise VariableTypeError(f'"{var.full_name}" is {var.type} ({own.itemsize * 8} bits per element), '
-                                    f"{wanted} has {wanted.itemsize * 8} bits: size mismatch")
+            raise VariableTypeError(
+                f'"{var.full_name}" is {var.type} ({own.itemsize * 8} bits per element), '
+                f"{wanted} has {wanted.itemsize * 8} bits: size mismatch"
+            )
         if wanted != own:
             raise VariableTypeError(f'"{var.full_name}" is {var.type} (little-endian), not {wanted}: type mismatch')
         return own

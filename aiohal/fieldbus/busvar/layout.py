@@ -81,8 +81,13 @@ class PdoLayout:
     from_sii = from_entries
 
     @classmethod
-    def from_coe(cls, rx_assign: Sequence[int], tx_assign: Sequence[int], mappings: Mapping[int, Sequence[int]],
-                 names: NameTable | None = None) -> PdoLayout:
+    def from_coe(
+        cls,
+        rx_assign: Sequence[int],
+        tx_assign: Sequence[int],
+        mappings: Mapping[int, Sequence[int]],
+        names: NameTable | None = None,
+    ) -> PdoLayout:
         """From the CoE PDO assignment as read by SDO: the u16 values of 0x1C12:01.. (RxPDOs) and
         0x1C13:01.. (TxPDOs), and each assigned mapping object's u32 values (subindex 1..n)."""
         rx = _decode_pdos(rx_assign, mappings, 0x1C12, range(0x1600, 0x1800), "RxPDO")
@@ -94,19 +99,23 @@ class PdoLayout:
         lines = []
         for direction, entries in (("out", self.outputs), ("in", self.inputs)):
             for e in entries:
-                lines.append(f"{direction:3} {e.bit_offset // 8:4}.{e.bit_offset % 8} {e.address} "
-                             f"{e.bits:3} {e.type:4} {e.name}")
+                lines.append(
+                    f"{direction:3} {e.bit_offset // 8:4}.{e.bit_offset % 8} {e.address} {e.bits:3} {e.type:4} {e.name}"
+                )
         return "\n".join(lines)
 
 
-def _decode_pdos(assign: Sequence[int], mappings: Mapping[int, Sequence[int]], assign_index: int,
-                 allowed: range, kind: str) -> dict[int, list[RawEntry]]:
+def _decode_pdos(
+    assign: Sequence[int], mappings: Mapping[int, Sequence[int]], assign_index: int, allowed: range, kind: str
+) -> dict[int, list[RawEntry]]:
     pdos: dict[int, list[RawEntry]] = {}
     for n, pdo in enumerate(assign, start=1):
         where = f"0x{assign_index:04X}:{n:02X}"
         if pdo not in allowed:
-            raise LayoutError(f"{where} assigns 0x{pdo:04X}, which is not an {kind} mapping object "
-                              f"(0x{allowed.start:04X}-0x{allowed.stop - 1:04X})")
+            raise LayoutError(
+                f"{where} assigns 0x{pdo:04X}, which is not an {kind} mapping object "
+                f"(0x{allowed.start:04X}-0x{allowed.stop - 1:04X})"
+            )
         if pdo in pdos:
             raise LayoutError(f"{where} assigns 0x{pdo:04X} twice")
         if pdo not in mappings:
@@ -130,7 +139,11 @@ def _place(pdos: PdoList, names: NameTable, kind: str) -> tuple[PdoEntry, ...]:
         for raw in entries:
             index, subindex, bits = (int(v) for v in raw[:3])
             sii_name = str(raw[3]).strip() if len(raw) > 3 and raw[3] else ""
-            where = f"{kind} 0x{pdo:04X} entry {address(index, subindex)}" if pdo else f"{kind} entry {address(index, subindex)}"
+            where = (
+                f"{kind} 0x{pdo:04X} entry {address(index, subindex)}"
+                if pdo
+                else f"{kind} entry {address(index, subindex)}"
+            )
             if not 0 < bits <= 0xFF or not 0 <= index <= 0xFFFF or not 0 <= subindex <= 0xFF:
                 raise LayoutError(f"{where}: {bits} bits is not a valid mapping entry")
             name, type_ = _name(index, subindex, bits, sii_name, names, where)
@@ -145,8 +158,9 @@ def _name(index: int, subindex: int, bits: int, sii_name: str, names: NameTable,
     name, type_ = names.get((index, subindex), ("", ""))
     type_ = canonical_type(type_) if type_ else _infer_type(bits)
     if TYPE_BITS.get(type_, bits) != bits:
-        raise LayoutError(f"{where} has {bits} bits, but the name table says {name!r} is {type_} "
-                          f"({TYPE_BITS[type_]} bits)")
+        raise LayoutError(
+            f"{where} has {bits} bits, but the name table says {name!r} is {type_} ({TYPE_BITS[type_]} bits)"
+        )
     return name or sii_name or address(index, subindex), type_
 
 

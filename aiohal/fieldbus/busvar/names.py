@@ -11,18 +11,60 @@ import numpy as np
 
 from .errors import LayoutError
 
-TYPE_BITS = {"bool": 1, "i8": 8, "u8": 8, "i16": 16, "u16": 16, "i32": 32, "u32": 32,
-             "i64": 64, "u64": 64, "f32": 32, "f64": 64}
+TYPE_BITS = {
+    "bool": 1,
+    "i8": 8,
+    "u8": 8,
+    "i16": 16,
+    "u16": 16,
+    "i32": 32,
+    "u32": 32,
+    "i64": 64,
+    "u64": 64,
+    "f32": 32,
+    "f64": 64,
+}
 NUMPY_TYPES = {name: np.dtype(f"<{name[0]}{TYPE_BITS[name] // 8}") for name in TYPE_BITS if name != "bool"}
 # "bits": an unsigned bit field of any length; "pad": a gap (index 0) in a mapping.
 _TYPE_ALIASES = {
-    "boolean": "bool", "bit": "bool", "bit1": "bool",
-    "int8": "i8", "sint": "i8", "integer8": "i8", "uint8": "u8", "usint": "u8", "unsigned8": "u8", "byte": "u8",
-    "int16": "i16", "int": "i16", "integer16": "i16", "uint16": "u16", "uint": "u16", "unsigned16": "u16",
-    "word": "u16", "int32": "i32", "dint": "i32", "integer32": "i32", "uint32": "u32", "udint": "u32",
-    "unsigned32": "u32", "dword": "u32", "int64": "i64", "lint": "i64", "integer64": "i64",
-    "uint64": "u64", "ulint": "u64", "unsigned64": "u64", "real32": "f32", "real": "f32",
-    "float32": "f32", "float": "f32", "real64": "f64", "lreal": "f64", "float64": "f64", "double": "f64",
+    "boolean": "bool",
+    "bit": "bool",
+    "bit1": "bool",
+    "int8": "i8",
+    "sint": "i8",
+    "integer8": "i8",
+    "uint8": "u8",
+    "usint": "u8",
+    "unsigned8": "u8",
+    "byte": "u8",
+    "int16": "i16",
+    "int": "i16",
+    "integer16": "i16",
+    "uint16": "u16",
+    "uint": "u16",
+    "unsigned16": "u16",
+    "word": "u16",
+    "int32": "i32",
+    "dint": "i32",
+    "integer32": "i32",
+    "uint32": "u32",
+    "udint": "u32",
+    "unsigned32": "u32",
+    "dword": "u32",
+    "int64": "i64",
+    "lint": "i64",
+    "integer64": "i64",
+    "uint64": "u64",
+    "ulint": "u64",
+    "unsigned64": "u64",
+    "real32": "f32",
+    "real": "f32",
+    "float32": "f32",
+    "float": "f32",
+    "real64": "f64",
+    "lreal": "f64",
+    "float64": "f64",
+    "double": "f64",
 }
 
 NameTable = Mapping[tuple[int, int], tuple[str, str]]
@@ -111,6 +153,7 @@ CIA402_NAMES: dict[tuple[int, int], tuple[str, str]] = {
 }
 """The standard CiA 402 objects a drive commonly maps (axis 1)."""
 
+
 def parse_names(overrides: Mapping[Any, Any]) -> dict[tuple[int, int], tuple[str, str]]:
     """A name table from the configuration's form: ``{"0x2000:01": "Motor temperature"}`` or
     ``{"0x2000:01": ["Motor temperature", "i16"]}`` (keys may also be (index, subindex))."""
@@ -118,7 +161,7 @@ def parse_names(overrides: Mapping[Any, Any]) -> dict[tuple[int, int], tuple[str
     for key, value in overrides.items():
         where = parse_address(key) if isinstance(key, str) else tuple(key) if isinstance(key, (tuple, list)) else None
         if where is None or len(where) != 2:
-            raise LayoutError(f"name override {key!r}: expected an address like \"0x6041:00\"")
+            raise LayoutError(f'name override {key!r}: expected an address like "0x6041:00"')
         if isinstance(value, str):
             name, type_ = value, ""
         elif isinstance(value, (tuple, list)) and len(value) == 2:
@@ -131,9 +174,14 @@ def parse_names(overrides: Mapping[Any, Any]) -> dict[tuple[int, int], tuple[str
     return table
 
 
-def names_for(vendor_id: int | None = None, product_code: int | None = None, *, device_type: int | None = None,
-              overrides: Mapping[Any, Any] | None = None,
-              known: Mapping[tuple[int, int], NameTable] | None = None) -> dict[tuple[int, int], tuple[str, str]]:
+def names_for(
+    vendor_id: int | None = None,
+    product_code: int | None = None,
+    *,
+    device_type: int | None = None,
+    overrides: Mapping[Any, Any] | None = None,
+    known: Mapping[tuple[int, int], NameTable] | None = None,
+) -> dict[tuple[int, int], tuple[str, str]]:
     """The name table of a device: its own from ``known`` (tables by vendor ID and product code,
     which each bus driver keeps for the devices it knows), else the CiA 402 objects (when the
     device type 0x1000 is unknown or says profile 402), then the configuration's overrides on top."""

@@ -15,19 +15,29 @@ from .sensors import SimSensorGateway
 class SimBus:
     """Simulated nodes on their own python-can bus and canopen network."""
 
-    def __init__(self, interface: str, channel: str, drives: list[int], *, bitrate: int = 1_000_000,
-                 sensors: dict[str, float] | None = None, **bus_options) -> None:
+    def __init__(
+        self,
+        interface: str,
+        channel: str,
+        drives: list[int],
+        *,
+        bitrate: int = 1_000_000,
+        sensors: dict[str, float] | None = None,
+        **bus_options,
+    ) -> None:
         """``sensors``: the gateway's period per kind (``{"imu": 0.004, "force_torque": 0.004}``), or None."""
-        self.bus = can.Bus(interface=interface, channel=channel, bitrate=bitrate, receive_own_messages=False,
-                           **bus_options)
+        self.bus = can.Bus(
+            interface=interface, channel=channel, bitrate=bitrate, receive_own_messages=False, **bus_options
+        )
         self.network = canopen.Network(self.bus)
         self.network.NOTIFIER_CYCLE = 0.05  # its thread's receive timeout: how long closing waits for it
         self.network.connect()
         self.drives = {node_id: SimDrive(self.network, node_id) for node_id in drives}
         self.sensors = None
         if sensors is not None:
-            self.sensors = SimSensorGateway(self.network, imu_period_s=sensors.get("imu", 0.002),
-                                            ft_period_s=sensors.get("force_torque", 0.002))
+            self.sensors = SimSensorGateway(
+                self.network, imu_period_s=sensors.get("imu", 0.002), ft_period_s=sensors.get("force_torque", 0.002)
+            )
 
     def bus_off(self) -> None:
         """What a controller that went bus-off reports: a socketcan error frame of class 0x40."""

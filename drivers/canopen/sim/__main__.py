@@ -33,8 +33,9 @@ def node_ids(text: str) -> list[int]:
     return ids
 
 
-def main(argv: list[str] | None = None, stop: threading.Event | None = None,
-         ready: threading.Event | None = None) -> int:
+def main(
+    argv: list[str] | None = None, stop: threading.Event | None = None, ready: threading.Event | None = None
+) -> int:
     """Run until ``stop`` is set (or a signal, or ``--duration``); ``ready`` is set once the
     nodes are on the bus."""
     parser = argparse.ArgumentParser(prog="python -m aiohal.drivers.canopen.sim", description=__doc__.split("\n\n")[0])
@@ -50,8 +51,13 @@ def main(argv: list[str] | None = None, stop: threading.Event | None = None,
         parser.error("nothing to simulate: give --drives and/or --sensors")
     period = args.sensor_period_ms * 1e-3
     try:
-        sim = SimBus(args.interface, args.channel, args.drives, bitrate=args.bitrate,
-                     sensors={"imu": period, "force_torque": period} if args.sensors else None)
+        sim = SimBus(
+            args.interface,
+            args.channel,
+            args.drives,
+            bitrate=args.bitrate,
+            sensors={"imu": period, "force_torque": period} if args.sensors else None,
+        )
     except Exception as exc:  # python-can raises several kinds for a bus it cannot open
         print(f"cannot open {args.interface}:{args.channel}: {exc}", file=sys.stderr)
         return 1
@@ -61,8 +67,10 @@ def main(argv: list[str] | None = None, stop: threading.Event | None = None,
             signal.signal(sig, lambda *_: stop.set())
     if ready is not None:
         ready.set()
-    print(f"simulating drives {args.drives}{' and sensors' if args.sensors else ''} on "
-          f"{args.interface}:{args.channel}", flush=True)
+    print(
+        f"simulating drives {args.drives}{' and sensors' if args.sensors else ''} on {args.interface}:{args.channel}",
+        flush=True,
+    )
     try:
         stop.wait(args.duration)
     finally:

@@ -17,8 +17,14 @@ SYNC_COB_ID = 0x80
 
 
 class SimSensorGateway:
-    def __init__(self, network: canopen.Network, *, imu_period_s: float = 0.002, ft_period_s: float = 0.002,
-                 wrench: tuple[float, ...] = (1.0, -2.0, 15.0, 0.1, -0.05, 0.02)) -> None:
+    def __init__(
+        self,
+        network: canopen.Network,
+        *,
+        imu_period_s: float = 0.002,
+        ft_period_s: float = 0.002,
+        wrench: tuple[float, ...] = (1.0, -2.0, 15.0, 0.1, -0.05, 0.02),
+    ) -> None:
         self.network = network
         db = cantools.database.load_file(str(SENSORS_DBC))
         self.counter = 0
@@ -26,11 +32,23 @@ class SimSensorGateway:
         self.wrong_dlc = False
         fx, fy, fz, tx, ty, tz = wrench
         self.groups = [  # (period, next due, [(frame id, payload values)])
-            [imu_period_s, 0.0, [(db.get_message_by_name("IMU_Orientation"), {"W": 1.0, "X": 0.0, "Y": 0.0, "Z": 0.0}),
-                                 (db.get_message_by_name("IMU_Gyro"), {"X": 0.0, "Y": 0.0, "Z": 0.0, "Status": 1}),
-                                 (db.get_message_by_name("IMU_Accel"), {"X": 0.0, "Y": 0.0, "Z": 9.81})]],
-            [ft_period_s, 0.0, [(db.get_message_by_name("FT_Force"), {"X": fx, "Y": fy, "Z": fz, "Status": 1}),
-                                (db.get_message_by_name("FT_Torque"), {"X": tx, "Y": ty, "Z": tz})]],
+            [
+                imu_period_s,
+                0.0,
+                [
+                    (db.get_message_by_name("IMU_Orientation"), {"W": 1.0, "X": 0.0, "Y": 0.0, "Z": 0.0}),
+                    (db.get_message_by_name("IMU_Gyro"), {"X": 0.0, "Y": 0.0, "Z": 0.0, "Status": 1}),
+                    (db.get_message_by_name("IMU_Accel"), {"X": 0.0, "Y": 0.0, "Z": 9.81}),
+                ],
+            ],
+            [
+                ft_period_s,
+                0.0,
+                [
+                    (db.get_message_by_name("FT_Force"), {"X": fx, "Y": fy, "Z": fz, "Status": 1}),
+                    (db.get_message_by_name("FT_Torque"), {"X": tx, "Y": ty, "Z": tz}),
+                ],
+            ],
         ]
         self.frames = 0
         network.subscribe(SYNC_COB_ID, self._on_sync)

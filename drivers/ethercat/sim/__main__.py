@@ -35,27 +35,38 @@ def _ifname(text: str) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m aiohal.drivers.ethercat.sim",
-                                description="Simulated EtherCAT slave segment on one interface.")
+    p = argparse.ArgumentParser(
+        prog="python -m aiohal.drivers.ethercat.sim", description="Simulated EtherCAT slave segment on one interface."
+    )
     p.add_argument("--ifname", type=_ifname, help="interface to answer on (only this one is opened)")
-    p.add_argument("--slaves", default="drive", help="bus order, e.g. 'drive*7,imu,ft,dio' "
-                   "(dioN: I/O terminal with N channels)")
+    p.add_argument(
+        "--slaves", default="drive", help="bus order, e.g. 'drive*7,imu,ft,dio' (dioN: I/O terminal with N channels)"
+    )
     p.add_argument("--control", metavar="PATH", help="UNIX socket path for JSON control commands")
-    p.add_argument("--watchdog-ms", type=float, default=100.0,
-                   help="SM (process data) watchdog time, 0 = off (default 100)")
+    p.add_argument(
+        "--watchdog-ms", type=float, default=100.0, help="SM (process data) watchdog time, 0 = off (default 100)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed for noise and random frame drops")
     p.add_argument("--wait-s", type=float, default=10.0, help="how long to wait for the interface")
-    p.add_argument("--inject", action="append", default=[], metavar="JSON",
-                   help="a control command to apply at start, e.g. '{\"cmd\":\"drop\",\"prob\":0.01}' "
-                        "(repeatable)")
+    p.add_argument(
+        "--inject",
+        action="append",
+        default=[],
+        metavar="JSON",
+        help='a control command to apply at start, e.g. \'{"cmd":"drop","prob":0.01}\' (repeatable)',
+    )
     p.add_argument("--drop-prob", type=float, help="shortcut for --inject drop prob")
     p.add_argument("--delay-ms", type=float, help="shortcut for --inject delay ms")
     p.add_argument("--duration-s", type=float, help="stop after this time (default: until killed)")
-    p.add_argument("--exit-with-parent", action="store_true",
-                   help="stop when the parent process goes away (used by the test fixture)")
+    p.add_argument(
+        "--exit-with-parent",
+        action="store_true",
+        help="stop when the parent process goes away (used by the test fixture)",
+    )
     p.add_argument("--stats", action="store_true", help="print the status as JSON at exit")
-    p.add_argument("--bench", type=int, metavar="FRAMES",
-                   help="measure handle_frame for an LRW+FRMW frame in-process, no network")
+    p.add_argument(
+        "--bench", type=int, metavar="FRAMES", help="measure handle_frame for an LRW+FRMW frame in-process, no network"
+    )
     return p
 
 
@@ -100,8 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, TimeoutError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    runner = Runner(segment, args.ifname, args.control,
-                    parent_pid=parent if args.exit_with_parent else None)
+    runner = Runner(segment, args.ifname, args.control, parent_pid=parent if args.exit_with_parent else None)
     try:
         runner.open()
     except OSError as exc:

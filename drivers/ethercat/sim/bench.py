@@ -33,7 +33,7 @@ def parse(reply: bytes) -> list[tuple[int, bytes, int]]:
     while True:
         cmd, _idx, _adp, _ado, ln, _irq = struct.unpack_from("<BBHHHH", reply, pos)
         n = ln & 0x7FF
-        data = reply[pos + 10:pos + 10 + n]
+        data = reply[pos + 10 : pos + 10 + n]
         wkc = struct.unpack_from("<H", reply, pos + 10 + n)[0]
         out.append((cmd, data, wkc))
         if not ln & 0x8000:
@@ -62,8 +62,13 @@ def soem_map(layout: list[tuple[int, Any, int, int]]) -> tuple[list[tuple[int, i
             end, ebit = divmod(pos + span - 1, 8)
             offsets[(station, key)] = pos
             phys, ftype = (dev.out_addr, 2) if key == "out" else (dev.in_addr, 1)
-            writes.append((station, 0x0600 + 16 * fmmus[station],
-                           struct.pack("<IHBBHBBB", start, end - start + 1, sbit, ebit, phys, 0, ftype, 1) + bytes(3)))
+            writes.append(
+                (
+                    station,
+                    0x0600 + 16 * fmmus[station],
+                    struct.pack("<IHBBHBBB", start, end - start + 1, sbit, ebit, phys, 0, ftype, 1) + bytes(3),
+                )
+            )
             fmmus[station] += 1
             pos += span
         if key == "out":
@@ -98,8 +103,13 @@ class MiniMaster:
             dev = esc.device
             if dev.mailbox:
                 rx_off, rx_size, tx_off, tx_size = dev.mailbox
-                self.dg(FPWR, station, 0x0800, struct.pack("<HHBBBB", rx_off, rx_size, 0x26, 0, 1, 0)
-                        + struct.pack("<HHBBBB", tx_off, tx_size, 0x22, 0, 1, 0))
+                self.dg(
+                    FPWR,
+                    station,
+                    0x0800,
+                    struct.pack("<HHBBBB", rx_off, rx_size, 0x26, 0, 1, 0)
+                    + struct.pack("<HHBBBB", tx_off, tx_size, 0x22, 0, 1, 0),
+                )
             self.dg(FPWR, station, 0x0120, struct.pack("<H", 0x02))
             out_bytes, in_bytes = dev.default_sizes()
             out_bits = sum(b for idx in dev.rx_assign for _, _, b in dev.rx_pdos[idx])
@@ -160,9 +170,17 @@ def measure(segment: Segment, frames: int = 2000) -> dict[str, Any]:
             handle(fr)
         batches.append((time.perf_counter_ns() - t0) / per_batch / 1000)
     batches.sort()
-    return {"slaves": len(segment.slaves), "iomap_bytes": size, "frame_bytes": len(fr),
-            "state": info["state"], "wkc": wkc, "frames": per_batch * 5, "drives_enabled": enabled,
-            "us_per_frame": round(batches[0], 2), "us_per_frame_median": round(batches[2], 2)}
+    return {
+        "slaves": len(segment.slaves),
+        "iomap_bytes": size,
+        "frame_bytes": len(fr),
+        "state": info["state"],
+        "wkc": wkc,
+        "frames": per_batch * 5,
+        "drives_enabled": enabled,
+        "us_per_frame": round(batches[0], 2),
+        "us_per_frame_median": round(batches[2], 2),
+    }
 
 
 __all__ = ["APRD", "FPRD", "MiniMaster", "frame", "measure", "parse"]

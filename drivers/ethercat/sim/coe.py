@@ -69,8 +69,16 @@ class CoeServer:
         self.tx_size = tx_size
         self.counter = 0  # counter of the last message this slave sent (1..7)
         self.last_rx_counter = 0
-        self.stats = {"sdo_upload": 0, "sdo_download": 0, "sdo_abort": 0, "segments": 0,
-                      "sdo_info": 0, "emergency": 0, "mailbox_error": 0, "duplicates": 0}
+        self.stats = {
+            "sdo_upload": 0,
+            "sdo_download": 0,
+            "sdo_abort": 0,
+            "segments": 0,
+            "sdo_info": 0,
+            "emergency": 0,
+            "mailbox_error": 0,
+            "duplicates": 0,
+        }
         self._upload: dict[str, Any] | None = None
         self._download: dict[str, Any] | None = None
 
@@ -126,7 +134,7 @@ class CoeServer:
         self.last_rx_counter = cnt
         if mtype != MBX_COE:
             return [self.mailbox_error(MBXERR_UNSUPPORTED_PROTOCOL)]
-        body = msg[6:6 + length]
+        body = msg[6 : 6 + length]
         service = struct.unpack_from("<H", body)[0] >> 12
         if service == COE_SDO_REQ:
             if length < 10:
@@ -183,7 +191,7 @@ class CoeServer:
         if toggle != t["toggle"]:
             raise SdoAbort(ABORT_TOGGLE)
         room = self.tx_size - 9
-        chunk = t["data"][t["pos"]:t["pos"] + room]
+        chunk = t["data"][t["pos"] : t["pos"] + room]
         t["pos"] += len(chunk)
         last = t["pos"] >= len(t["data"])
         self.stats["segments"] += 1
@@ -207,7 +215,7 @@ class CoeServer:
             else:
                 n = self.od.entry(index, sub if not ca else 0).size
                 n = min(max(n, 1), 4)
-            data = body[6:6 + n]
+            data = body[6 : 6 + n]
             self._store(index, sub, ca, data)
             return self._sdo(COE_SDO_RES, 0x60, index, sub, b"")
         present = length - 10
@@ -216,7 +224,7 @@ class CoeServer:
         else:
             total = present
         if total <= present:
-            self._store(index, sub, ca, body[10:10 + total])
+            self._store(index, sub, ca, body[10 : 10 + total])
             return self._sdo(COE_SDO_RES, 0x60, index, sub, b"")
         # segmented download: check the target first, so that errors come early
         if not ca:
@@ -224,8 +232,14 @@ class CoeServer:
             self.od.check_writable(e)
         elif self.od.visible(index) is None:
             raise SdoAbort(ABORT_NO_OBJECT)
-        self._download = {"index": index, "sub": sub, "ca": ca, "total": total,
-                          "buf": bytearray(body[10:10 + present]), "toggle": 0}
+        self._download = {
+            "index": index,
+            "sub": sub,
+            "ca": ca,
+            "total": total,
+            "buf": bytearray(body[10 : 10 + present]),
+            "toggle": 0,
+        }
         return self._sdo(COE_SDO_RES, 0x60, index, sub, b"")
 
     def _download_segment(self, cmd: int, body: bytes, length: int) -> bytes:
@@ -238,7 +252,7 @@ class CoeServer:
         n = length - 3
         if n == 7:
             n -= (cmd >> 1) & 0x07
-        t["buf"] += body[3:3 + n]
+        t["buf"] += body[3 : 3 + n]
         t["toggle"] ^= 0x10
         self.stats["segments"] += 1
         if len(t["buf"]) > t["total"]:
@@ -276,8 +290,7 @@ class CoeServer:
                 else:
                     if list_type not in (1, 2, 3, 4, 5):
                         raise SdoAbort(ABORT_GENERAL)
-                    data = struct.pack("<H", list_type) + b"".join(
-                        struct.pack("<H", i) for i in indices)
+                    data = struct.pack("<H", list_type) + b"".join(struct.pack("<H", i) for i in indices)
                 return self._info_fragments(0x02, data)
             if opcode == 0x03:
                 index = struct.unpack_from("<H", body, 6)[0]
@@ -306,7 +319,7 @@ class CoeServer:
 
     def _info_fragments(self, opcode: int, data: bytes) -> list[bytes]:
         room = self.tx_size - 6 - 6
-        chunks = [data[i:i + room] for i in range(0, len(data), room)] or [b""]
+        chunks = [data[i : i + room] for i in range(0, len(data), room)] or [b""]
         out = []
         for k, chunk in enumerate(chunks):
             left = len(chunks) - 1 - k

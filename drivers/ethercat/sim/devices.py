@@ -94,8 +94,7 @@ class Device:
             self._common_objects(self.od)
             self.build(self.od)
             self._mapping_objects(self.od)
-            self._od_defaults = [(e, e.value) for obj in self.od.objects.values()
-                                 for e in obj.entries.values()]
+            self._od_defaults = [(e, e.value) for obj in self.od.objects.values() for e in obj.entries.values()]
         self.power_on()
 
     def reset_od(self) -> None:
@@ -137,12 +136,16 @@ class Device:
         od.var(0x1008, "Device name", odm.VISIBLE_STRING, self.name)
         od.var(0x1009, "Hardware version", odm.VISIBLE_STRING, "1.0")
         od.var(0x100A, "Software version", odm.VISIBLE_STRING, "aiohal-sim 0.1")
-        od.record(0x1018, "Identity", [
-            ("Vendor ID", odm.UINT32, VENDOR_ID, RO),
-            ("Product code", odm.UINT32, self.product, RO),
-            ("Revision", odm.UINT32, self.revision, RO),
-            ("Serial number", odm.UINT32, self.serial, RO),
-        ])
+        od.record(
+            0x1018,
+            "Identity",
+            [
+                ("Vendor ID", odm.UINT32, VENDOR_ID, RO),
+                ("Product code", odm.UINT32, self.product, RO),
+                ("Revision", odm.UINT32, self.revision, RO),
+                ("Serial number", odm.UINT32, self.serial, RO),
+            ],
+        )
         od.array(0x1C00, "Sync manager type", odm.UINT8, [1, 2, 3, 4], 4)
         od.var(0x2000, "Simulator information", odm.VISIBLE_STRING, SIM_INFO)
         od.var(0x2001, "Scratch data", odm.OCTET_STRING, bytes(range(256)), RW)
@@ -152,13 +155,24 @@ class Device:
         for pdos, direction in ((self.rx_pdos, "rx"), (self.tx_pdos, "tx")):
             for index, items in pdos.items():
                 words = [(i << 16) | (s << 8) | b for i, s, b in items]
-                obj = od.array(index, f"{'Rx' if direction == 'rx' else 'Tx'}PDO 0x{index:04X}",
-                               odm.UINT32, words, 16, access=RWP)
+                obj = od.array(
+                    index, f"{'Rx' if direction == 'rx' else 'Tx'}PDO 0x{index:04X}", odm.UINT32, words, 16, access=RWP
+                )
                 obj.entries[0].on_write = self._check_mapping(index, direction)
-        for assign_index, values, lo, hi in ((0x1C12, self.rx_assign, 0x1600, 0x17FF),
-                                             (0x1C13, self.tx_assign, 0x1A00, 0x1BFF)):
-            obj = od.array(assign_index, "RxPDO assign" if assign_index == 0x1C12 else "TxPDO assign",
-                           odm.UINT16, values, 4, access=RWP, low=0, high=0xFFFF)
+        for assign_index, values, lo, hi in (
+            (0x1C12, self.rx_assign, 0x1600, 0x17FF),
+            (0x1C13, self.tx_assign, 0x1A00, 0x1BFF),
+        ):
+            obj = od.array(
+                assign_index,
+                "RxPDO assign" if assign_index == 0x1C12 else "TxPDO assign",
+                odm.UINT16,
+                values,
+                4,
+                access=RWP,
+                low=0,
+                high=0xFFFF,
+            )
             for sub, e in obj.entries.items():
                 if sub:
                     e.on_write = self._check_assign(lo, hi)
@@ -172,12 +186,14 @@ class Device:
                 odm.mapping_items(self.od, index, direction)  # type: ignore[arg-type]
             finally:
                 obj.entries[0].value = old
+
         return check
 
     def _check_assign(self, lo: int, hi: int):
         def check(entry: Entry, value: int) -> None:
             if value and not (lo <= value <= hi and value in self.od.objects):  # type: ignore[union-attr]
                 raise SdoAbort(odm.ABORT_VALUE_RANGE, f"no PDO 0x{value:04X}")
+
         return check
 
     # ------------------------------------------------------------ process data
@@ -217,6 +233,7 @@ class Device:
     def default_sizes(self) -> tuple[int, int]:
         def size(pdos, assign):
             return (sum(b for idx in assign for _, _, b in pdos[idx]) + 7) // 8
+
         return size(self.rx_pdos, self.rx_assign), size(self.tx_pdos, self.tx_assign)
 
     def sii_pdos(self, pdos, assign, sm) -> tuple[SiiPdo, ...]:
@@ -236,9 +253,14 @@ class Device:
         out_len, in_len = self.default_sizes()
         rx_off, rx_size, tx_off, tx_size = MAILBOX
         return SiiDescription(
-            vendor=VENDOR_ID, product=self.product, revision=self.revision, serial=self.serial,
-            name=self.name, order=self.name,
-            mailbox=MAILBOX, mailbox_protocols=MBX_PROTO_COE,
+            vendor=VENDOR_ID,
+            product=self.product,
+            revision=self.revision,
+            serial=self.serial,
+            name=self.name,
+            order=self.name,
+            mailbox=MAILBOX,
+            mailbox_protocols=MBX_PROTO_COE,
             coe_details=COE_SDO | COE_SDO_INFO | COE_PDO_ASSIGN | COE_PDO_CONFIG | COE_COMPLETE_ACCESS,
             ds402_channels=self.ds402_channels,
             fmmus=(FMMU_OUTPUTS, FMMU_INPUTS, FMMU_MBX_STATE),
@@ -273,10 +295,21 @@ class Imu(Device):
     kind = "imu"
     name = "AIOHAL-IMU"
     product = 0x00001300
-    tx_pdos = {0x1A00: [(0x6000, 1, 32), (0x6000, 2, 32), (0x6000, 3, 32), (0x6000, 4, 32),
-                        (0x6010, 1, 32), (0x6010, 2, 32), (0x6010, 3, 32),
-                        (0x6020, 1, 32), (0x6020, 2, 32), (0x6020, 3, 32),
-                        (0x6030, 0, 16)]}
+    tx_pdos = {
+        0x1A00: [
+            (0x6000, 1, 32),
+            (0x6000, 2, 32),
+            (0x6000, 3, 32),
+            (0x6000, 4, 32),
+            (0x6010, 1, 32),
+            (0x6010, 2, 32),
+            (0x6010, 3, 32),
+            (0x6020, 1, 32),
+            (0x6020, 2, 32),
+            (0x6020, 3, 32),
+            (0x6030, 0, 16),
+        ]
+    }
     tx_assign = [0x1A00]
 
     def build(self, od: ObjectDictionary) -> None:
@@ -348,8 +381,9 @@ class ForceTorque(Device):
 
     def build(self, od: ObjectDictionary) -> None:
         self.e_control = od.var(0x7000, "Control", odm.UINT16, 0, RW, mappable="rx")
-        self.e_wrench = od.record(0x6000, "Wrench", [(n, odm.REAL32, 0.0, RO) for n in
-                                                     ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")], mappable="tx")
+        self.e_wrench = od.record(
+            0x6000, "Wrench", [(n, odm.REAL32, 0.0, RO) for n in ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")], mappable="tx"
+        )
         self.e_status = od.var(0x6010, "Status", odm.UINT16, 0, mappable="tx")
 
     def power_on(self) -> None:
@@ -367,8 +401,9 @@ class ForceTorque(Device):
         sigma = self.noise if noise else 0.0
         for e, w, o in zip(self.e_wrench, self.wrench, self.offset, strict=True):
             e.value = w - o + (self.rng.gauss(0.0, sigma) if sigma else 0.0)
-        over = (any(abs(x) > self.force_limit for x in self.wrench[:3])
-                or any(abs(x) > self.torque_limit for x in self.wrench[3:]))
+        over = any(abs(x) > self.force_limit for x in self.wrench[:3]) or any(
+            abs(x) > self.torque_limit for x in self.wrench[3:]
+        )
         self.e_status.value = 1 | (2 if over else 0)
 
     def step(self, now_ns: int, outputs_valid: bool) -> None:
@@ -453,13 +488,25 @@ class DigitalIO(Device):
 
     def sii_description(self) -> SiiDescription:
         bool_ = odm.BOOL
-        rx = SiiPdo(0x1600, 2, tuple(SiiPdoEntry(0x7000, i, 1, bool_, f"Output {i}")
-                                     for i in range(1, self.channels + 1)), "Outputs")
-        tx = SiiPdo(0x1A00, 3, tuple(SiiPdoEntry(0x6000, i, 1, bool_, f"Input {i}")
-                                     for i in range(1, self.channels + 1)), "Inputs")
+        rx = SiiPdo(
+            0x1600,
+            2,
+            tuple(SiiPdoEntry(0x7000, i, 1, bool_, f"Output {i}") for i in range(1, self.channels + 1)),
+            "Outputs",
+        )
+        tx = SiiPdo(
+            0x1A00,
+            3,
+            tuple(SiiPdoEntry(0x6000, i, 1, bool_, f"Input {i}") for i in range(1, self.channels + 1)),
+            "Inputs",
+        )
         return SiiDescription(
-            vendor=VENDOR_ID, product=self.product, revision=self.revision, serial=self.serial,
-            name=self.name, order=self.name,
+            vendor=VENDOR_ID,
+            product=self.product,
+            revision=self.revision,
+            serial=self.serial,
+            name=self.name,
+            order=self.name,
             fmmus=(FMMU_OUTPUTS, FMMU_INPUTS),
             sync_managers=(
                 SiiSyncManager(0, 0, 0, 0, SM_UNUSED),
@@ -467,5 +514,6 @@ class DigitalIO(Device):
                 SiiSyncManager(self.out_addr, 1, 0x64, 1, SM_OUTPUTS),
                 SiiSyncManager(self.in_addr, 1, 0x20, 1, SM_INPUTS),
             ),
-            txpdos=(tx,), rxpdos=(rx,),
+            txpdos=(tx,),
+            rxpdos=(rx,),
         )

@@ -93,12 +93,18 @@ class Drive(Device):
         0x1600: [(0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8)],
         0x1601: [(0x6040, 0, 16), (0x607A, 0, 32)],
         # CSP with the controller's feed-forward: velocity and torque offset
-        0x1602: [(0x6040, 0, 16), (0x607A, 0, 32), (0x60FF, 0, 32), (0x6071, 0, 16), (0x6060, 0, 8),
-                 (0x60B1, 0, 32), (0x60B2, 0, 16)],
+        0x1602: [
+            (0x6040, 0, 16),
+            (0x607A, 0, 32),
+            (0x60FF, 0, 32),
+            (0x6071, 0, 16),
+            (0x6060, 0, 8),
+            (0x60B1, 0, 32),
+            (0x60B2, 0, 16),
+        ],
     }
     tx_pdos = {
-        0x1A00: [(0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16), (0x6061, 0, 8),
-                 (0x603F, 0, 16)],
+        0x1A00: [(0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16), (0x6061, 0, 8), (0x603F, 0, 16)],
         0x1A01: [(0x6041, 0, 16), (0x6064, 0, 32)],
     }
     rx_assign = [0x1600]
@@ -120,14 +126,12 @@ class Drive(Device):
                 raise SdoAbort(odm.ABORT_VALUE_RANGE, f"mode {value} not supported")
 
         self.e_error_register = od.var(0x1001, "Error register", odm.UINT8, 0, mappable="tx")
-        self.e_abort_option = od.var(0x6007, "Abort connection option code", odm.INT16, 2, RW,
-                                     low=0, high=3)
+        self.e_abort_option = od.var(0x6007, "Abort connection option code", odm.INT16, 2, RW, low=0, high=3)
         self.e_error_code = od.var(0x603F, "Error code", odm.UINT16, 0, mappable="tx")
         self.e_cw = od.var(0x6040, "Controlword", odm.UINT16, 0, RW, mappable="rx")
         self.e_sw = od.var(0x6041, "Statusword", odm.UINT16, 0, mappable="tx")
         self.e_qs_option = od.var(0x605A, "Quick stop option code", odm.INT16, 2, RW, low=0, high=6)
-        self.e_mode = od.var(0x6060, "Modes of operation", odm.INT8, 0, RW, mappable="rx",
-                             on_write=check_mode)
+        self.e_mode = od.var(0x6060, "Modes of operation", odm.INT8, 0, RW, mappable="rx", on_write=check_mode)
         self.e_mode_display = od.var(0x6061, "Modes of operation display", odm.INT8, 0, mappable="tx")
         self.e_pos = od.var(0x6064, "Position actual value", odm.INT32, 0, mappable="tx")
         self.e_ferr_window = od.var(0x6065, "Following error window", odm.UINT32, 100000, RW)
@@ -138,14 +142,22 @@ class Drive(Device):
         self.e_torque = od.var(0x6077, "Torque actual value", odm.INT16, 0, mappable="tx")
         self.e_target_pos = od.var(0x607A, "Target position", odm.INT32, 0, RW, mappable="rx")
         self.e_qs_decel = od.var(0x6085, "Quick stop deceleration", odm.UINT32, 131072 * 20, RW, low=1)
-        self.e_encoder = od.record(0x608F, "Position encoder resolution", [
-            ("Encoder increments", odm.UINT32, 131072, RW),
-            ("Motor revolutions", odm.UINT32, 1, RW),
-        ])
-        od.record(0x6091, "Gear ratio", [
-            ("Motor revolutions", odm.UINT32, 1, RW),
-            ("Shaft revolutions", odm.UINT32, 1, RW),
-        ])
+        self.e_encoder = od.record(
+            0x608F,
+            "Position encoder resolution",
+            [
+                ("Encoder increments", odm.UINT32, 131072, RW),
+                ("Motor revolutions", odm.UINT32, 1, RW),
+            ],
+        )
+        od.record(
+            0x6091,
+            "Gear ratio",
+            [
+                ("Motor revolutions", odm.UINT32, 1, RW),
+                ("Shaft revolutions", odm.UINT32, 1, RW),
+            ],
+        )
         self.e_vel_offset = od.var(0x60B1, "Velocity offset", odm.INT32, 0, RW, mappable="rx")
         self.e_torque_offset = od.var(0x60B2, "Torque offset", odm.INT16, 0, RW, mappable="rx")
         self.e_ferr = od.var(0x60F4, "Following error actual value", odm.INT32, 0, mappable="tx")
@@ -238,8 +250,9 @@ class Drive(Device):
             if key == "fault":
                 self.inject_fault(int(value, 0) if isinstance(value, str) else int(value))
             elif key == "power_on_fault":  # null: none; applies from the next power cycle
-                self.power_on_fault = None if value is None else (
-                    int(value, 0) if isinstance(value, str) else int(value)) & 0xFFFF
+                self.power_on_fault = (
+                    None if value is None else (int(value, 0) if isinstance(value, str) else int(value)) & 0xFFFF
+                )
             elif key == "load":
                 self.load = float(value)
             elif key in ("inertia", "viscous", "coulomb", "csp_hz", "csv_tau", "max_speed"):
@@ -255,9 +268,16 @@ class Drive(Device):
         return self.status()
 
     def status(self) -> dict:
-        return {"state": self.state, "mode": self.mode, "position": self.pos, "velocity": self.vel,
-                "torque": self.torque, "error_code": int(self.e_error_code.value),
-                "faults": self.faults, "outputs_lost_ns": self.outputs_lost_ns}
+        return {
+            "state": self.state,
+            "mode": self.mode,
+            "position": self.pos,
+            "velocity": self.vel,
+            "torque": self.torque,
+            "error_code": int(self.e_error_code.value),
+            "faults": self.faults,
+            "outputs_lost_ns": self.outputs_lost_ns,
+        }
 
     # ------------------------------------------------------------------ cycle
     def _refresh_params(self) -> None:
@@ -290,8 +310,7 @@ class Drive(Device):
             if last_target is None or dt <= 0.0:
                 self._target_slope = 0.0
             else:
-                self._target_slope = (((target - last_target + 0x80000000) & 0xFFFFFFFF)
-                                      - 0x80000000) / dt
+                self._target_slope = (((target - last_target + 0x80000000) & 0xFFFFFFFF) - 0x80000000) / dt
             self._last_target = target
         else:
             self._target_slope = 0.0

@@ -44,8 +44,16 @@ AL_INVALID_OUTPUTS = 0x001D
 AL_INVALID_INPUTS = 0x001E
 
 _VALID = {
-    (INIT, PREOP), (INIT, BOOT), (PREOP, SAFEOP), (SAFEOP, OP),
-    (OP, SAFEOP), (OP, PREOP), (OP, INIT), (SAFEOP, PREOP), (SAFEOP, INIT), (PREOP, INIT),
+    (INIT, PREOP),
+    (INIT, BOOT),
+    (PREOP, SAFEOP),
+    (SAFEOP, OP),
+    (OP, SAFEOP),
+    (OP, PREOP),
+    (OP, INIT),
+    (SAFEOP, PREOP),
+    (SAFEOP, INIT),
+    (PREOP, INIT),
     (BOOT, INIT),
 }
 
@@ -100,8 +108,9 @@ WMASK = _write_mask()
 class Esc:
     """A slave: an ESC with its device behind the PDI."""
 
-    def __init__(self, device: Device, *, clock: Callable[[], int], watchdog_ms: float = 100.0,
-                 boot_offset_ns: int = 0) -> None:
+    def __init__(
+        self, device: Device, *, clock: Callable[[], int], watchdog_ms: float = 100.0, boot_offset_ns: int = 0
+    ) -> None:
         self.device = device
         self.clock = clock
         self.watchdog_ms = watchdog_ms
@@ -115,8 +124,15 @@ class Esc:
         self.position = 0  # in the active segment (set by the segment)
         self.downstream = 0  # active slaves after this one
         self.on_change: Callable[[str], None] = lambda what: None
-        self.stats = {"eeprom_reads": 0, "eeprom_writes": 0, "mailbox_in": 0, "mailbox_out": 0,
-                      "wd_trips": 0, "al_errors": 0, "pd_cycles": 0}
+        self.stats = {
+            "eeprom_reads": 0,
+            "eeprom_writes": 0,
+            "mailbox_in": 0,
+            "mailbox_out": 0,
+            "wd_trips": 0,
+            "al_errors": 0,
+            "pd_cycles": 0,
+        }
         #: False: an ESC without a distributed clock (its features say so, its DC registers
         #: read 0 and ignore writes); set through the control command ``dc``
         self.has_dc = True
@@ -261,7 +277,7 @@ class Esc:
         if tx is not None and ado < tx[1] and end > tx[0]:
             return False  # the send mailbox is written by the slave only
         if end > MEM_SIZE:
-            data = data[:max(0, MEM_SIZE - ado)]
+            data = data[: max(0, MEM_SIZE - ado)]
             end = ado + len(data)
         self.mem[ado:end] = data
         out = self.pd_out
@@ -275,7 +291,7 @@ class Esc:
         if not self.has_dc and ado < DC_END and end > DC_START:  # no DC unit: only the rest is written
             for lo, hi in ((ado, min(end, DC_START)), (max(ado, DC_END), end)):
                 if lo < hi:
-                    self._write_regs(lo, data[lo - ado:hi - ado])
+                    self._write_regs(lo, data[lo - ado : hi - ado])
             return
         mask = WMASK[ado:end]
         if mask.count(0xFF) == len(mask):
@@ -330,7 +346,7 @@ class Esc:
         status = 0x0040
         addr = U32.unpack_from(mem, 0x0504)[0] & 0xFFFF
         if cmd == 1:  # read 8 bytes (4 words)
-            chunk = bytes(self.sii[2 * addr:2 * addr + 8])
+            chunk = bytes(self.sii[2 * addr : 2 * addr + 8])
             mem[0x0508:0x0510] = chunk + b"\xff" * (8 - len(chunk))
             self.stats["eeprom_reads"] += 1
         elif cmd == 2:
@@ -338,7 +354,7 @@ class Esc:
                 need = 2 * addr + 2
                 if need > len(self.sii):
                     self.sii += b"\xff" * (need - len(self.sii))
-                self.sii[2 * addr:2 * addr + 2] = mem[0x0508:0x050A]
+                self.sii[2 * addr : 2 * addr + 2] = mem[0x0508:0x050A]
                 self.stats["eeprom_writes"] += 1
             else:
                 status |= 0x4000  # write enable error
@@ -479,8 +495,9 @@ class Esc:
         self.lwrites = writes
         self.lreads = reads
 
-    def logical_special(self, entry: tuple, write: bool, buf: bytearray, off: int, laddr: int,
-                        dlen: int, now: int) -> bool:
+    def logical_special(
+        self, entry: tuple, write: bool, buf: bytearray, off: int, laddr: int, dlen: int, now: int
+    ) -> bool:
         """Bit-granular or mailbox FMMU access; returns whether the FMMU was hit."""
         slow, l0, l1, p0 = entry[4]
         d0 = laddr * 8
@@ -498,26 +515,26 @@ class Esc:
         mem = self.mem
         if slow:  # whole bytes through the mailbox-aware path
             if write:
-                return self.write(pa // 8, bytes(buf[off + fa:off + fb + 1]))
+                return self.write(pa // 8, bytes(buf[off + fa : off + fb + 1]))
             data = self.read(pa // 8, fb - fa + 1)
             if data is None:
                 return False
-            buf[off + fa:off + fb + 1] = data
+            buf[off + fa : off + fb + 1] = data
             return True
         if write:
-            val = (int.from_bytes(buf[off + fa:off + fb + 1], "little") >> (a % 8)) & mask
+            val = (int.from_bytes(buf[off + fa : off + fb + 1], "little") >> (a % 8)) & mask
             shift = pa % 8
-            cur = int.from_bytes(mem[pa // 8:pb // 8 + 1], "little")
+            cur = int.from_bytes(mem[pa // 8 : pb // 8 + 1], "little")
             cur = (cur & ~(mask << shift)) | (val << shift)
-            mem[pa // 8:pb // 8 + 1] = cur.to_bytes(pb // 8 - pa // 8 + 1, "little")
+            mem[pa // 8 : pb // 8 + 1] = cur.to_bytes(pb // 8 - pa // 8 + 1, "little")
             if entry[3] >= 0 and pa // 8 <= entry[3] <= pb // 8:
                 self.outputs_written(now)
         else:
-            val = (int.from_bytes(mem[pa // 8:pb // 8 + 1], "little") >> (pa % 8)) & mask
+            val = (int.from_bytes(mem[pa // 8 : pb // 8 + 1], "little") >> (pa % 8)) & mask
             shift = a % 8
-            cur = int.from_bytes(buf[off + fa:off + fb + 1], "little")
+            cur = int.from_bytes(buf[off + fa : off + fb + 1], "little")
             cur = (cur & ~(mask << shift)) | (val << shift)
-            buf[off + fa:off + fb + 1] = cur.to_bytes(fb - fa + 1, "little")
+            buf[off + fa : off + fb + 1] = cur.to_bytes(fb - fa + 1, "little")
         return True
 
     # ================================================================ process data
@@ -546,8 +563,13 @@ class Esc:
 
     def check_watchdog(self, now: int) -> bool:
         """SM watchdog: in OP, outputs older than the watchdog time -> SAFEOP + error 0x001B."""
-        if (self.al_state == OP and self._wd_enabled and self.wd_ns
-                and self.last_output_ns is not None and now - self.last_output_ns > self.wd_ns):
+        if (
+            self.al_state == OP
+            and self._wd_enabled
+            and self.wd_ns
+            and self.last_output_ns is not None
+            and now - self.last_output_ns > self.wd_ns
+        ):
             self.mem[0x0440] &= 0xFE
             if self.mem[0x0442] < 0xFF:
                 self.mem[0x0442] += 1
@@ -677,8 +699,10 @@ class Esc:
             out_size, in_size = dev.compile_pdo()
         except PdoConfigError as exc:
             return AL_INVALID_OUTPUTS if exc.side == "out" else AL_INVALID_INPUTS
-        for n, size, addr, direction, code in ((2, out_size, dev.out_addr, 0x04, AL_INVALID_OUTPUTS),
-                                                (3, in_size, dev.in_addr, 0x00, AL_INVALID_INPUTS)):
+        for n, size, addr, direction, code in (
+            (2, out_size, dev.out_addr, 0x04, AL_INVALID_OUTPUTS),
+            (3, in_size, dev.in_addr, 0x00, AL_INVALID_INPUTS),
+        ):
             start, length, ctrl, _st, act, _pdi = self.sm(n)
             enabled = bool(act & 1) and length > 0
             if size == 0:
@@ -703,12 +727,14 @@ class Esc:
                 self.mem[0x0805 + 8 * sm[2]] &= ~0x08
         if self.mbx_tx is not None:
             self._repeat_toggle = (self.mem[0x0806 + 8 * self.mbx_tx[2]] >> 1) & 1
-            self.mem[0x0807 + 8 * self.mbx_tx[2]] = (self.mem[0x0807 + 8 * self.mbx_tx[2]] & ~0x02) | (self._repeat_toggle << 1)
+            self.mem[0x0807 + 8 * self.mbx_tx[2]] = (self.mem[0x0807 + 8 * self.mbx_tx[2]] & ~0x02) | (
+                self._repeat_toggle << 1
+            )
 
     def _mailbox_received(self) -> None:
         rx = self.mbx_rx
         assert rx is not None
-        msg = bytes(self.mem[rx[0]:rx[1]])
+        msg = bytes(self.mem[rx[0] : rx[1]])
         self.stats["mailbox_in"] += 1
         if self.al_state in (PREOP, SAFEOP, OP, BOOT):
             self._mailbox_process(msg)
@@ -742,7 +768,7 @@ class Esc:
 
     def _mbx_put(self, tx: tuple[int, int, int], msg: bytes) -> None:
         size = tx[1] - tx[0]
-        self.mem[tx[0]:tx[1]] = msg[:size].ljust(size, b"\0")
+        self.mem[tx[0] : tx[1]] = msg[:size].ljust(size, b"\0")
         self.mbx_last = msg
         self.mbx_out_full = True
         self.mem[0x0805 + 8 * tx[2]] |= 0x08

@@ -74,9 +74,17 @@ class SimulatedSegment:
     """Context manager running ``python -m aiohal.drivers.ethercat.sim`` in its own network
     namespace behind a veth pair. ``ifname`` is the master end (open it with pysoem)."""
 
-    def __init__(self, slaves: str = "drive", *, watchdog_ms: float = 100.0, seed: int = 0,
-                 inject: list[dict[str, Any]] | None = None, extra_args: list[str] | None = None,
-                 start_timeout_s: float = 15.0, python: str | None = None) -> None:
+    def __init__(
+        self,
+        slaves: str = "drive",
+        *,
+        watchdog_ms: float = 100.0,
+        seed: int = 0,
+        inject: list[dict[str, Any]] | None = None,
+        extra_args: list[str] | None = None,
+        start_timeout_s: float = 15.0,
+        python: str | None = None,
+    ) -> None:
         self.slaves = slaves
         self.watchdog_ms = watchdog_ms
         self.seed = seed
@@ -117,18 +125,34 @@ class SimulatedSegment:
         self.control_path = os.path.join(self._dir, "control.sock")
         self._stderr_path = os.path.join(self._dir, "stderr.txt")
         self.ifname, self.peer = self._names()
-        cmd = ["unshare", "--net", "--", self.python, "-m", "aiohal.drivers.ethercat.sim",
-               "--ifname", self.peer, "--slaves", self.slaves, "--control", self.control_path,
-               "--watchdog-ms", str(self.watchdog_ms), "--seed", str(self.seed),
-               "--wait-s", str(self.start_timeout_s), "--exit-with-parent"]
+        cmd = [
+            "unshare",
+            "--net",
+            "--",
+            self.python,
+            "-m",
+            "aiohal.drivers.ethercat.sim",
+            "--ifname",
+            self.peer,
+            "--slaves",
+            self.slaves,
+            "--control",
+            self.control_path,
+            "--watchdog-ms",
+            str(self.watchdog_ms),
+            "--seed",
+            str(self.seed),
+            "--wait-s",
+            str(self.start_timeout_s),
+            "--exit-with-parent",
+        ]
         for c in self.inject:
             cmd += ["--inject", json.dumps(c)]
         cmd += self.extra_args
         deadline = time.monotonic() + self.start_timeout_s
         try:
             with open(self._stderr_path, "w") as err:
-                self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True,
-                                             bufsize=1)
+                self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, bufsize=1)
             line = self._line(deadline)
             if not line.startswith("waiting "):
                 raise SimulatorError(f"unexpected first line {line!r}")

@@ -79,8 +79,14 @@ def disable_ipv6(ifname: str) -> bool:
 
 
 class Runner:
-    def __init__(self, segment: Segment, ifname: str, control_path: str | None = None,
-                 out: TextIO = sys.stdout, parent_pid: int | None = None) -> None:
+    def __init__(
+        self,
+        segment: Segment,
+        ifname: str,
+        control_path: str | None = None,
+        out: TextIO = sys.stdout,
+        parent_pid: int | None = None,
+    ) -> None:
         self.parent_pid = parent_pid
         self.segment = segment
         self.ifname = ifname
@@ -214,7 +220,11 @@ class Runner:
                                         raise
                                 if seg.last_logical and ancillary:
                                     level, kind, data = ancillary[0]
-                                    if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= TIMESPEC.size:
+                                    if (
+                                        level == socket.SOL_SOCKET
+                                        and kind == SO_TIMESTAMPNS
+                                        and len(data) >= TIMESPEC.size
+                                    ):
                                         sec, nsec = stamp(data)
                                         seg.note_reply_latency(wall_ns() - sec * 1_000_000_000 - nsec)
                     elif fd == ctrl_fd:

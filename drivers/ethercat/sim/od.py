@@ -30,14 +30,28 @@ INT64 = 0x0015
 UINT64 = 0x001B
 
 _FMT = {
-    BOOL: ("B", 1), INT8: ("b", 8), INT16: ("h", 16), INT32: ("i", 32), INT64: ("q", 64),
-    UINT8: ("B", 8), UINT16: ("H", 16), UINT32: ("I", 32), UINT64: ("Q", 64),
-    REAL32: ("f", 32), REAL64: ("d", 64),
+    BOOL: ("B", 1),
+    INT8: ("b", 8),
+    INT16: ("h", 16),
+    INT32: ("i", 32),
+    INT64: ("q", 64),
+    UINT8: ("B", 8),
+    UINT16: ("H", 16),
+    UINT32: ("I", 32),
+    UINT64: ("Q", 64),
+    REAL32: ("f", 32),
+    REAL64: ("d", 64),
 }
 _RANGE = {
-    BOOL: (0, 1), INT8: (-(1 << 7), (1 << 7) - 1), INT16: (-(1 << 15), (1 << 15) - 1),
-    INT32: (-(1 << 31), (1 << 31) - 1), INT64: (-(1 << 63), (1 << 63) - 1),
-    UINT8: (0, 0xFF), UINT16: (0, 0xFFFF), UINT32: (0, 0xFFFFFFFF), UINT64: (0, (1 << 64) - 1),
+    BOOL: (0, 1),
+    INT8: (-(1 << 7), (1 << 7) - 1),
+    INT16: (-(1 << 15), (1 << 15) - 1),
+    INT32: (-(1 << 31), (1 << 31) - 1),
+    INT64: (-(1 << 63), (1 << 63) - 1),
+    UINT8: (0, 0xFF),
+    UINT16: (0, 0xFFFF),
+    UINT32: (0, 0xFFFFFFFF),
+    UINT64: (0, (1 << 64) - 1),
 }
 SIGNED = {INT8, INT16, INT32, INT64}
 FLOATS = {REAL32, REAL64}
@@ -105,10 +119,20 @@ class Entry:
         "value",
     )
 
-    def __init__(self, index: int, sub: int, name: str, dtype: int, value: Any = 0,
-                 access: str = RO, mappable: str = "", size: int | None = None,
-                 on_write: Callable[[Entry, Any], None] | None = None,
-                 low: float | None = None, high: float | None = None) -> None:
+    def __init__(
+        self,
+        index: int,
+        sub: int,
+        name: str,
+        dtype: int,
+        value: Any = 0,
+        access: str = RO,
+        mappable: str = "",
+        size: int | None = None,
+        on_write: Callable[[Entry, Any], None] | None = None,
+        low: float | None = None,
+        high: float | None = None,
+    ) -> None:
         self.index = index
         self.sub = sub
         self.name = name
@@ -197,14 +221,22 @@ class ObjectDictionary:
         self.state_getter: Callable[[], int] = lambda: 2  # AL state, set by the ESC
 
     # ---- building
-    def var(self, index: int, name: str, dtype: int, value: Any = 0, access: str = RO,
-            mappable: str = "", **kw: Any) -> Entry:
+    def var(
+        self, index: int, name: str, dtype: int, value: Any = 0, access: str = RO, mappable: str = "", **kw: Any
+    ) -> Entry:
         e = Entry(index, 0, name, dtype, value, access, mappable, **kw)
         self.objects[index] = Obj(index, name, VAR, {0: e})
         return e
 
-    def record(self, index: int, name: str, subs: list[tuple[str, int, Any, str]],
-               code: int = RECORD, mappable: str = "", sub0_access: str = RO) -> list[Entry]:
+    def record(
+        self,
+        index: int,
+        name: str,
+        subs: list[tuple[str, int, Any, str]],
+        code: int = RECORD,
+        mappable: str = "",
+        sub0_access: str = RO,
+    ) -> list[Entry]:
         """subs: (name, dtype, value, access) for sub 1..n; sub 0 = n (u8)."""
         entries = {0: Entry(index, 0, "Number of entries", UINT8, len(subs), sub0_access)}
         for i, (sname, dtype, value, access) in enumerate(subs, start=1):
@@ -212,11 +244,19 @@ class ObjectDictionary:
         self.objects[index] = Obj(index, name, code, entries)
         return [entries[i] for i in range(1, len(subs) + 1)]
 
-    def array(self, index: int, name: str, dtype: int, values: list[Any], capacity: int,
-              access: str = RO, sub0_access: str | None = None, **kw: Any) -> Obj:
+    def array(
+        self,
+        index: int,
+        name: str,
+        dtype: int,
+        values: list[Any],
+        capacity: int,
+        access: str = RO,
+        sub0_access: str | None = None,
+        **kw: Any,
+    ) -> Obj:
         """An ARRAY with room for ``capacity`` entries, ``len(values)`` of them in use."""
-        entries = {0: Entry(index, 0, "Number of entries", UINT8, len(values),
-                            sub0_access or access, high=capacity)}
+        entries = {0: Entry(index, 0, "Number of entries", UINT8, len(values), sub0_access or access, high=capacity)}
         for i in range(1, capacity + 1):
             v = values[i - 1] if i <= len(values) else 0
             entries[i] = Entry(index, i, f"{name} {i}", dtype, v, access, **kw)
@@ -309,7 +349,7 @@ class ObjectDictionary:
             if e is None:
                 raise SdoAbort(ABORT_NO_SUBINDEX)
             self.check_writable(e)
-            chunk = data[pos:pos + e.size]
+            chunk = data[pos : pos + e.size]
             if len(chunk) != e.size:
                 raise SdoAbort(ABORT_LENGTH, "complete access data too short")
             staged.append((e, e.decode(chunk)))
@@ -368,12 +408,14 @@ class PdoCodec:
         targets = ", ".join(f"{n}.value" for n in names) + ","
         values = ", ".join(f"{n}.value" for n in names)
         args = ", ".join(f"{n}=_e[{i}]" for i, n in enumerate(names))
-        src = (f"def _make(_e, _unpack, _pack):\n"
-               f"    def decode(buf, offset, {args}):\n"
-               f"        {targets} = _unpack(buf, offset)\n"
-               f"    def encode(buf, offset, {args}):\n"
-               f"        _pack(buf, offset, {values})\n"
-               f"    return decode, encode\n")
+        src = (
+            f"def _make(_e, _unpack, _pack):\n"
+            f"    def decode(buf, offset, {args}):\n"
+            f"        {targets} = _unpack(buf, offset)\n"
+            f"    def encode(buf, offset, {args}):\n"
+            f"        _pack(buf, offset, {values})\n"
+            f"    return decode, encode\n"
+        )
         scope: dict[str, Any] = {}
         exec(compile(src, "<pdo codec>", "exec"), scope)  # generated from the entry count only
         return scope["_make"](entries, st.unpack_from, st.pack_into)
@@ -384,14 +426,13 @@ class PdoCodec:
             for entry, v in zip(self.entries, st.unpack_from(buf, offset), strict=True):
                 entry.value = v
             return
-        raw = int.from_bytes(buf[offset:offset + self.size], "little")
+        raw = int.from_bytes(buf[offset : offset + self.size], "little")
         pos = 0
         for e, bits in self.items:
             if e is not None:
                 v = (raw >> pos) & ((1 << bits) - 1)
                 if e.dtype in FLOATS:
-                    v = struct.unpack("<f" if bits == 32 else "<d",
-                                      v.to_bytes(bits // 8, "little"))[0]
+                    v = struct.unpack("<f" if bits == 32 else "<d", v.to_bytes(bits // 8, "little"))[0]
                 elif e.dtype in SIGNED and v >> (bits - 1):
                     v -= 1 << bits
                 e.value = v
@@ -409,12 +450,12 @@ class PdoCodec:
                 if e.dtype in FLOATS:
                     v = int.from_bytes(e.to_bytes(), "little")
                 elif e.dtype in STRINGS:
-                    v = int.from_bytes(bytes(e.value)[:bits // 8], "little")
+                    v = int.from_bytes(bytes(e.value)[: bits // 8], "little")
                 else:
                     v = int(e.value)
                 raw |= (v & ((1 << bits) - 1)) << pos
             pos += bits
-        buf[offset:offset + self.size] = raw.to_bytes(self.size, "little")
+        buf[offset : offset + self.size] = raw.to_bytes(self.size, "little")
 
 
 def compile_assignment(od: ObjectDictionary, assign_index: int, direction: str) -> PdoCodec:

@@ -30,8 +30,23 @@ U16 = struct.Struct("<H")
 U64 = struct.Struct("<Q")
 
 NOP, APRD, APWR, APRW, FPRD, FPWR, FPRW, BRD, BWR, BRW, LRD, LWR, LRW, ARMW, FRMW = range(15)
-COMMANDS = ("NOP", "APRD", "APWR", "APRW", "FPRD", "FPWR", "FPRW", "BRD", "BWR", "BRW", "LRD",
-            "LWR", "LRW", "ARMW", "FRMW")
+COMMANDS = (
+    "NOP",
+    "APRD",
+    "APWR",
+    "APRW",
+    "FPRD",
+    "FPWR",
+    "FPRW",
+    "BRD",
+    "BWR",
+    "BRW",
+    "LRD",
+    "LWR",
+    "LRW",
+    "ARMW",
+    "FRMW",
+)
 POLL_NS = 1_000_000
 #: process-data replies later than these (µs after the frame arrived) are counted, as ``late_<N>us``
 LATE_REPLY_US = (200, 1000, 2000, 10_000, 50_000)
@@ -58,23 +73,33 @@ class Faults:
         self.wkc_all = False  # False: only frames with logical (process data) datagrams
 
     def as_dict(self) -> dict:
-        return {"drop_prob": self.drop_prob, "drop_next": self.drop_next,
-                "drop_where": "after" if self.drop_after else "before",
-                "delay_ms": self.delay_ns / 1e6, "delay_count": self.delay_count,
-                "wkc_next": self.wkc_next, "wkc_delta": self.wkc_delta,
-                "wkc_scope": "all" if self.wkc_all else "pd"}
+        return {
+            "drop_prob": self.drop_prob,
+            "drop_next": self.drop_next,
+            "drop_where": "after" if self.drop_after else "before",
+            "delay_ms": self.delay_ns / 1e6,
+            "delay_count": self.delay_count,
+            "wkc_next": self.wkc_next,
+            "wkc_delta": self.wkc_delta,
+            "wkc_scope": "all" if self.wkc_all else "pd",
+        }
 
 
 class Segment:
-    def __init__(self, slaves: str | list[Device], *, clock: Callable[[], int] = time.monotonic_ns,
-                 watchdog_ms: float = 100.0, seed: int = 0) -> None:
+    def __init__(
+        self,
+        slaves: str | list[Device],
+        *,
+        clock: Callable[[], int] = time.monotonic_ns,
+        watchdog_ms: float = 100.0,
+        seed: int = 0,
+    ) -> None:
         devices = parse_spec(slaves, seed) if isinstance(slaves, str) else list(slaves)
         self.clock = clock
         self.rng = random.Random(seed)
         self.slaves: list[Esc] = []
         for i, dev in enumerate(devices):
-            esc = Esc(dev, clock=clock, watchdog_ms=watchdog_ms,
-                      boot_offset_ns=1_000_000_000 + 7_919_000 * i)
+            esc = Esc(dev, clock=clock, watchdog_ms=watchdog_ms, boot_offset_ns=1_000_000_000 + 7_919_000 * i)
             esc.on_change = self._on_change
             self.slaves.append(esc)
         self.faults = Faults()
@@ -93,18 +118,37 @@ class Segment:
         self.reset_counters()
         self._apply_topology()
         self._handlers = {
-            NOP: self._nop, APRD: self._ap, APWR: self._ap, APRW: self._ap,
-            FPRD: self._fp, FPWR: self._fp, FPRW: self._fp,
-            BRD: self._broadcast, BWR: self._broadcast, BRW: self._broadcast,
-            LRD: self._logical, LWR: self._logical, LRW: self._logical,
-            ARMW: self._rmw, FRMW: self._rmw,
+            NOP: self._nop,
+            APRD: self._ap,
+            APWR: self._ap,
+            APRW: self._ap,
+            FPRD: self._fp,
+            FPWR: self._fp,
+            FPRW: self._fp,
+            BRD: self._broadcast,
+            BWR: self._broadcast,
+            BRW: self._broadcast,
+            LRD: self._logical,
+            LWR: self._logical,
+            LRW: self._logical,
+            ARMW: self._rmw,
+            FRMW: self._rmw,
         }
 
     # ------------------------------------------------------------------ bookkeeping
     def reset_counters(self) -> None:
-        self.counters = {"frames": 0, "replied": 0, "dropped": 0, "delayed": 0, "ignored": 0,
-                         "wkc_corrupted": 0, "watchdog_trips": 0, "datagrams": 0, "stalls_discounted": 0,
-                         **{_late_key(us): 0 for us in LATE_REPLY_US}}
+        self.counters = {
+            "frames": 0,
+            "replied": 0,
+            "dropped": 0,
+            "delayed": 0,
+            "ignored": 0,
+            "wkc_corrupted": 0,
+            "watchdog_trips": 0,
+            "datagrams": 0,
+            "stalls_discounted": 0,
+            **{_late_key(us): 0 for us in LATE_REPLY_US},
+        }
         self.command_counts = [0] * 16
 
     def _on_change(self, what: str) -> None:
@@ -278,16 +322,16 @@ class Segment:
         if cmd_kind == 1:
             data = esc.read(ado, n)
             if data is not None:
-                buf[d:d + n] = data
+                buf[d : d + n] = data
                 wkc += 1
         elif cmd_kind == 2:
-            if esc.write(ado, bytes(buf[d:d + n])):
+            if esc.write(ado, bytes(buf[d : d + n])):
                 wkc += 1
         else:
-            incoming = bytes(buf[d:d + n])
+            incoming = bytes(buf[d : d + n])
             data = esc.read(ado, n)
             if data is not None:
-                buf[d:d + n] = data
+                buf[d : d + n] = data
                 wkc += 1
             if esc.write(ado, incoming):
                 wkc += 2
@@ -308,13 +352,13 @@ class Segment:
     def _broadcast(self, cmd, buf, d, n, adp, ado, wkc, now):
         active = self.active
         if cmd == BWR:
-            data = bytes(buf[d:d + n])
+            data = bytes(buf[d : d + n])
             for esc in active:
                 if esc.write(ado, data):
                     wkc += 1
         else:
-            acc = int.from_bytes(buf[d:d + n], "little")
-            incoming = bytes(buf[d:d + n])
+            acc = int.from_bytes(buf[d : d + n], "little")
+            incoming = bytes(buf[d : d + n])
             for esc in active:
                 data = esc.read(ado, n)
                 if data is not None:
@@ -324,7 +368,7 @@ class Segment:
                     if esc.write(ado, incoming):
                         wkc += 2
                     incoming = acc.to_bytes(n, "little")
-            buf[d:d + n] = acc.to_bytes(n, "little")
+            buf[d : d + n] = acc.to_bytes(n, "little")
         return wkc, (adp + len(active)) & 0xFFFF
 
     def _rmw(self, cmd, buf, d, n, adp, ado, wkc, now):
@@ -348,9 +392,9 @@ class Segment:
             if id(esc) in readers:
                 data = esc.read(ado, n)
                 if data is not None:
-                    buf[d:d + n] = data
+                    buf[d : d + n] = data
                     wkc += 1
-            elif esc.write(ado, bytes(buf[d:d + n])):
+            elif esc.write(ado, bytes(buf[d : d + n])):
                 wkc += 1
         return wkc, new_adp
 
@@ -419,11 +463,11 @@ class Segment:
         touched = self._touched
         for esc, mem, wops, rops, add, special, dynamic in plan:
             for p, q, fa, fb, done in wops:
-                mem[p:q] = buf[d + fa:d + fb]
+                mem[p:q] = buf[d + fa : d + fb]
                 if done:
                     esc.outputs_written(now)
             for p, q, fa, fb in rops:
-                buf[d + fa:d + fb] = mem[p:q]
+                buf[d + fa : d + fb] = mem[p:q]
             if special:
                 if dynamic:
                     hw = hr = False

@@ -144,11 +144,9 @@ def build_sii(desc: SiiDescription) -> bytes:
     def pdo_bytes(pdos: tuple[SiiPdo, ...]) -> bytes:
         out = b""
         for pdo in pdos:
-            out += struct.pack("<HBBBBH", pdo.index, len(pdo.entries), pdo.sm, 0,
-                               desc.string_index(pdo.name), 0)
+            out += struct.pack("<HBBBBH", pdo.index, len(pdo.entries), pdo.sm, 0, desc.string_index(pdo.name), 0)
             for e in pdo.entries:
-                out += struct.pack("<HBBBBH", e.index, e.subindex, desc.string_index(e.name),
-                                   e.dtype, e.bits, 0)
+                out += struct.pack("<HBBBBH", e.index, e.subindex, desc.string_index(e.name), e.dtype, e.bits, 0)
         return out
 
     tx = pdo_bytes(desc.txpdos)
@@ -177,8 +175,9 @@ def build_sii(desc: SiiDescription) -> bytes:
     general += bytes(32 - len(general))
 
     fmmu = bytes(desc.fmmus)
-    syncm = b"".join(struct.pack("<HHBBBB", sm.start, sm.length, sm.control, 0, sm.enable, sm.kind)
-                     for sm in desc.sync_managers)
+    syncm = b"".join(
+        struct.pack("<HHBBBB", sm.start, sm.length, sm.control, 0, sm.enable, sm.kind) for sm in desc.sync_managers
+    )
 
     strings = bytes([len(desc._strings)])
     for s in desc._strings:
@@ -204,8 +203,7 @@ def build_sii(desc: SiiDescription) -> bytes:
         rx_off, rx_size, tx_off, tx_size = desc.mailbox
         # bootstrap mailbox: same buffers as the standard mailbox
         struct.pack_into("<HHHH", head, 0x28, rx_off, rx_size, tx_off, tx_size)
-        struct.pack_into("<HHHHH", head, 0x30, rx_off, rx_size, tx_off, tx_size,
-                         desc.mailbox_protocols)
+        struct.pack_into("<HHHHH", head, 0x30, rx_off, rx_size, tx_off, tx_size, desc.mailbox_protocols)
     image = bytes(head) + cats
     kbit = desc.eeprom_kbit
     while kbit * 128 < len(image):

@@ -24,8 +24,7 @@ def parse_spec(spec: str, seed: int = 0) -> list[Device]:
             continue
         m = _ITEM.match(item)
         if not m:
-            raise ValueError(f"bad slave spec item {raw!r} (expected drive, imu, ft, dio or dioN, "
-                             f"optionally *count)")
+            raise ValueError(f"bad slave spec item {raw!r} (expected drive, imu, ft, dio or dioN, optionally *count)")
         kind, arg, count = m.group(1), m.group(2), int(m.group(3) or 1)
         if arg and kind != "dio":
             raise ValueError(f"bad slave spec item {raw!r}: only dio takes a channel count")
