@@ -15,14 +15,14 @@ import math
 import socket
 import threading
 import time
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 from pydantic import Field
 
 from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
-from aiohal.robot import StateRow
+from aiohal.robot import HandGroup, StateRow
 from aiohal.servo import ServoParams
 from aiohal.watchdog import SendDatagram
 
@@ -136,14 +136,15 @@ class MockDriver(Driver):
         self._hand_runs = []
         for group, rows in runs:
             if group.kind == "hand":
+                hand = cast(HandGroup, group)  # "hand" is HandGroup's kind and no other group's
                 hands = rows.stop - rows.start
                 self._hand_runs.append(
                     (
-                        group.grasp[rows],
-                        group.speed[rows],
-                        group.force[rows],
-                        group.position[rows],
-                        group.effort[rows],
+                        hand.grasp[rows],
+                        hand.speed[rows],
+                        hand.force[rows],
+                        hand.position[rows],
+                        hand.effort[rows],
                         np.zeros(hands),
                         np.zeros(hands),
                         np.zeros(hands, dtype=bool),

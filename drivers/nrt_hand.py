@@ -17,7 +17,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 from pydantic import Field
 
@@ -113,7 +113,7 @@ class NrtHandDriver(Driver):
         return True
 
     def _peer_gone_reason(self) -> str:
-        peer = self.peer
+        peer = cast(NrtPeer, self.peer)  # called only once open() has started the peer
         if peer.alive() and self.pipe.peer_alive:
             return ""
         if peer.error:
@@ -129,7 +129,8 @@ class NrtHandDriver(Driver):
             hand.mark_fresh(clock.tick, clock.now_ns)
             if self.lost_reason:  # fresh state again: a stall is over
                 self.was_lost, self.lost_reason = self.lost_reason, ""
-            code = self.state_msg.fault
+            # _take_state() returned True: it has just set state_msg (never None here)
+            code = self.state_msg.fault  # type: ignore[union-attr]
             if code != self._reported_code:
                 self._reported_code = code
                 if code != FAULT_NONE:

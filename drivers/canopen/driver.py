@@ -25,11 +25,13 @@ import logging
 import threading
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, cast
 
 import can  # the `can` extra; a missing one is reported by the plugin loader
 import canopen
 import numpy as np
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
+from canopen.pdo import PdoBase, PdoMaps
 from pydantic import Field
 
 from aiohal.config import ConfigPath
@@ -45,6 +47,9 @@ from aiohal.watchdog import SendCanFrame, can_frame
 
 from . import busload
 from .sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc, sensor_issues
+
+if TYPE_CHECKING:
+    from .sim import SimBus
 
 log = logging.getLogger(__name__)
 
@@ -201,11 +206,14 @@ def configured_frames(options: CanopenOptions) -> tuple[list[int], list[tuple[in
             for k in range(512):
                 if comm + k not in od or mapping + k not in od:
                     break
-                cob_id = _od_value(od[comm + k][1])
-                count = _od_value(od[mapping + k][0])
+                # PDO communication and mapping parameters have sub-indices (CiA 301: records)
+                comm_param = cast("ODRecord | ODArray", od[comm + k])
+                mapping_param = cast("ODRecord | ODArray", od[mapping + k])
+                cob_id = _od_value(comm_param[1])
+                count = _od_value(mapping_param[0])
                 if cob_id & 0x80000000 or not count:
                     continue
-                bits = sum(_od_value(od[mapping + k][sub]) & 0xFF for sub in range(1, count + 1))
+                bits = sum(_od_value(mapping_param[sub]) & 0xFF for sub in range(1, count + 1))
                 cyclic.append((bits + 7) // 8)
     sensors = []
     if options.sensors:
@@ -220,9 +228,15 @@ def configured_frames(options: CanopenOptions) -> tuple[list[int], list[tuple[in
     return cyclic, sensors
 
 
-def _od_value(var) -> int:
+def _pdo_maps(pdos: PdoBase) -> PdoMaps:
+    """A node's RPDO or TPDO maps by number: canopen's RPDO and TPDO build them once, in __init__."""
+    return cast(PdoMaps, pdos.map)
+
+
+def _od_value(var: ODVariable) -> int:
     """An object's value as the EDS/DCF sets it (a DCF's ParameterValue before the default)."""
-    return int(var.value if var.value is not None else var.default)
+    # the PDO parameters this reads have a DefaultValue in any EDS (int(None) would raise)
+    return int(cast(int, var.value if var.value is not None else var.default))
 
 
 class CanopenDriver(Driver):
@@ -303,7 +317,7 @@ class CanopenDriver(Driver):
 
     def __init__(self, name, view, options) -> None:
         super().__init__(name, view, options)
-        self.sim = None
+        self.sim: SimBus | None = None  # simulate: the simulated nodes
         self.bus: can.BusABC | None = None
         self.network: canopen.Network | None = None
         self.remotes: list[canopen.RemoteNode] = []
@@ -377,11 +391,11 @@ class CanopenDriver(Driver):
                 if opts.sensors
                 else None,
             )
-            start = self.view.per_joint(opts.initial_position)
-            for node, units in zip(opts.nodes, self._units(), strict=True):
-                q = start[self.view.joint_names.index(node.joint)]
-                self.sim.drives[node.node_id].model.configure(
-                    position=(q - node.position_offset) * units.counts_per_rad
+            initial = self.view.per_joint(opts.initial_position)
+            for node_opts, units in zip(opts.nodes, self._units(), strict=True):
+                q = initial[self.view.joint_names.index(node_opts.joint)]
+                self.sim.drives[node_opts.node_id].model.configure(
+                    position=(q - node_opts.position_offset) * units.counts_per_rad
                 )
         try:
             self.bus = can.Bus(**self._bus_options())
@@ -389,7 +403,9 @@ class CanopenDriver(Driver):
             raise CanopenError(f"cannot open the CAN bus {opts.interface}:{opts.channel}: {exc}") from exc
         self.network = network = canopen.Network(self.bus)
         network.NOTIFIER_CYCLE = 0.05  # its thread's receive timeout: how long closing waits for it
-        network.listeners.append(_ErrorFrames(self))  # canopen drops error frames; bus-off is in them
+        # canopen drops error frames; bus-off is in them. Its notifier takes any can.Listener
+        # (canopen's list is typed by its first item, its own MessageListener).
+        cast(list[can.Listener], network.listeners).append(_ErrorFrames(self))
         network.connect()
         tpdo_slices: list[tuple[int, int, int]] = []  # (cob id, start, size) in the input buffer
         rpdo_slices: list[tuple[int, int, int]] = []
@@ -405,8 +421,8 @@ class CanopenDriver(Driver):
             node.rpdo.read()
             for kind, pdos in node_opts.remaps():
                 self._remap(k, node, kind, pdos)
-            inputs = self._place(k, node.tpdo.map.values(), INPUT_OBJECTS, tpdo_slices, "TPDO")
-            outputs = self._place(k, node.rpdo.map.values(), OUTPUT_OBJECTS, rpdo_slices, "RPDO")
+            inputs = self._place(k, _pdo_maps(node.tpdo).values(), INPUT_OBJECTS, tpdo_slices, "TPDO")
+            outputs = self._place(k, _pdo_maps(node.rpdo).values(), OUTPUT_OBJECTS, rpdo_slices, "RPDO")
             offsets.append((inputs, outputs))
             node.sdo[0x6060].raw = MODES[node_opts.mode]
             node.sdo[0x1006].raw = self._cycle_ns() // 1000
@@ -474,7 +490,8 @@ class CanopenDriver(Driver):
         accepts the writes but keeps its own mapping is refused, not believed."""
         want = self.options.nodes[k]
         maps = node.rpdo if kind == "rpdo" else node.tpdo
-        for number, pdo in maps.map.items():
+        by_number = _pdo_maps(maps)
+        for number, pdo in by_number.items():
             entries = pdos.get(number)
             if entries is None:
                 if pdo.enabled:
@@ -493,13 +510,13 @@ class CanopenDriver(Driver):
             pdo.enabled = True
             pdo.trans_type = 1
             pdo.save()
-        missing = sorted(set(pdos) - set(maps.map))
+        missing = sorted(set(pdos) - set(by_number))
         if missing:
             raise CanopenError(f"node {want.node_id} ({want.label}): no {kind.upper()} {missing} in its EDS")
         maps.read()
         for number, entries in pdos.items():
-            got = [(v.index, v.subindex, v.length) for v in maps.map[number].map]
-            if got != entries or not maps.map[number].enabled:
+            got = [(v.index, v.subindex, v.length) for v in by_number[number].map]
+            if got != entries or not by_number[number].enabled:
                 raise CanopenError(
                     f"node {want.node_id} ({want.label}): {kind.upper()}{number} reads back as {got} "
                     f"after writing {entries}: the node kept its own mapping"
@@ -509,6 +526,7 @@ class CanopenDriver(Driver):
         """Lay this node's enabled synchronous PDOs end to end in its direction's buffer; the
         offset of each drive variable in them (None: not mapped)."""
         want = self.options.nodes[k]
+        network = cast(canopen.Network, self.network)  # bring-up has connected it
         found: dict[tuple[int, int], tuple[int, int]] = {}
         for pdo in maps:
             if not pdo.enabled or not pdo.map:
@@ -526,8 +544,8 @@ class CanopenDriver(Driver):
                 bit += var.length
             size = (bit + 7) // 8
             slices.append((pdo.cob_id, start, size))
-            if pdo.on_message in self.network.subscribers.get(pdo.cob_id, []):
-                self.network.unsubscribe(pdo.cob_id, pdo.on_message)  # canopen's own decoding: not needed
+            if pdo.on_message in network.subscribers.get(pdo.cob_id, []):
+                network.unsubscribe(pdo.cob_id, pdo.on_message)  # canopen's own decoding: not needed
         offsets: list[int | None] = []
         for index, subindex, bits in objects:
             place = found.get((index, subindex))
@@ -609,7 +627,7 @@ class CanopenDriver(Driver):
 
     def _cycle_holding(self) -> None:
         """One cycle with every drive held where it stands (bring-up, close); lock held."""
-        drives = self.drives
+        drives = cast(DriveGroup, self.drives)  # cycled only when the bus has drives
         drives.decode(0, 0, into_state=False)
         drives.update_machines(self._on_drive_event)
         drives.write_holding()
@@ -617,19 +635,22 @@ class CanopenDriver(Driver):
 
     def _wait_enabled(self) -> None:
         period_s = self._cycle_ns() * 1e-9
+        drives = cast(DriveGroup, self.drives)  # bring-up waits only when the bus has drives
         deadline = time.monotonic() + self.options.enable_timeout_s
         while time.monotonic() < deadline:
             with self._lock:
                 self._cycle_holding()
-            if self.drives.all_enabled():
+            if drives.all_enabled():
                 return
             time.sleep(period_s)
-        states = ", ".join(f"{m.name} {m.state.label}" for m in self.drives.machines if not m.enabled)
+        states = ", ".join(f"{m.name} {m.state.label}" for m in drives.machines if not m.enabled)
         raise CanopenError(f"drives not enabled within {self.options.enable_timeout_s:g} s: {states}")
 
     def _send_cycle(self) -> None:
         out = self._out_view
-        send = self.bus.send
+        # on the tick: no check added. The bus is opened by bring-up before any cycle is sent
+        # and closed only after the last one.
+        send = self.bus.send  # type: ignore[union-attr]
         errors = self.tx_errors
         for msg, start, end in self._rpdos:
             msg.data[:] = out[start:end]
@@ -732,14 +753,15 @@ class CanopenDriver(Driver):
         if not self._active:
             log.info("canopen %s: %s", self.name, event)
             return
+        drives = cast(DriveGroup, self.drives)  # its own drives' state machines report events
         detail = ""
         if event.kind is EventKind.FAULT_ENTERED:
             self.drive_faults += 1
-            machine = self.drives.machines[i]
+            machine = drives.machines[i]
             if not machine.error_code and self._last_emcy[i]:  # 0x603F unmapped: the code the EMCY gave
                 machine.error_code = self._last_emcy[i]
                 detail = f" (EMCY error code 0x{machine.error_code:04X})"
-        respond_to_event(self.drives, i, event, self.view, self._drive_mask, f"canopen {self.name}", detail)
+        respond_to_event(drives, i, event, self.view, self._drive_mask, f"canopen {self.name}", detail)
 
     # ------------------------------------------------------------ application API
 

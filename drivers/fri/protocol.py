@@ -19,12 +19,17 @@ MSR_ID, CMD_ID = 0x2006, 0x1005
 DEFAULT_PORT = 49938
 
 
-def _struct(fields: list[tuple[str, str, int]], size: int) -> np.dtype:
+#: One field of a datagram: name, numpy format (a scalar, or ``(scalar, count)`` for an
+#: array) and byte offset.
+_Field = tuple[str, str | tuple[str, int], int]
+
+
+def _struct(fields: list[_Field], size: int) -> np.dtype:
     names, formats, offsets = zip(*fields, strict=True)
     return np.dtype({"names": list(names), "formats": list(formats), "offsets": list(offsets), "itemsize": size})
 
 
-_HEAD_AND_KRL = [
+_HEAD_AND_KRL: list[_Field] = [
     ("send_seq", "<u2", 0),
     ("refl_seq", "<u2", 2),
     ("packet_size", "<u2", 4),

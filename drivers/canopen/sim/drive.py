@@ -21,12 +21,13 @@ from __future__ import annotations
 import logging
 import threading
 from pathlib import Path
+from typing import cast
 
 import canopen
-from canopen.sdo import SdoAbortedError
+from canopen.sdo import SdoAbortedError, SdoRecord
 
 from ...ethercat.sim.drive import Drive
-from ...ethercat.sim.od import PdoCodec, SdoAbort
+from ...ethercat.sim.od import Entry, ObjectDictionary, PdoCodec, SdoAbort
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,8 @@ class SimDrive:
         self.node_id = node_id
         self.node = canopen.LocalNode(node_id, str(eds))
         self.model = Drive(serial=node_id)
+        # the drive model's object dictionary: a Drive has CoE, so it is built with the model
+        self.model_od = cast(ObjectDictionary, self.model.od)
         self.model.state_changed(0, 2, 0)  # power-on self test done: Switch on disabled
         self.lock = threading.Lock()  # the notifier thread and an injecting test
         self.rx: dict[int, PdoCodec] = {}
@@ -72,7 +75,7 @@ class SimDrive:
         if index < 0x6000:
             return None
         try:
-            return self.model.od.entry(index, subindex)
+            return self.model_od.entry(index, subindex)
         except SdoAbort:
             return None
 
@@ -92,13 +95,13 @@ class SimDrive:
             return
         try:
             with self.lock:
-                self.model.od.write(index, subindex, bytes(data))
+                self.model_od.write(index, subindex, bytes(data))
         except SdoAbort as exc:
             raise SdoAbortedError(exc.code) from None
 
     # ------------------------------------------------------------ NMT and PDOs
 
-    def _after_nmt(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _after_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         operational = self.node.nmt._state == OPERATIONAL
         if operational and not self.operational:
             self._compile_pdos()
@@ -118,14 +121,17 @@ class SimDrive:
             for k in range(512):
                 if comm + k not in od:
                     break
-                cob_id = sdo[comm + k][1].raw
+                # PDO communication and mapping parameters are records of UNSIGNED8/32 (CiA 301)
+                comm_param = cast(SdoRecord, sdo[comm + k])
+                mapping_param = cast(SdoRecord, sdo[mapping + k])
+                cob_id = cast(int, comm_param[1].raw)
                 if cob_id & 0x80000000:
                     continue
-                items = []
-                for sub in range(1, sdo[mapping + k][0].raw + 1):
-                    value = sdo[mapping + k][sub].raw
+                items: list[tuple[Entry | None, int]] = []
+                for sub in range(1, cast(int, mapping_param[0].raw) + 1):
+                    value = cast(int, mapping_param[sub].raw)
                     index, subindex, bits = value >> 16, (value >> 8) & 0xFF, value & 0xFF
-                    items.append((self.model.od.entry(index, subindex), bits))
+                    items.append((self.model_od.entry(index, subindex), bits))
                 codec = PdoCodec(items)
                 if rx:
                     self.rx[cob_id & 0x7FF] = codec
@@ -133,12 +139,12 @@ class SimDrive:
                 else:
                     self.tx.append((cob_id & 0x7FF, codec))
 
-    def _on_rpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         codec = self.rx.get(can_id)
         if codec is not None and len(data) == codec.size and not self.silent:
             self.pending[can_id] = bytes(data)
 
-    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if not self.operational or self.silent:
             return
         with self.lock:

@@ -7,6 +7,8 @@ and :attr:`wrong_dlc` (frames one byte short)."""
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import cast
 
 import canopen
 import cantools
@@ -14,6 +16,15 @@ import cantools
 from ..sensors import SENSORS_DBC
 
 SYNC_COB_ID = 0x80
+
+
+@dataclass
+class _Schedule:
+    """Sensor frames sent together at their own period."""
+
+    period: float  # s
+    due: float  # time.monotonic() of the next send
+    messages: list[tuple[cantools.database.can.Message, dict[str, float]]]  # (frame, payload values)
 
 
 class SimSensorGateway:
@@ -26,13 +37,14 @@ class SimSensorGateway:
         wrench: tuple[float, ...] = (1.0, -2.0, 15.0, 0.1, -0.05, 0.02),
     ) -> None:
         self.network = network
-        db = cantools.database.load_file(str(SENSORS_DBC))
+        # a .dbc file loads as a CAN database (a .cdd would give a diagnostics one)
+        db = cast(cantools.database.can.Database, cantools.database.load_file(str(SENSORS_DBC)))
         self.counter = 0
         self.stopped = False
         self.wrong_dlc = False
         fx, fy, fz, tx, ty, tz = wrench
-        self.groups = [  # (period, next due, [(frame id, payload values)])
-            [
+        self.groups = [
+            _Schedule(
                 imu_period_s,
                 0.0,
                 [
@@ -40,28 +52,28 @@ class SimSensorGateway:
                     (db.get_message_by_name("IMU_Gyro"), {"X": 0.0, "Y": 0.0, "Z": 0.0, "Status": 1}),
                     (db.get_message_by_name("IMU_Accel"), {"X": 0.0, "Y": 0.0, "Z": 9.81}),
                 ],
-            ],
-            [
+            ),
+            _Schedule(
                 ft_period_s,
                 0.0,
                 [
                     (db.get_message_by_name("FT_Force"), {"X": fx, "Y": fy, "Z": fz, "Status": 1}),
                     (db.get_message_by_name("FT_Torque"), {"X": tx, "Y": ty, "Z": tz}),
                 ],
-            ],
+            ),
         ]
         self.frames = 0
         network.subscribe(SYNC_COB_ID, self._on_sync)
 
-    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.stopped:
             return
         now = time.monotonic()
         for group in self.groups:
-            period, due, messages = group
+            period, due, messages = group.period, group.due, group.messages
             if now < due:
                 continue
-            group[1] = due + period if now - due < period else now + period  # its own period, whatever the SYNC rate
+            group.due = due + period if now - due < period else now + period  # its own period, whatever the SYNC rate
             self.counter = (self.counter + 1) & 0xFF
             for message, values in messages:
                 if "Counter" in [s.name for s in message.signals]:

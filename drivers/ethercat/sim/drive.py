@@ -38,11 +38,11 @@ When the slave leaves OP, the abort connection option code 0x6007 decides: 0 not
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, cast
 
 from . import od as odm
 from .devices import Device
-from .od import RW, ObjectDictionary, SdoAbort
+from .od import RW, ObjectDictionary, PdoCodec, SdoAbort
 
 # states
 NOT_READY = "not_ready_to_switch_on"
@@ -174,7 +174,8 @@ class Drive(Device):
 
     def compile_pdo(self) -> tuple[int, int]:
         sizes = super().compile_pdo()
-        self._ff_mapped = any(e is self.e_vel_offset for e in self.rx_codec.entries)
+        rx_codec = cast(PdoCodec, self.rx_codec)  # super().compile_pdo() has just compiled it
+        self._ff_mapped = any(e is self.e_vel_offset for e in rx_codec.entries)
         return sizes
 
     def power_on(self) -> None:
@@ -193,7 +194,7 @@ class Drive(Device):
         self.saturated = False
         self.faults = 0
         self.outputs_lost_ns: int | None = None
-        self._cw_state = None
+        self._cw_state: str | None = None  # the state the last controlword was applied in
         self._params_dirty = True
         self.e_error_code.value = 0
         self.e_error_register.value = 0
