@@ -222,7 +222,8 @@ async def test_the_simulator_refuses_a_start_that_does_not_match_its_set_point()
     remote = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     remote.bind(("127.0.0.1", 0))
     remote.settimeout(2.0)
-    sim = KrcSimulator(remote.getsockname(), KrcOptions(cycle_s=0.002, ramp_packets=4), initial=np.zeros(7)).start()
+    # a 10 ms cycle: this test's answers, late on a loaded host, must still count as good ones
+    sim = KrcSimulator(remote.getsockname(), KrcOptions(cycle_s=0.01, ramp_packets=4), initial=np.zeros(7)).start()
     try:
         cmd = new_cmd()
         cmd["cmd_flags"] = 1
