@@ -1418,8 +1418,9 @@ def test_fixture_explains_what_is_missing(monkeypatch):
 
 def test_the_control_channel_answers_any_input_with_an_error_and_carries_on():
     seg = Bus("drive,dio").seg
-    nested = json.loads(control.apply_line(seg, b"[" * 6000))  # the JSON parser's recursion runs out
-    assert not nested["ok"] and "bad request: RecursionError" in nested["error"]
+    # the JSON parser's recursion runs out (Python 3.11, 3.12) or it finds the input truncated (3.13)
+    nested = json.loads(control.apply_line(seg, b"[" * 6000))
+    assert not nested["ok"] and nested["error"].startswith(("bad request: RecursionError", "bad request: JSONDecodeError"))
     deep = json.loads(control.apply_line(seg, b'{"cmd": "device", "slave": 0, "load": ' + b"[" * 3000 + b"]" * 3000
                                          + b"}"))
     assert not deep["ok"]
