@@ -17,6 +17,13 @@ interpolation), so a target sent at tick k is where the joint should be at tick 
 Velocity feed-forward (rad/s at the joint) and torque feed-forward (N·m at the joint, turned
 into current through the gear and k_t) are held over the cycle.
 
+The drive runs one of four loops (:data:`POSITION_LOOP` … :data:`OFF`), as a CiA 402 drive's
+mode and state choose them: the whole cascade (cyclic synchronous position); the velocity and
+current loops with the velocity feed-forward as the speed target (cyclic synchronous
+velocity); the current loop alone with the current feed-forward as its target (cyclic
+synchronous torque); or none, the power stage off and the joint coasting against friction.
+An external torque at the joint (a push, a contact) adds to the load.
+
 Two formulations: :class:`ReferenceServo` is the model written plainly, one joint, object by
 object, for reading and for tests; :func:`step_servos` is the same arithmetic flattened over
 many joints and compiled with numba, for a simulated driver's tick (a cycle is 20 current
@@ -101,8 +108,14 @@ STATE_FIELDS = (
     "current_ff",
     "phase",
     "measured_speed",
+    "loop",
+    "external_torque",
 )
-(Q, W, CURRENT, VEL_INT, CUR_INT, I_CMD, PREV_TARGET, TARGET, VEL_FF, CUR_FF, PHASE, W_MEAS) = range(len(STATE_FIELDS))
+(Q, W, CURRENT, VEL_INT, CUR_INT, I_CMD, PREV_TARGET, TARGET, VEL_FF, CUR_FF, PHASE, W_MEAS, LOOP, EXT) = range(
+    len(STATE_FIELDS)
+)
+# the loops the drive runs (the LOOP column)
+POSITION_LOOP, VELOCITY_LOOP, CURRENT_LOOP, OFF = 0, 1, 2, 3
 
 
 def param_table(params: list[ServoParams] | ServoParams, n: int) -> np.ndarray:
@@ -150,6 +163,8 @@ class ReferenceServo:
         self.velocity_ff = 0.0
         self.current_ff = 0.0
         self.phase = 0  # current steps since the velocity loop last ran
+        self.loop = POSITION_LOOP
+        self.external_torque = 0.0  # at the joint
 
     @property
     def position(self) -> float:
@@ -164,10 +179,11 @@ class ReferenceServo:
         """The motor's torque at the joint (what a drive reports as its actual torque)."""
         return self.p.torque_constant * self.current * self.p.gear_ratio
 
-    def command(self, target: float, velocity_ff: float, torque_ff: float) -> None:
+    def command(self, target: float, velocity_ff: float, torque_ff: float, loop: int = POSITION_LOOP) -> None:
         self.target = target
         self.velocity_ff = velocity_ff
         self.current_ff = torque_ff / (self.p.gear_ratio * self.p.torque_constant)
+        self.loop = loop
 
     def step(self, cycle: float) -> None:
         """Run the drive for one cycle of ``cycle`` seconds (the time until the next command)."""
@@ -180,13 +196,22 @@ class ReferenceServo:
                 self.measured_speed += (self.motor_speed - self.measured_speed) * (
                     1.0 - math.exp(-hv * 2.0 * math.pi * p.velocity_filter_hz)
                 )
-                setpoint = self.previous_target + (self.target - self.previous_target) * k / n
-                speed = p.position_gain * (setpoint - self.position) + self.velocity_ff  # joint rad/s
-                error = speed * p.gear_ratio - self.measured_speed
-                self.current_command = self.velocity_pi.output(error, hv, self.current_ff)
+                if self.loop <= VELOCITY_LOOP:
+                    speed = self.velocity_ff  # joint rad/s
+                    if self.loop == POSITION_LOOP:
+                        setpoint = self.previous_target + (self.target - self.previous_target) * k / n
+                        speed += p.position_gain * (setpoint - self.position)
+                    error = speed * p.gear_ratio - self.measured_speed
+                    self.current_command = self.velocity_pi.output(error, hv, self.current_ff)
+                else:  # no velocity loop: its integral starts again from zero
+                    self.velocity_pi.integral = 0.0
+                    self.current_command = max(-p.max_current, min(p.max_current, self.current_ff))
             self.phase = (self.phase + 1) % p.velocity_every
-            voltage = self.current_pi.output(self.current_command - self.current, h)
-            self.winding(voltage, h)
+            if self.loop == OFF:  # the power stage is off: no current
+                self.current = self.current_pi.integral = self.current_command = 0.0
+            else:
+                voltage = self.current_pi.output(self.current_command - self.current, h)
+                self.winding(voltage, h)
             self.mechanics(h)
         self.previous_target = self.target  # reached: a cycle without a new command holds it
 
@@ -200,7 +225,7 @@ class ReferenceServo:
     def mechanics(self, h: float) -> None:
         """Rotor and load, semi-implicit Euler; friction and gravity act at the joint."""
         p = self.p
-        load = p.gravity_torque * math.sin(self.position) / p.gear_ratio  # at the motor
+        load = (p.gravity_torque * math.sin(self.position) - self.external_torque) / p.gear_ratio  # at the motor
         drive = p.torque_constant * self.current - load
         coulomb = p.coulomb / p.gear_ratio
         w = self.motor_speed
@@ -240,32 +265,45 @@ def step_servos(state, params, cycle):
         imax, vmax = p[IMAX], p[VMAX]
         angle, w, i = s[Q], s[W], s[CURRENT]
         phase = np.int64(s[PHASE])
+        loop = np.int64(s[LOOP])
         for k in range(n):
             if phase == 0:
                 s[W_MEAS] += (w - s[W_MEAS]) * smooth
-                setpoint = s[PREV_TARGET] + (s[TARGET] - s[PREV_TARGET]) * k / n
-                speed = p[KP_POS] * (setpoint - angle / gear) + s[VEL_FF]
-                error = speed * gear - s[W_MEAS]
-                integral = s[VEL_INT] + error * hv
-                u = p[KP_VEL] * (error + integral / p[TI_VEL]) + s[CUR_FF]
-                if -imax <= u <= imax:
-                    s[VEL_INT] = integral
+                if loop <= VELOCITY_LOOP:
+                    speed = s[VEL_FF]
+                    if loop == POSITION_LOOP:
+                        setpoint = s[PREV_TARGET] + (s[TARGET] - s[PREV_TARGET]) * k / n
+                        speed += p[KP_POS] * (setpoint - angle / gear)
+                    error = speed * gear - s[W_MEAS]
+                    integral = s[VEL_INT] + error * hv
+                    u = p[KP_VEL] * (error + integral / p[TI_VEL]) + s[CUR_FF]
+                    if -imax <= u <= imax:
+                        s[VEL_INT] = integral
+                    else:
+                        u = p[KP_VEL] * (error + s[VEL_INT] / p[TI_VEL]) + s[CUR_FF]
+                        u = -imax if u < -imax else (imax if u > imax else u)
                 else:
-                    u = p[KP_VEL] * (error + s[VEL_INT] / p[TI_VEL]) + s[CUR_FF]
+                    s[VEL_INT] = 0.0
+                    u = s[CUR_FF]
                     u = -imax if u < -imax else (imax if u > imax else u)
                 s[I_CMD] = u
             phase = (phase + 1) % every
-            error = s[I_CMD] - i
-            integral = s[CUR_INT] + error * h
-            v = p[KP_CUR] * (error + integral / p[TI_CUR])
-            if -vmax <= v <= vmax:
-                s[CUR_INT] = integral
+            if loop == OFF:
+                i = 0.0
+                s[CUR_INT] = 0.0
+                s[I_CMD] = 0.0
             else:
-                v = p[KP_CUR] * (error + s[CUR_INT] / p[TI_CUR])
-                v = -vmax if v < -vmax else (vmax if v > vmax else v)
-            steady = (v - kt * w) / p[RES]
-            i = steady + (i - steady) * decay
-            drive = kt * i - p[GRAVITY] * math.sin(angle / gear) / gear
+                error = s[I_CMD] - i
+                integral = s[CUR_INT] + error * h
+                v = p[KP_CUR] * (error + integral / p[TI_CUR])
+                if -vmax <= v <= vmax:
+                    s[CUR_INT] = integral
+                else:
+                    v = p[KP_CUR] * (error + s[CUR_INT] / p[TI_CUR])
+                    v = -vmax if v < -vmax else (vmax if v > vmax else v)
+                steady = (v - kt * w) / p[RES]
+                i = steady + (i - steady) * decay
+            drive = kt * i - (p[GRAVITY] * math.sin(angle / gear) - s[EXT]) / gear
             friction = viscous * w + (coulomb if w > 0 else (-coulomb if w < 0 else 0.0))
             w_new = w + (drive - friction) / inertia * h
             if (w == 0.0 or (w > 0) != (w_new > 0)) and abs(drive) <= coulomb:
@@ -290,11 +328,18 @@ class ServoBank:
         self._gear = self.params[:, GEAR]
         self._torque_per_amp = self.params[:, KT] * self._gear
 
-    def command(self, target: np.ndarray, velocity_ff: np.ndarray, torque_ff: np.ndarray) -> None:
+    def command(self, target, velocity_ff, torque_ff, loop=POSITION_LOOP) -> None:
+        """Targets for every joint (arrays, or numbers for all): position and velocity
+        feed-forward at the joint (rad, rad/s), torque feed-forward (N·m), and the loop."""
         s = self.state
         s[:, TARGET] = target
         s[:, VEL_FF] = velocity_ff
         np.divide(torque_ff, self._torque_per_amp, out=s[:, CUR_FF])
+        s[:, LOOP] = loop
+
+    def set_external_torque(self, torque) -> None:
+        """A torque acting on the joints from outside (N·m at the joint), held until changed."""
+        self.state[:, EXT] = torque
 
     def step(self, cycle: float) -> None:
         step_servos(self.state, self.params, cycle)

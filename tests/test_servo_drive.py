@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from aiohal.servo import Q, ReferenceServo, ServoBank, ServoParams
+from aiohal.servo import CURRENT_LOOP, OFF, POSITION_LOOP, Q, VELOCITY_LOOP, W, ReferenceServo, ServoBank, ServoParams
 
 
 def trajectory(k: int, period: float):
@@ -83,3 +83,56 @@ def test_velocity_feedforward_removes_the_lag_of_a_ramp():
             servo.command(1.0 * k * 1e-3, ff * 1.0, 0.0)
             servo.step(1e-3)
         assert 0.4 - servo.position == pytest.approx(lag, abs=2e-5)
+
+
+@pytest.mark.parametrize("period", [1e-3, 5e-4])
+def test_the_compiled_servo_is_the_reference_model_in_every_loop(period):
+    """Loops switched as a CiA 402 drive's mode and state switch them, with a push from outside."""
+    params = ServoParams(coulomb=1.0, gravity_torque=10.0)
+    bank = ServoBank(params, np.array([0.1]))
+    ref = ReferenceServo(params, 0.1)
+    schedule = [POSITION_LOOP, VELOCITY_LOOP, CURRENT_LOOP, OFF, VELOCITY_LOOP, POSITION_LOOP]
+    for k in range(600):
+        loop = schedule[k // 100]
+        q, v, a = trajectory(k, period)
+        push = 5.0 if 250 <= k < 450 else 0.0
+        bank.command(q, v, 2.0 * a, loop)
+        bank.set_external_torque(push)
+        ref.command(q, v, 2.0 * a, loop)
+        ref.external_torque = push
+        ref.step(period)
+        bank.step(period)
+        assert bank.state[0, Q] / 100.0 == pytest.approx(ref.position, rel=1e-9, abs=1e-12), k
+        assert bank.state[0, W] / 100.0 == pytest.approx(ref.velocity, rel=1e-9, abs=1e-10), k
+
+
+def test_the_velocity_loop_holds_the_commanded_speed():
+    servo = ReferenceServo(ServoParams(), 0.0)
+    for _ in range(300):
+        servo.command(0.0, 0.5, 0.0, VELOCITY_LOOP)  # the position target is ignored
+        servo.step(1e-3)
+    assert servo.velocity == pytest.approx(0.5, abs=1e-3)
+    assert servo.position > 0.1
+
+
+def test_the_current_loop_gives_the_commanded_torque_on_a_held_joint():
+    """Against static friction the joint does not move: the torque is the command's."""
+    servo = ReferenceServo(ServoParams(gravity_torque=0.0, coulomb=20.0), 0.0)
+    for _ in range(50):
+        servo.command(0.0, 0.0, 12.0, CURRENT_LOOP)
+        servo.step(1e-3)
+    assert servo.torque == pytest.approx(12.0, rel=1e-3)
+    assert servo.position == 0.0
+
+
+def test_with_the_power_stage_off_the_joint_coasts_to_rest():
+    servo = ReferenceServo(ServoParams(gravity_torque=0.0), 0.0)
+    for _ in range(200):
+        servo.command(0.0, 1.0, 0.0, VELOCITY_LOOP)
+        servo.step(1e-3)
+    moving_at = servo.position
+    for _ in range(2000):
+        servo.command(0.0, 0.0, 0.0, OFF)
+        servo.step(1e-3)
+    assert servo.torque == 0.0 and servo.velocity == 0.0
+    assert servo.position > moving_at  # it ran on before friction stopped it
