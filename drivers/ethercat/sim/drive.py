@@ -19,7 +19,20 @@ State machine (statusword 0x6041 from controlword 0x6040, CiA 402 / IEC 61800-7-
 
 Modes (0x6060, display 0x6061): 8 CSP, 9 CSV, 10 CST (another value written through the PDO
 keeps the previous mode; with no supported mode yet, Operation enabled gives no torque).
-Dynamics, integrated over the time since the previous exchange in sub-steps of at most 1 ms:
+
+Two dynamics, chosen per drive with ``configure(dynamics=...)``:
+
+``"servo"``: LOLA's cascade with a motor, gear and load (:mod:`aiohal.servo`, the model every
+simulated drive shares; parameters with ``configure(servo={...})``, a hip-like joint by
+default). CSP runs the whole cascade on the interpolated target with 0x60B1 and 0x60B2 as its
+velocity and torque feed-forward, CSV the velocity and current loops, CST the current loop;
+quick stop ramps the speed target down at 0x6085; any other state turns the power stage off.
+0x6072 limits the current. The drive's units are the motor's, as a real drive's: encoder
+counts (0x608F) and per mille of its rated torque (0x6076), the joint behind the model's
+gear (``gear_ratio``, which the master's units must match).
+
+``"motor"`` (the default): a simple motor, integrated over the time since the previous
+exchange in sub-steps of at most 1 ms:
 
 * CSP: a second-order position loop (natural frequency ``csp_hz``, damping 1) on a setpoint
   interpolated linearly from the previous target to the new one, velocity feed-forward from
@@ -39,6 +52,8 @@ from __future__ import annotations
 
 import math
 from typing import Any, cast
+
+import numpy as np
 
 from . import od as odm
 from .devices import Device
@@ -117,6 +132,8 @@ class Drive(Device):
     csp_hz = 40.0
     csv_tau = 0.005  # s
     max_speed = 1000.0  # rad/s
+    dynamics = "motor"  # or "servo" (see the module's docstring)
+    servo_params: Any = None  # aiohal.servo.ServoParams for "servo"; None: the hip-like defaults
 
     def build(self, od: ObjectDictionary) -> None:
         self._ff_mapped = False  # RxPDOs map the velocity offset (compile_pdo)
@@ -194,6 +211,8 @@ class Drive(Device):
         self.saturated = False
         self.faults = 0
         self.outputs_lost_ns: int | None = None
+        self._servo: Any = None  # aiohal.servo.ServoBank (dynamics "servo"), built where the joint stands
+        self._servo_loop = -1
         self._cw_state: str | None = None  # the state the last controlword was applied in
         self._params_dirty = True
         self.e_error_code.value = 0
@@ -261,8 +280,24 @@ class Drive(Device):
                 if v <= 0 and key not in ("viscous", "coulomb"):
                     raise ValueError(f"drive: {key} must be > 0")
                 setattr(self, key, v)
+            elif key == "dynamics":
+                if value not in ("motor", "servo"):
+                    raise ValueError(f"drive: dynamics must be 'motor' or 'servo', not {value!r}")
+                self.dynamics = value
+                self._servo = None  # built at the next step, where the joint stands
+            elif key == "servo":
+                from aiohal.servo import ServoParams
+
+                if not isinstance(value, dict):
+                    raise ValueError("drive: servo must be a table of aiohal.servo.ServoParams fields")
+                try:
+                    self.servo_params = ServoParams(**value)
+                except ValueError as exc:  # pydantic's ValidationError is one
+                    raise ValueError(f"drive: servo: {exc}") from None
+                self._servo = None
             elif key == "position":
                 self.pos = float(value)
+                self._servo = None
                 self._publish()
             else:
                 raise ValueError(f"drive: unknown setting {key!r}")
@@ -272,9 +307,12 @@ class Drive(Device):
         return {
             "state": self.state,
             "mode": self.mode,
+            "dynamics": self.dynamics,
             "position": self.pos,
             "velocity": self.vel,
             "torque": self.torque,
+            "velocity_offset": int(self.e_vel_offset.value),
+            "torque_offset": int(self.e_torque_offset.value),
             "error_code": int(self.e_error_code.value),
             "faults": self.faults,
             "outputs_lost_ns": self.outputs_lost_ns,
@@ -391,6 +429,9 @@ class Drive(Device):
     def _integrate(self, dt: float) -> None:
         if self._params_dirty:
             self._refresh_params()
+        if self.dynamics == "servo":
+            self._integrate_servo(dt)
+            return
         state = self.state
         mode = self.mode
         enabled = state == OPERATION_ENABLED and mode in SUPPORTED_MODES
@@ -471,6 +512,58 @@ class Drive(Device):
         self.vel = w * cpr
         self.torque = tau
         if quick and w == 0.0 and int(self.e_qs_option.value) in (0, 1, 2, 3, 4):
+            self.state = SWITCH_ON_DISABLED
+
+    def _integrate_servo(self, dt: float) -> None:
+        """One exchange interval of the cascade: the loop and its targets from the mode and
+        state, as a real drive takes them from its objects. The drive's units are the motor's
+        (counts of its encoder, per mille of its rated torque); the cascade's targets are the
+        joint's, through the model's gear."""
+        from aiohal import servo as sv
+
+        cpr = self._cpr
+        if self._servo is None:
+            params = self.servo_params or sv.ServoParams()
+            self._servo = sv.ServoBank(params, np.array([self.pos / cpr / params.gear_ratio]))
+            self._servo_limit = params.max_current
+        bank = self._servo
+        p, s = bank.params[0], bank.state[0]
+        gear = p[sv.GEAR]
+        state, mode = self.state, self.mode
+        to_joint_torque = self._rated_nm / 1000.0 * gear  # per mille of the motor's rated torque
+        vel_off = self.e_vel_offset.value / cpr  # motor rad/s
+        target = velocity = torque = 0.0  # at the joint: rad, rad/s, N·m
+        if state == OPERATION_ENABLED and mode == CSP:
+            loop = sv.POSITION_LOOP
+            err0 = ((self.e_target_pos.value - int(self.pos) + 0x80000000) & 0xFFFFFFFF) - 0x80000000
+            target = (int(self.pos) + err0) / cpr / gear  # the target in counts, unwrapped
+            velocity = (vel_off if self._ff_mapped else self._target_slope / cpr + vel_off) / gear
+            torque = self.e_torque_offset.value * to_joint_torque
+        elif state == OPERATION_ENABLED and mode == CSV:
+            loop = sv.VELOCITY_LOOP
+            velocity = (self.e_target_vel.value / cpr + vel_off) / gear
+        elif state == OPERATION_ENABLED and mode == CST:
+            loop = sv.CURRENT_LOOP
+            torque = (self.e_target_torque.value + self.e_torque_offset.value) * to_joint_torque
+        elif state == QUICK_STOP:
+            loop = sv.VELOCITY_LOOP
+            w = self.vel / cpr
+            slower = max(0.0, abs(w) - self.e_qs_decel.value / cpr * dt) / gear
+            velocity = slower if w > 0.0 else -slower
+        else:
+            loop = sv.OFF
+        if loop == sv.POSITION_LOOP and self._servo_loop != sv.POSITION_LOOP:
+            s[sv.PREV_TARGET] = s[sv.Q] / gear  # the ramp starts where the joint is
+        self._servo_loop = loop
+        p[sv.IMAX] = min(self._servo_limit, self.e_max_torque.value * 0.001 * self._rated_nm / p[sv.KT])  # 0x6072
+        bank.command(target, velocity, torque, loop)
+        bank.set_external_torque(self.load * gear)  # the load is given at the motor
+        bank.step(dt)
+        self.pos = s[sv.Q] * cpr
+        self.vel = s[sv.W] * cpr
+        self.torque = s[sv.CURRENT] * p[sv.KT]  # the motor's
+        self.saturated = loop != sv.OFF and abs(s[sv.I_CMD]) >= p[sv.IMAX]
+        if state == QUICK_STOP and abs(self.vel) < 1e-3 * cpr and int(self.e_qs_option.value) in (0, 1, 2, 3, 4):
             self.state = SWITCH_ON_DISABLED
 
     def _publish(self) -> None:
