@@ -267,3 +267,45 @@ def test_an_estop_frame_that_is_not_id_hash_data_is_named():
     for bad in ("1A0", "1A0#ABC", "1A0#" + "00" * 9, "1A00#00"):
         with pytest.raises(ConfigError, match="options.estop_frame"):
             parse_config(raw_config(channel(), estop_frame=bad))
+
+
+SERVO_SIM = {"simulation": {"dynamics": "servo", "servo": {"gear_ratio": 100.0}},
+             "drive_defaults": {"gear_ratio": 100.0}}
+
+
+@pytest.mark.asyncio
+async def test_simulated_servo_drives_get_the_velocity_feedforward_and_track():
+    """The shared servo model behind the simulated nodes; RPDO2 remapped to carry 0x60B1 and
+    0x60B2, so the sine's velocity reaches each drive's cascade as its feed-forward."""
+    nodes = [{"node_id": i + 1, "joint": j,
+              "rx_pdos": {"0x1600": ["0x6040:0:16", "0x607A:0:32", "0x6060:0:8"],
+                          "0x1601": ["0x60B1:0:32", "0x60B2:0:16"]}} for i, j in enumerate(JOINTS)]
+    async with ControlLoop(parse_config(raw_config(channel(), SINE, nodes=nodes, **SERVO_SIM))) as loop:
+        driver = driver_of(loop)
+        seen = {"error": 0.0, "offset_error": 0.0, "offset_max": 0}
+        counts_per_rad = 131072 / (2 * np.pi) * 100.0
+
+        def watch(lp):
+            state, command = lp.robot.state, lp.robot.command
+            seen["error"] = max(seen["error"], float(np.max(np.abs(state.position - command.position))))
+            status = driver.sim.drives[1].status()
+            # what the node holds now is what the driver sent at its last cycle
+            seen["offset_max"] = max(seen["offset_max"], abs(status["velocity_offset"]))
+
+        loop.add_publisher(watch)
+        report = await loop.run(ticks=500)
+        status = driver.sim.drives[1].status()
+        assert status["dynamics"] == "servo" and status["state"] == "operation_enabled"
+        assert status["velocity_offset"] == pytest.approx(loop.robot.command.velocity[0] * counts_per_rad, abs=0.05 * counts_per_rad)
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "3/3"
+    # the sine reaches 0.3·π rad/s: the offset carried it (counts/s at the motor)
+    assert seen["offset_max"] > 0.5 * counts_per_rad
+    assert seen["error"] < 0.05
+
+
+def test_a_simulated_servo_behind_another_gear_than_the_nodes_is_refused():
+    from aiohal.errors import ConfigError
+
+    options = {**SERVO_SIM, "drive_defaults": {"gear_ratio": 50.0}}
+    with pytest.raises(ConfigError, match=r"nodes\[0\].gear_ratio.*options.simulation.servo.gear_ratio = 100"):
+        parse_config(raw_config(channel(), **options))

@@ -43,6 +43,7 @@ from aiohal.fieldbus.pdo_options import parse_number, parse_pdo_entry, pdo_issue
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
+from aiohal.servo import ServoParams
 from aiohal.watchdog import SendCanFrame, can_frame
 
 from . import busload
@@ -126,6 +127,17 @@ class NodeOptions(Options):
         return out
 
 
+class SimulationOptions(Options):
+    """The simulated drives of ``simulate = true``."""
+
+    dynamics: Literal["motor", "servo"] = Field(
+        "motor",
+        description="motor: a simple motor model; servo: aiohal.servo's cascade (LOLA's, a hip-like joint "
+        "behind servo.gear_ratio, which every node's gear_ratio must match).",
+    )
+    servo: ServoParams = Field(default_factory=ServoParams, description="The drives and joints of dynamics = servo.")
+
+
 class CanopenOptions(Options):
     interface: str = Field(min_length=1, description="python-can interface: socketcan, pcan, kvaser, virtual, ...")
     channel: str = Field(min_length=1, description="python-can channel, e.g. can0.")
@@ -160,6 +172,7 @@ class CanopenOptions(Options):
     initial_position: JointValues = Field(
         0.0, description="simulate: where the simulated joints start (rad), scalar or per joint."
     )
+    simulation: SimulationOptions = Field(default_factory=SimulationOptions)
     estop_frame: str | None = Field(
         None,
         pattern=r"^([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#([0-9A-Fa-f]{2}){0,8}$",
@@ -268,6 +281,18 @@ class CanopenDriver(Driver):
                 issues.append(("joints", f'joint "{joint}" has no node in options.nodes'))
         if options.simulate and any(n.eds is not None and Path(n.eds) != DRIVE_EDS for n in options.nodes):
             issues.append(("options.simulate", "the simulated drives have aiohal's own EDS: leave nodes[].eds out"))
+        if options.simulate and options.simulation.dynamics == "servo":
+            gear = options.simulation.servo.gear_ratio
+            for i, node in enumerate(options.nodes):
+                ratio = node.gear_ratio or options.drive_defaults.gear_ratio
+                if ratio != gear:
+                    issues.append(
+                        (
+                            f"nodes[{i}].gear_ratio",
+                            f"{ratio:g}, but the simulated servo's joint is behind options.simulation.servo."
+                            f"gear_ratio = {gear:g}: the units would not match the drive",
+                        )
+                    )
         issues += cls._sensor_issues(options, devices)
         return issues
 
@@ -392,10 +417,13 @@ class CanopenDriver(Driver):
                 else None,
             )
             initial = self.view.per_joint(opts.initial_position)
+            dynamics: dict[str, Any] = {"dynamics": opts.simulation.dynamics}
+            if opts.simulation.dynamics == "servo":
+                dynamics["servo"] = opts.simulation.servo.model_dump()
             for node_opts, units in zip(opts.nodes, self._units(), strict=True):
                 q = initial[self.view.joint_names.index(node_opts.joint)]
-                self.sim.drives[node_opts.node_id].model.configure(
-                    position=(q - node_opts.position_offset) * units.counts_per_rad
+                self.sim.drives[node_opts.node_id].configure(
+                    **dynamics, position=(q - node_opts.position_offset) * units.counts_per_rad
                 )
         try:
             self.bus = can.Bus(**self._bus_options())

@@ -138,6 +138,7 @@ class SimDrive:
                     self.network.subscribe(cob_id & 0x7FF, self._on_rpdo)
                 else:
                     self.tx.append((cob_id & 0x7FF, codec))
+        self.model.outputs_mapped([e for codec in self.rx.values() for e in codec.entries])
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         codec = self.rx.get(can_id)
@@ -167,6 +168,11 @@ class SimDrive:
             self.node.emcy.send(code, register, extra[:5])
         for cob_id, payload in frames:
             self.network.send_message(cob_id, payload)
+
+    def configure(self, **settings) -> dict:
+        """The drive model's settings (dynamics, servo, position, load, ...: see its configure)."""
+        with self.lock:
+            return self.model.configure(**settings)
 
     # ------------------------------------------------------------ fault injection
 

@@ -191,9 +191,13 @@ class Drive(Device):
 
     def compile_pdo(self) -> tuple[int, int]:
         sizes = super().compile_pdo()
-        rx_codec = cast(PdoCodec, self.rx_codec)  # super().compile_pdo() has just compiled it
-        self._ff_mapped = any(e is self.e_vel_offset for e in rx_codec.entries)
+        self.outputs_mapped(cast(PdoCodec, self.rx_codec).entries)  # super().compile_pdo() has just compiled it
         return sizes
+
+    def outputs_mapped(self, entries) -> None:
+        """The objects the master's outputs now carry: with the velocity offset among them it is
+        the velocity feed-forward, else the drive derives one from its targets' slope."""
+        self._ff_mapped = any(e is self.e_vel_offset for e in entries)
 
     def power_on(self) -> None:
         self.state = NOT_READY
@@ -285,6 +289,8 @@ class Drive(Device):
                     raise ValueError(f"drive: dynamics must be 'motor' or 'servo', not {value!r}")
                 self.dynamics = value
                 self._servo = None  # built at the next step, where the joint stands
+                if value == "servo":
+                    self._warm_servo()
             elif key == "servo":
                 from aiohal.servo import ServoParams
 
@@ -513,6 +519,14 @@ class Drive(Device):
         self.torque = tau
         if quick and w == 0.0 and int(self.e_qs_option.value) in (0, 1, 2, 3, 4):
             self.state = SWITCH_ON_DISABLED
+
+    @staticmethod
+    def _warm_servo() -> None:
+        """Import and run the compiled cascade once now: the first call loads it (a few hundred
+        ms), which inside an exchange would stall the whole segment."""
+        from aiohal import servo as sv
+
+        sv.ServoBank(sv.ServoParams(), np.zeros(1)).step(1e-3)
 
     def _integrate_servo(self, dt: float) -> None:
         """One exchange interval of the cascade: the loop and its targets from the mode and
