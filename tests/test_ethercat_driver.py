@@ -478,6 +478,47 @@ async def test_pdos_remapped_from_the_config_are_linked_by_name_and_the_drive_fo
 
 
 @pytest.mark.asyncio
+async def test_the_commands_feedforward_reaches_the_simulated_drive_as_0x60b1_and_0x60b2(segment):
+    """drive1 assigned RxPDO 0x1602 (with the velocity and torque offsets); the gait controller
+    sends a target velocity and a model torque. What the simulated drive holds in 0x60B1 and
+    0x60B2, read over its control socket mid-run, is a command the loop sent, in its units."""
+    raw = raw_config(segment.ifname)
+    raw["driver"][0]["options"]["slaves"][0]["rx_pdos"] = {"0x1602": []}
+    scale = {f"a{i}": 0.0 for i in range(1, 8)} | {"a1": 0.5}
+    raw["controller"] = {"type": "gait", "params": {"offset": 0.0, "scale": scale, "ramp": 0.5, "inertia": 0.05,
+                                                    "gravity_torque": 0.3}}
+    counts_per_rad = 131072 / (2 * np.pi)
+    sent: set[tuple[int, int]] = set()
+    probes: list[asyncio.Future] = []
+
+    def watch(loop):
+        command = loop.robot.command
+        velocity = round(command.velocity[0] * counts_per_rad)
+        torque = round((command.effort[0] + command.feedforward[0]) * 1000.0)  # per mille of 1 N·m
+        sent.update((velocity + dv, torque + dt) for dv in (-1, 0, 1) for dt in (-1, 0, 1))  # rounding
+
+    def probe(loop):
+        probes.append(asyncio.get_running_loop().run_in_executor(
+            None, lambda: segment.control({"cmd": "device", "slave": 0})["device"]))
+
+    async with ControlLoop(parse_config(raw)) as loop:
+        layout = driver_of(loop).infos[0].layout
+        loop.add_publisher(watch)
+        loop.add_publisher(At(*((tick, probe) for tick in (1200, 1500, 1800, 2100))))
+        runs = TicksRun()
+        loop.add_publisher(runs)
+        report = await runs.run(loop, 2500, max_ticks=10_000)
+        seen = [await p for p in probes]
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "7/7"
+    assert {e.name for e in layout.outputs} >= {"Velocity offset", "Torque offset"}
+    assert len(seen) == 4
+    for status in seen:
+        assert (status["velocity_offset"], status["torque_offset"]) in sent, status
+    assert sum(abs(s["velocity_offset"]) > 0.05 * counts_per_rad for s in seen) >= 2  # it moved
+    assert any(s["torque_offset"] != 0 for s in seen)
+
+
+@pytest.mark.asyncio
 async def test_a_remapping_the_slave_refuses_fails_the_bring_up_with_the_object_and_abort_code(segment):
     raw = raw_config(segment.ifname, bringup_attempts=1)
     raw["driver"][0]["options"]["slaves"][1]["rx_pdos"] = {"0x1601": ["0x6040:0:16", "0x6041:0:16"]}  # statusword out
