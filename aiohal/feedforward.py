@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import AfterValidator, Field, ValidationInfo
@@ -136,6 +136,7 @@ class GainLearner:
         self.k_e = 0.0  # what is applied now
         self.best: tuple[float, float] | None = None  # (k_e, RMS) of the lowest window so far
         self.costs: list[tuple[float, float]] = []
+        self.repeated = 0  # windows measured again (a missed deadline in them)
         self.done = False
 
     def window(self, rms: float) -> float:
@@ -156,25 +157,48 @@ class GainLearner:
 class LearningFeedforward(VelocityFeedforward):
     """The feed-forward applied while :class:`GainLearner` learns it, in the tick: the error
     of each tick (target position against the position measured at that tick) is summed over
-    windows of ``window`` ticks, after ``settle`` ticks."""
+    windows of ``window`` ticks, after ``settle`` ticks.
+
+    With the robot's ``clock``, a window in which a deadline was missed is measured again
+    (at most ``MAX_REPEATS`` times in a row): on a real clock a missed tick puts a spike of
+    error into the window that says nothing about k_e, and the policy stops at the first
+    window that is worse than the one before."""
+
+    MAX_REPEATS = 3
 
     def __init__(
-        self, command: JointCommand, state: JointState, learner: GainLearner, window: int, settle: int
+        self,
+        command: JointCommand,
+        state: JointState,
+        learner: GainLearner,
+        window: int,
+        settle: int,
+        clock: Any = None,
     ) -> None:
         super().__init__(command, np.zeros(len(command)))
         self.state = state
         self.learner = learner
         self.window = window
         self.settle = settle
+        self.clock = clock  # its ``tick``: a tick that is not the one after the last was missed
         self.ticks = 0
         self._sum = 0.0
         self._count = 0
         self._error = np.zeros(len(command))
+        self._last_tick: int | None = None
+        self._spoiled = False
+        self._repeats = 0
 
     def apply(self) -> None:
         super().apply()
         self.ticks += 1
+        if self.clock is not None:
+            tick = self.clock.tick
+            if self._last_tick is not None and tick != self._last_tick + 1:
+                self._spoiled = True
+            self._last_tick = tick
         if self.ticks <= self.settle or self.learner.done:
+            self._spoiled = False  # (the first window starts clean)
             return
         np.subtract(self.command.position, self.state.position, out=self._error)
         self._sum += float(np.dot(self._error, self._error))
@@ -182,4 +206,10 @@ class LearningFeedforward(VelocityFeedforward):
         if self._count >= self.window * len(self._error):
             rms = math.sqrt(self._sum / self._count)
             self._sum, self._count = 0.0, 0
-            self.set_gains(self.learner.window(rms))
+            if self._spoiled and self._repeats < self.MAX_REPEATS:
+                self._repeats += 1
+                self.learner.repeated += 1
+            else:
+                self._repeats = 0
+                self.set_gains(self.learner.window(rms))
+            self._spoiled = False

@@ -33,16 +33,19 @@ async def learn(config: Any, duration_s: float | None = None) -> tuple[GainLearn
             learner,
             max(1, round(section.window_s * rate)),
             round(section.settle_s * rate),
+            clock=loop.robot.clock,
         )
-        limit = duration_s or section.settle_s + section.window_s * (section.max_steps + 2)
-        chunk = section.window_s
-        elapsed = 0.0
-        report: dict = {}
-        while not learner.done and elapsed < limit:
-            report = await loop.run(duration=chunk)
-            elapsed += chunk
-            if report["faults"]:
-                break
+        windows = (section.max_steps + 2) * (1 + LearningFeedforward.MAX_REPEATS)  # repeats: see LearningFeedforward
+        limit = duration_s or section.settle_s + section.window_s * windows
+
+        def stop_when_learned(control: ControlLoop) -> None:
+            if learner.done or control.faults:
+                control.request_stop("learned" if learner.done else "fault")
+
+        # one run: on a real clock, stopping and starting again between windows would hold the
+        # drives for a moment, an error in the next window that has nothing to do with k_e
+        loop.add_publisher(stop_when_learned)
+        report = await loop.run(duration=limit)
     return learner, report
 
 

@@ -12,11 +12,11 @@ import pytest
 
 from aiohal.config import load_config, parse_config
 from aiohal.errors import ConfigError
-from aiohal.feedforward import GainLearner, VelocityFeedforward, read_gains, write_gains
+from aiohal.feedforward import GainLearner, LearningFeedforward, VelocityFeedforward, read_gains, write_gains
 from aiohal.hal import Controller
 from aiohal.learn_feedforward import main as learn_main
 from aiohal.loop import ControlLoop
-from aiohal.robot import JointCommand, Mode
+from aiohal.robot import JointCommand, JointState, Mode
 from helpers import arm_raw, virtual_loop
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "lola_hip_sim.toml"
@@ -49,6 +49,40 @@ def test_the_policy_stops_after_max_steps():
     while not learner.done:
         k = learner.window(10.0 - k)
     assert k == pytest.approx(0.3) and len(learner.costs) == 4
+
+
+def test_a_window_with_a_missed_deadline_is_measured_again():
+    """A skipped tick spoils its window (a spike of error that says nothing about k_e): the
+    window is measured again, at most MAX_REPEATS times in a row."""
+
+    class Clock:
+        tick = 0
+
+    clock, learner = Clock(), GainLearner(step=0.1)
+    command, state = JointCommand(1), JointState(1)
+    command.mode[:] = Mode.POSITION
+    learning = LearningFeedforward(command, state, learner, window=10, settle=5, clock=clock)
+    skips = {3, 17}  # ticks after which one is missed (3: while settling)
+
+    def run(ticks):
+        for _ in range(ticks):
+            clock.tick += 2 if clock.tick in skips else 1
+            command.position[:] = 0.01 * clock.tick  # an error that grows: the policy would stop
+            learning.apply()
+
+    run(15)  # settling (its miss does not count), then a clean window
+    assert learner.costs == [(0.0, pytest.approx(0.01 * np.sqrt(np.mean(np.arange(7, 17) ** 2)), rel=1e-6))]
+    run(10)  # a miss at 17: measured again
+    assert len(learner.costs) == 1 and learner.repeated == 1
+    run(10)
+    assert len(learner.costs) == 2 and learner.done  # clean, and worse: the policy stopped
+    learner2 = GainLearner(step=0.1)
+    learning2 = LearningFeedforward(command, state, learner2, window=10, settle=0, clock=clock)
+    skips.update(range(clock.tick, clock.tick + 100, 5))  # a miss in every window
+    for _ in range(4 * 10):
+        clock.tick += 2 if clock.tick in skips else 1
+        learning2.apply()
+    assert learner2.repeated == LearningFeedforward.MAX_REPEATS and len(learner2.costs) == 1
 
 
 # ---------------------------------------------------------------- applied by the HAL
