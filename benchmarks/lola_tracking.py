@@ -15,7 +15,13 @@ The error is the target position of a tick against the position measured at that
 over 3 strides after a ramp-in and a settling stride. Fig. 6 is the cost (that RMS) over a
 sweep of k_e, with the points the policy visited; Fig. 9 the three error traces.
 
-    python -m benchmarks.lola_tracking [--json out.json] [--figures DIR]
+With ``--ethercat`` (root) the same three runs and learnings go through real SOEM to the
+simulated EtherCAT segment (a veth pair in a namespace of its own), its one drive running the
+same servo model (``--dynamics servo`` with the config's parameters) behind RxPDO 0x1602, so
+the target velocity and torque feed-forward travel as 0x60B1/0x60B2 in the drive's units.
+That runs on the real clock (about a minute; no sweep, Fig. 6 shows the policy's windows).
+
+    python -m benchmarks.lola_tracking [--json out.json] [--figures DIR] [--ethercat]
 """
 
 from __future__ import annotations
@@ -33,23 +39,79 @@ CONFIG = ROOT / "configs" / "lola_hip_sim.toml"
 STRIDES = 3  # measured strides per run
 
 
-def configure(rate_hz: float, every: int, k_e: float | None):
+class EthercatBus:
+    """The simulated segment with one servo drive, and the config that drives it through SOEM."""
+
+    COUNTS_PER_REV = 131072
+
+    def __init__(self) -> None:
+        import json
+        import tomllib
+
+        from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
+
+        self.raw = tomllib.loads(CONFIG.read_text())
+        self.servo = self.raw["driver"][0]["options"]["servo"]
+        self.start = float(self.raw["driver"][0]["options"]["initial_position"])
+        self.segment = SimulatedSegment(
+            "drive", watchdog_ms=100, extra_args=["--dynamics", "servo", "--servo", json.dumps(self.servo)]
+        )
+
+    def __enter__(self) -> EthercatBus:
+        self.segment.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.segment.__exit__(*exc)
+
+    def power_cycle(self) -> None:
+        """Each run starts as the lockstep one does: the drive disabled, the joint at rest at
+        the config's initial position."""
+        counts = self.start * self.servo["gear_ratio"] * self.COUNTS_PER_REV / (2 * np.pi)
+        self.segment.control({"cmd": "power_cycle"})
+        self.segment.control({"cmd": "device", "slave": 0, "position": counts})
+
+    def config(self, rate_hz: float):
+        from aiohal.config import parse_config
+
+        raw = {key: value for key, value in self.raw.items() if key != "driver"}
+        raw["loop"] = {**raw["loop"], "rate_hz": rate_hz}
+        raw["loop"].pop("clock", None)
+        raw["realtime"] = {"priority": 80, "lock_memory": True}
+        raw["driver"] = [{
+            "type": "ethercat",
+            "name": "bus",
+            "joints": ["hip_flexion"],
+            "options": {
+                "interface": self.segment.ifname,
+                "drive_defaults": {"counts_per_rev": self.COUNTS_PER_REV, "gear_ratio": self.servo["gear_ratio"],
+                                   "rated_torque": 1.0},
+                "slaves": [{"name": "hip", "kind": "cia402", "joint": "hip_flexion", "rx_pdos": {"0x1602": []}}],
+            },
+        }]
+        return parse_config(raw, base_dir=CONFIG.parent)
+
+
+def configure(rate_hz: float, every: int, k_e: float | None, bus: EthercatBus | None = None):
     from aiohal.config import load_config
     from aiohal.feedforward import FeedforwardSection
 
-    config = load_config(CONFIG)
-    config = config.with_loop(rate_hz=rate_hz, clock="virtual")
+    if bus is None:
+        config = load_config(CONFIG).with_loop(rate_hz=rate_hz, clock="virtual")
+    else:
+        bus.power_cycle()
+        config = bus.config(rate_hz)
     config = replace(config, controller=replace(config.controller, every=every))
     section = config.feedforward.model_copy(update={"k_e": k_e, "gains": None}) if k_e is not None else \
         FeedforwardSection(**{**config.feedforward.model_dump(), "k_e": None, "gains": None})
     return replace(config, feedforward=section)
 
 
-async def tracking_run(rate_hz: float, every: int, k_e: float | None) -> dict:
+async def tracking_run(rate_hz: float, every: int, k_e: float | None, bus: EthercatBus | None = None) -> dict:
     """One run: the error of every tick after the settling time, and its RMS."""
     from aiohal import ControlLoop
 
-    config = configure(rate_hz, every, k_e)
+    config = configure(rate_hz, every, k_e, bus)
     loop = ControlLoop(config)
     period = config.controller.params.period
     settle = config.controller.params.ramp + period
@@ -75,19 +137,19 @@ async def tracking_run(rate_hz: float, every: int, k_e: float | None) -> dict:
     keep = t >= settle
     return {"t": t[keep] - settle, "error": error[keep], "rms": float(np.sqrt(np.mean(error[keep] ** 2))),
             "faults": report["faults"], "refused": report["commands_refused"],
-            "controller_rms": report["controller"].get("tracking_rms_rad")}
+            "missed_ticks": report["missed_ticks"], "controller_rms": report["controller"].get("tracking_rms_rad")}
 
 
-async def learn_gain(rate_hz: float, every: int):
+async def learn_gain(rate_hz: float, every: int, bus: EthercatBus | None = None):
     from aiohal.learn_feedforward import learn
 
-    learner, report = await learn(configure(rate_hz, every, None))
+    learner, report = await learn(configure(rate_hz, every, None, bus))
     if report["faults"] or learner.best is None:
         raise RuntimeError(f"learning failed: {report['faults']}")
     return learner
 
 
-def figures(out_dir, runs: dict, sweeps: dict, learners: dict) -> list[str]:
+def figures(out_dir, runs: dict, sweeps: dict, learners: dict, suffix: str = "") -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -106,14 +168,15 @@ def figures(out_dir, runs: dict, sweeps: dict, learners: dict) -> list[str]:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    paths.append(str(out_dir / "lola_fig9_tracking.png"))
+    paths.append(str(out_dir / f"lola_fig9_tracking{suffix}.png"))
     fig.savefig(paths[-1], dpi=120)
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(6, 3.6))
     for key, label, style in (("1khz", "1 kHz", "C0"), ("2khz", "2 kHz bus", "C2")):
-        k, rms = zip(*sweeps[key], strict=True)
-        ax.plot(k, np.array(rms) * 1e3, "-", color=style, label=f"{label}: sweep")
+        if sweeps:
+            k, rms = zip(*sweeps[key], strict=True)
+            ax.plot(k, np.array(rms) * 1e3, "-", color=style, label=f"{label}: sweep")
         lk, lr = zip(*learners[key].costs, strict=True)
         ax.plot(lk, np.array(lr) * 1e3, "o", color=style, mfc="none", label=f"{label}: windows of the policy")
     ax.set_xlabel("k_e  (k_vel,ff = 1 + k_e)")
@@ -122,23 +185,26 @@ def figures(out_dir, runs: dict, sweeps: dict, learners: dict) -> list[str]:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    paths.append(str(out_dir / "lola_fig6_cost.png"))
+    paths.append(str(out_dir / f"lola_fig6_cost{suffix}.png"))
     fig.savefig(paths[-1], dpi=120)
     plt.close(fig)
     return paths
 
 
-async def main_async(args) -> dict:
+async def main_async(args, bus: EthercatBus | None = None) -> dict:
     start = time.perf_counter()
-    learners = {"1khz": await learn_gain(1000.0, 1), "2khz": await learn_gain(2000.0, 2)}
+    learners = {"1khz": await learn_gain(1000.0, 1, bus), "2khz": await learn_gain(2000.0, 2, bus)}
     k_e, k_e_2khz = learners["1khz"].best[0], learners["2khz"].best[0]
-    runs = {"ref": await tracking_run(1000.0, 1, 0.0),
-            "ff": await tracking_run(1000.0, 1, k_e),
-            "ff_2khz": await tracking_run(2000.0, 2, k_e_2khz)}
-    sweep_k = np.round(np.arange(0.0, args.sweep_max + 1e-9, args.sweep_step), 6)
-    sweeps = {"1khz": [(float(k), (await tracking_run(1000.0, 1, float(k)))["rms"]) for k in sweep_k],
-              "2khz": [(float(k), (await tracking_run(2000.0, 2, float(k)))["rms"]) for k in sweep_k]}
+    runs = {"ref": await tracking_run(1000.0, 1, 0.0, bus),
+            "ff": await tracking_run(1000.0, 1, k_e, bus),
+            "ff_2khz": await tracking_run(2000.0, 2, k_e_2khz, bus)}
+    sweeps = {}
+    if bus is None:  # on the real clock a sweep would take minutes
+        sweep_k = np.round(np.arange(0.0, args.sweep_max + 1e-9, args.sweep_step), 6)
+        sweeps = {"1khz": [(float(k), (await tracking_run(1000.0, 1, float(k)))["rms"]) for k in sweep_k],
+                  "2khz": [(float(k), (await tracking_run(2000.0, 2, float(k)))["rms"]) for k in sweep_k]}
     result = {
+        "path": "ethercat" if bus is not None else "mock, lockstep",
         "rms_ref_rad": runs["ref"]["rms"],
         "rms_ff_rad": runs["ff"]["rms"],
         "rms_ff_2khz_rad": runs["ff_2khz"]["rms"],
@@ -147,15 +213,18 @@ async def main_async(args) -> dict:
         "reduction_ff": 1.0 - runs["ff"]["rms"] / runs["ref"]["rms"],
         "reduction_ff_2khz": 1.0 - runs["ff_2khz"]["rms"] / runs["ref"]["rms"],
         "learning_windows": {key: learner.costs for key, learner in learners.items()},
+        "learning_windows_repeated": {key: learner.repeated for key, learner in learners.items()},
         "sweep": sweeps,
         "faults": {name: run["faults"] for name, run in runs.items()},
         "commands_refused": {name: run["refused"] for name, run in runs.items()},
+        "missed_ticks": {name: run["missed_ticks"] for name, run in runs.items()},
         "lola_table3_rad": {"ref": 0.0047, "ff": 0.0004, "ff_2khz": 0.0003},
     }
     if not args.no_figures:
         from pathlib import Path
 
-        result["figures"] = figures(Path(args.figures), runs, sweeps, learners)
+        suffix = "_ethercat" if bus is not None else ""
+        result["figures"] = figures(Path(args.figures), runs, sweeps, learners, suffix)
     result["seconds"] = round(time.perf_counter() - start, 1)
     return result
 
@@ -167,8 +236,13 @@ def main() -> None:
     parser.add_argument("--no-figures", action="store_true")
     parser.add_argument("--sweep-max", type=float, default=0.5)
     parser.add_argument("--sweep-step", type=float, default=0.05)
+    parser.add_argument("--ethercat", action="store_true", help="through real SOEM and the simulated segment (root)")
     args = parser.parse_args()
-    result = asyncio.run(main_async(args))
+    if args.ethercat:
+        with EthercatBus() as bus:
+            result = asyncio.run(main_async(args, bus))
+    else:
+        result = asyncio.run(main_async(args))
     ref, ff, ff2 = result["rms_ref_rad"], result["rms_ff_rad"], result["rms_ff_2khz_rad"]
     print(f"RMS error, hip flexion: ref {ref:.3g} rad, learned ff {ff:.3g} rad ({result['reduction_ff']:.1%} lower), "
           f"2 kHz {ff2:.3g} rad ({result['reduction_ff_2khz']:.1%} lower); k_e {result['k_e']:g} "
