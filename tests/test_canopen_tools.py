@@ -84,6 +84,13 @@ async def test_the_simulator_command_line_serves_a_driver_until_stopped():
     assert not runner.is_alive()
 
 
+def test_the_simulator_command_line_refuses_bad_servo_parameters(capsys):
+    args = ["--interface", "virtual", "--channel", channel(), "--drives", "1", "--dynamics", "servo"]
+    assert sim_main([*args, "--servo", '{"gear_ratio": 0}'], threading.Event(), None) == 2
+    err = capsys.readouterr().err
+    assert "drive: servo: " in err and "gear_ratio" in err
+
+
 def test_node_ids_are_parsed_and_checked():
     assert node_ids("1-3,7") == [1, 2, 3, 7]
     for bad in ("0", "1-200", "a", "1,1"):

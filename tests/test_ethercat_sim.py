@@ -1400,6 +1400,12 @@ def test_cli_bench_and_errors(capsys):
     assert main(["--slaves", "robot"]) == 2
     assert main(["--slaves", "drive", "--inject", '{"cmd": "nope"}']) == 2
     assert main(["--slaves", "drive"]) == 2  # --ifname missing
+    # every drive behind the shared servo model: brought up and enabled the same way
+    assert main(["--slaves", "drive*2,imu", "--dynamics", "servo", "--bench", "50"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["state"] == OP and result["drives_enabled"] == 2
+    assert main(["--slaves", "drive", "--dynamics", "servo", "--servo", '{"gear_ratio": -1}', "--bench", "5"]) == 2
+    assert "drive: servo: " in capsys.readouterr().err
 
 
 def test_fixture_explains_what_is_missing(monkeypatch):

@@ -12,6 +12,7 @@ master's config names their node ids (aiohal's EDS, ``drivers/canopen/data/aioha
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 import threading
@@ -45,6 +46,10 @@ def main(
     parser.add_argument("--drives", type=node_ids, default=[], help="node ids of the drives, e.g. 1-6")
     parser.add_argument("--sensors", action="store_true", help="also the IMU + F/T gateway (aiohal_sensors.dbc)")
     parser.add_argument("--sensor-period-ms", type=float, default=4.0)
+    parser.add_argument(
+        "--dynamics", choices=("motor", "servo"), default="motor", help="servo: aiohal.servo's cascade per drive"
+    )
+    parser.add_argument("--servo", type=json.loads, default=None, help="with --dynamics servo: ServoParams as JSON")
     parser.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     args = parser.parse_args(argv)
     if not args.drives and not args.sensors:
@@ -61,6 +66,14 @@ def main(
     except Exception as exc:  # python-can raises several kinds for a bus it cannot open
         print(f"cannot open {args.interface}:{args.channel}: {exc}", file=sys.stderr)
         return 1
+    settings = {"dynamics": args.dynamics, **({"servo": args.servo} if args.servo is not None else {})}
+    try:
+        for drive in sim.drives.values():
+            drive.configure(**settings)
+    except ValueError as exc:
+        sim.close()
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
