@@ -621,6 +621,54 @@ async def test_an_emergency_stop_quick_stops_every_drive_in_split_mode(segment):
 
 
 @pytest.mark.asyncio
+async def test_after_an_emergency_stop_the_robot_is_released_and_re_armed_without_a_jump(segment):
+    """estop mid-motion, the drives quick-stop; reset_faults() releases the bus (the drives
+    enabled again where they stand), rearm() restarts the sine from the measured state."""
+    from helpers import assert_bumpless, record
+
+    from aiohal.fieldbus.cia402 import State
+
+    stopped = {State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED}
+    wait = {"until": lambda loop: False}
+
+    def until(loop):
+        if wait["until"](loop):
+            loop.request_stop("seen")
+
+    async with ControlLoop(parse_config(raw_config(segment.ifname))) as loop:
+        driver = driver_of(loop)
+        sent, measured, own = record(loop)
+        loop.add_publisher(At((1500, lambda loop: loop.estop())))
+        loop.add_publisher(until)
+        wait["until"] = lambda loop: (loop.robot.clock.tick > 1500 and np.all(np.abs(loop.robot.state.velocity) < 1e-3)
+                                      and all(m.state in stopped for m in driver.drives.machines))
+        await loop.run(ticks=10_000)
+        assert loop.level.name == "ESTOP"
+        loop.reset_faults()
+        assert loop.level.name == "DISABLED"
+        wait["until"] = lambda loop: driver.drives.all_enabled()
+        await loop.run(ticks=10_000)
+        held = loop.robot.state.position.copy()
+        rearm_tick = loop.robot.clock.tick
+        wait["until"] = lambda loop: False
+        loop.rearm()
+        runs = TicksRun()
+        loop.add_publisher(runs)
+        report = await runs.run(loop, 1500)
+    assert report["safety_level"] == "run" and report["drivers"]["bus"]["drives_enabled"] == "7/7"
+    assert [t["event"] for t in report["safety"]] == ["activate", "estop", "reset_faults", "rearm"]
+    # from disabled nothing was sent: the command starts again from the measured position,
+    # where the drives held the joints since they were enabled again
+    i = [k for k, _ in sent].index(rearm_tick)
+    assert np.abs(measured[i] - held).max() < 1e-4
+    step = loop.robot.velocity_limit * loop.period_s
+    first = next(q for k, q in own if k > rearm_tick)
+    assert (np.abs(first - measured[i]) <= step + 1e-9).all(), (first, measured[i])
+    assert_bumpless(loop, sent[i + 1:], measured[i + 1:], own, sent[i + 1][0])
+    assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + 1000])[:, 0]) > 0.05  # the sine again
+
+
+@pytest.mark.asyncio
 async def test_the_bus_keeps_cycling_between_runs_so_no_watchdog_trips(segment):
     trips_before = [s["stats"]["wd_trips"] for s in segment.status()["slaves"]]  # (counted since the simulator started)
     async with ControlLoop(parse_config(raw_config(segment.ifname))) as loop:

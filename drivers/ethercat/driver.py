@@ -845,6 +845,20 @@ class EthercatDriver(Driver):
         with self._lock:
             return self.drives.reset_and_enable()
 
+    def release_estop(self) -> bool:
+        """Leave the emergency stop: every drive (quick-stopped, then disabled by its ramp) gets
+        a fault reset where it needs one and is enabled again where it stands, held there by
+        the cycles until the loop, re-armed, commands it."""
+        if self.drives is None or not self.bus.is_open:
+            return False
+        with self._lock:
+            self._estop_requested = False
+            self._estop_sent = False
+            self.drives.reset_faults()
+            self.drives.request(Target.ENABLED)
+        log.info("ethercat %s: emergency stop released; drives enabled where they stand", self.name)
+        return True
+
     def enable_drives(self) -> None:
         """Enable every drive (with ``enable_on_open = false``); each starts where it stands."""
         if self.drives is not None and not self._estop_requested:
