@@ -309,3 +309,50 @@ def test_a_simulated_servo_behind_another_gear_than_the_nodes_is_refused():
     options = {**SERVO_SIM, "drive_defaults": {"gear_ratio": 50.0}}
     with pytest.raises(ConfigError, match=r"nodes\[0\].gear_ratio.*options.simulation.servo.gear_ratio = 100"):
         parse_config(raw_config(channel(), **options))
+
+
+@pytest.mark.asyncio
+async def test_after_an_emergency_stop_the_robot_is_released_and_re_armed_without_a_jump():
+    """estop mid-sine: the drives quick-stop (the driver keeps cycling them while the loop
+    commands nothing); reset_faults() enables them again where they stand; rearm() restarts
+    the sine from the measured position."""
+    from helpers import assert_bumpless, record
+
+    from aiohal.fieldbus.cia402 import State
+
+    wait = {"until": lambda loop: False}
+
+    def until(loop):
+        if wait["until"](loop):
+            loop.request_stop("seen")
+
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver = driver_of(loop)
+        sent, measured, own = record(loop)
+        loop.add_publisher(until)
+        loop.add_publisher(stop_when(lambda lp: lp.robot.clock.tick >= 300))
+        await loop.run(ticks=1000)  # the sine moving
+        loop.estop()
+        stopped = {State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED}
+        wait["until"] = lambda lp: all(m.state in stopped for m in driver.drives.machines) and np.all(
+            np.abs(lp.robot.state.velocity) < 1e-3)
+        await loop.run(ticks=2000)
+        assert loop.level.name == "ESTOP" and wait["until"](loop)
+        loop.reset_faults()
+        wait["until"] = lambda lp: driver.drives.all_enabled()
+        await loop.run(ticks=2000)
+        assert driver.drives.all_enabled()
+        held = loop.robot.state.position.copy()
+        rearm_tick = loop.robot.clock.tick
+        wait["until"] = lambda lp: False
+        loop.rearm()
+        report = await loop.run(ticks=500)
+    assert report["safety_level"] == "run" and report["faults"] == []
+    assert [t["event"] for t in report["safety"]] == ["activate", "estop", "reset_faults", "rearm"]
+    i = [k for k, _ in sent].index(rearm_tick)
+    assert np.abs(measured[i] - held).max() < 1e-4
+    step = loop.robot.velocity_limit * loop.period_s
+    first = next(q for k, q in own if k > rearm_tick)
+    assert (np.abs(first - measured[i]) <= step + 1e-9).all(), (first, measured[i])
+    assert_bumpless(loop, sent[i + 1:], measured[i + 1:], own, sent[i + 1][0])
+    assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + 200])[:, 0]) > 0.05  # the sine again

@@ -365,6 +365,7 @@ class CanopenDriver(Driver):
         self._warn = RateLimitedLogger(log)
         self._active = False
         self._estopped = False
+        self._written = False  # write() sent this tick's cycle (the loop skips write below hold)
         self._seen = 0
         self._failed_cycles = 0  # cycles in a row with a frame not sent
         self.bus_off = False  # an error frame said bus-off (socketcan error class 0x40)
@@ -490,6 +491,7 @@ class CanopenDriver(Driver):
         if self.drives is not None:
             self._wait_enabled()
         self._started_ns = time.monotonic_ns()
+        self._written = True  # the first tick's read() sends nothing: its write() does
         self._active = True
 
     def _check_identity(self, k: int, node: canopen.RemoteNode) -> None:
@@ -717,6 +719,12 @@ class CanopenDriver(Driver):
         if drives is None:  # a bus of sensors only
             view.fresh_tick = clock.tick
             return
+        if not self._written and self._active:
+            # the loop commands nothing (emergency stop, disabled): the drives still get their
+            # cycles, held where they stand (a quick stop ramps, a released drive is enabled)
+            with self._lock:
+                self._cycle_holding()
+        self._written = False
         got = self.rx_tpdos - self._seen
         self._seen += got
         if got < self._tpdos_per_cycle:
@@ -734,6 +742,7 @@ class CanopenDriver(Driver):
             if self.drives is not None:
                 self.drives.write(self.view.command)
             self._send_cycle()
+        self._written = True
         self.cycles += 1
 
     def _bus_failed(self) -> None:
@@ -800,6 +809,19 @@ class CanopenDriver(Driver):
             return []
         with self._lock:
             return self.drives.reset_and_enable()
+
+    def release_estop(self) -> bool:
+        """Leave the emergency stop: every drive (quick-stopped) gets a fault reset where it
+        needs one and is enabled again where it stands, held there by the cycles ``read()``
+        sends until the loop, re-armed, commands it."""
+        if self.drives is None or self.bus is None:
+            return False
+        with self._lock:
+            self._estopped = False
+            self.drives.reset_faults()
+            self.drives.request(Target.ENABLED)
+        log.info("canopen %s: emergency stop released; drives enabled where they stand", self.name)
+        return True
 
     def _remote(self, node: int | str) -> canopen.RemoteNode:
         for k, n in enumerate(self.options.nodes):
