@@ -154,6 +154,32 @@ CASES: list[BadConfig] = [
         ("driver[0].options.dynamics: input should be 'mirror', 'first_order' or 'servo' (got 'second_order')",),
     ),
     BadConfig(
+        "udp-sim-bad-dynamics",
+        _replace('type = "mock"', 'type = "udp"')
+        + '\n[driver.options]\nsimulate = true\n[driver.options.simulation]\ndynamics = "second_order"\n',
+        ("driver[0].options.simulation.dynamics: input should be 'first_order' or 'servo' (got 'second_order')",),
+    ),
+    BadConfig(
+        "udp-sim-bad-servo-parameters",
+        _replace('type = "mock"', 'type = "udp"')
+        + '\n[driver.options]\nsimulate = true\n[driver.options.simulation]\ndynamics = "servo"\n'
+        + "[driver.options.simulation.servo]\ngear_ratio = -1\nposition_gian = 3\n",
+        (
+            "driver[0].options.simulation.servo.gear_ratio: input should be greater than 0 (got -1)",
+            'driver[0].options.simulation.servo.position_gian: unknown key (did you mean "position_gain"?)',
+        ),
+    ),
+    BadConfig(
+        "fri-sim-bad-servo-parameter",
+        _replace('type = "mock"', 'type = "fri"')
+        + '\n[driver.options]\nsimulate = true\n[driver.options.simulation]\ndynamics = "servo"\n'
+        + "servo = { velocity_every = 0.5 }\n",
+        (
+            "driver[0].options.simulation.servo.velocity_every: input should be a valid integer, "
+            "got a number with a fractional part (got 0.5)",
+        ),
+    ),
+    BadConfig(
         "mock-initial-position-unknown-joint",
         GOOD + "\n[driver.options]\ninitial_position = { j1 = 0.5, j7 = 0.1 }\n",
         ('driver[0].options.initial_position.j7: unknown joint "j7" (did you mean "j0"?)',),

@@ -67,6 +67,7 @@ def test_check_reports_every_error_with_its_path(tmp_path):
     [c for c in CASES if c.id in {
         "invalid-toml", "unknown-loop-key", "rate-wrong-type", "driver-unknown-joint",
         "unknown-driver-type", "unknown-driver-option", "homing-pose-out-of-range", "driver-as-table",
+        "udp-sim-bad-dynamics", "fri-sim-bad-servo-parameter",
     }],
     ids=lambda c: c.id,
 )
@@ -385,6 +386,14 @@ def test_quiet_prints_nothing_when_nothing_is_wrong(tmp_path):
         ("aiohal.drivers.ethercat.sim", ["--ifname", "an-interface-name-too-long"],
          "argument --ifname: 'an-interface-name-too-long' is not a Linux interface name"),
         ("aiohal.drivers.ethercat.sim", ["--ifname", ""], "argument --ifname: '' is not a Linux interface name"),
+        ("aiohal.drivers.udp.sim", ["--dynamics", "rigid"], "argument --dynamics: invalid choice: 'rigid'"),
+        ("aiohal.drivers.udp.sim", ["--dynamics", "servo", "--servo-json", '{"gear_ratio": 0}'],
+         "argument --servo-json: gear_ratio: input should be greater than 0"),
+        ("aiohal.drivers.udp.sim", ["--servo-json", "{}"], "argument --servo-json: only with --dynamics servo"),
+        ("aiohal.drivers.fri.sim", ["--remote", "127.0.0.1:9", "--dynamics", "servo", "--servo-json", "{gear"],
+         "argument --servo-json: the value: invalid JSON"),
+        ("aiohal.drivers.fri.sim", ["--remote", "127.0.0.1:9", "--dynamics", "servo", "--servo-json", '{"gear": 1}'],
+         "argument --servo-json: gear: extra inputs are not permitted"),
     ],
     ids=lambda v: " ".join(v) if isinstance(v, list) else None,
 )

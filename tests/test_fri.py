@@ -19,6 +19,7 @@ from aiohal.drivers.fri.protocol import (CMD, CMD_ID, CMD_SIZE, MSR, MSR_ID, MSR
 from aiohal.drivers.fri.sim import KrcOptions, KrcSimulator
 from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, JointSpec, Mode, Robot
+from aiohal.servo import ServoParams
 
 from udp_helpers import wait_for
 
@@ -275,3 +276,56 @@ async def test_a_loop_at_200_hz_on_a_simulated_krc():
     assert report["faults"] == [] and report["safety_level"] == "run"
     assert health["received"] >= 150 and health["malformed"] == health["unauthenticated"] == 0
     assert health["simulated_krc"]["starts"] == 1 and health["simulated_krc"]["stops"] == 1
+
+
+@pytest.mark.asyncio
+async def test_a_krc_with_servo_dynamics_follows_the_slope_and_holds_the_arms_weight():
+    """``dynamics = "servo"``: each joint behind the shared servo drive. The KRC gives the
+    drive the command's slope as velocity feed-forward: a ramp lags by the command's way
+    through the KRC (the measurement shows the command of two ticks ago), not by the P
+    position loop's v / K_p; the held joints' torque is their weight, up to static friction."""
+    params = ServoParams(position_gain=20.0, gravity_torque=50.0, coulomb=0.5)
+    krc = Krc(KrcOptions(cycle_s=0.005, dynamics="servo", servo=params))
+    await krc.open()
+    try:
+        sim, rob = krc.sim, krc.robot
+        assert sim.state == State.CMD
+        rob.command.mode[:] = Mode.POSITION
+        rob.command.position[:] = 0.1
+        v, lags = 0.5, []
+        for k in range(1, 81):
+            rob.command.position[3] = 0.1 + v * 0.005 * k
+            await krc.ticks(1)  # read (the measurement), then write this command
+            lags.append(float(rob.command.position[3] - rob.state.position[3]))
+        lag = float(np.median(lags[-20:]))
+        print(f"ramp lag through the KRC: {lag * 1e3:.2f} mrad (v / K_p = {v / 20.0 * 1e3:.1f} mrad)")
+        assert 0.0 < lag < 0.5 * v / params.position_gain
+        held = [0, 1, 2, 4, 5, 6]
+        np.testing.assert_allclose(rob.state.position[held], 0.1, atol=1e-3)
+        assert np.abs(rob.state.effort[held] - 50.0 * np.sin(rob.state.position[held])).max() <= 0.5 + 0.05
+    finally:
+        await krc.close()
+
+
+@pytest.mark.asyncio
+async def test_a_loop_on_a_simulated_krc_with_servo_dynamics():
+    """The options reach the KRC's process: the arm is held by its drives against gravity
+    (the first-order model has no torque to report in position control)."""
+    raw = {
+        "robot": {"name": "lwr"}, "loop": {"rate_hz": 200},
+        "joints": {f"a{i}": {"position": [-2.9, 2.9], "velocity": 2.0, "acceleration": 20.0, "effort": 100.0} for i in range(7)},
+        "driver": [{"type": "fri", "name": "krc", "joints": ["*"],
+                    "options": {"simulate": True, "initial_position": 0.5,
+                                "simulation": {"priority": None, "dynamics": "servo",
+                                               "servo": {"gravity_torque": 40.0}}}}],
+        "controller": {"type": "sine", "params": {"amplitude": 0.05, "frequency": 0.5}},
+    }
+    loop = ControlLoop(parse_config(raw))
+    async with loop:
+        report = await loop.run(duration=1.0)
+        state = loop.robot.state
+        weight = 40.0 * np.sin(state.position)
+        assert np.abs(state.effort - weight).max() < 3.0 + 2.0, (state.effort, weight)  # friction, inertia
+    health = loop.report()["drivers"]["krc"]
+    assert report["faults"] == [] and report["safety_level"] == "run"
+    assert health["simulated_krc"]["starts"] == 1 and health["received"] >= 150

@@ -4,12 +4,15 @@ and forged datagrams. All traffic on 127.0.0.1, ports picked by the OS."""
 
 from __future__ import annotations
 
+import asyncio
+import time
+
 import numpy as np
 import pytest
 import pytest_asyncio
 
 from aiohal.config import parse_config
-from aiohal.drivers.udp.driver import UdpError, UdpOptions, board_layout
+from aiohal.drivers.udp.driver import UdpDriver, UdpError, UdpOptions, board_layout
 from aiohal.drivers.udp.protocol import COMMAND_RECORD, STATE_RECORD, BoardFault, Kind, encode
 from aiohal.drivers.udp.sim import BoardSimulator
 from aiohal.loop import ControlLoop
@@ -267,3 +270,47 @@ async def test_a_board_that_dies_sends_the_robot_to_its_safe_state():
     assert any("board(s) [2] silent" in f["error"] for f in report["faults"]), report["faults"]
     assert report["drivers"]["boards"]["status"] == "failed"
     assert health["simulated_boards"]["estops"] >= 3  # every board got the e-stop datagram
+
+
+@pytest.mark.asyncio
+async def test_servo_boards_track_a_ramp_and_velocity_feedforward_removes_its_lag():
+    """``dynamics = "servo"`` through the driver and the boards' process it starts: a ramp at
+    v lags behind the commands by v / K_p without velocity feed-forward (the P position loop
+    makes its speed from that error) and hardly at all with it, the command's velocity being
+    the board's velocity feed-forward. K_p = 50 1/s, not the default 150: the parameters
+    reached the process. Each lag is the median over the second half of a 0.3 s ramp (the
+    loop settles in 5 / K_p = 0.1 s); both also hold the board's own hold-off of one command,
+    v times the time since it came, which the difference cancels."""
+    v, gain = 0.5, 50.0
+    rob = robot(1)
+    opts = UdpOptions.model_validate({
+        "simulate": True, "bind_address": "127.0.0.1", "silent_ticks": 1000,
+        "simulation": {"dynamics": "servo", "priority": None,
+                       "servo": {"position_gain": gain, "gravity_torque": 0.0}},
+    })
+    d = UdpDriver("boards", rob.driver_view(rob.joint_names), opts)
+    await d.open()
+    lags: dict[bool, list[float]] = {False: [], True: []}
+    try:
+        rob.command.mode[:] = Mode.POSITION
+        t0 = time.monotonic()
+        k = 0
+        while (t := time.monotonic() - t0) < 0.6 and k < 2000:
+            k += 1
+            feedforward = t >= 0.3
+            rob.command.position[:] = v * t
+            rob.command.velocity[:] = v if feedforward else 0.0
+            await d.write()
+            await asyncio.sleep(0.002)
+            await tick(d, k)
+            if rob.state.updated_tick[0] == k and (t % 0.3) >= 0.15:  # the board's state when command k came
+                lags[feedforward].append(v * t - float(rob.state.position[0]))
+    finally:
+        await d.close()
+    assert len(lags[False]) >= 20 and len(lags[True]) >= 20, {ff: len(x) for ff, x in lags.items()}
+    without, with_ff = float(np.median(lags[False])), float(np.median(lags[True]))
+    print(f"ramp lag: {without * 1e3:.2f} mrad without velocity feed-forward, {with_ff * 1e3:.2f} mrad with it, "
+          f"a command every {0.6 / k * 1e3:.2f} ms")
+    assert without - with_ff == pytest.approx(v / gain, rel=0.2), (without, with_ff)
+    assert 0.0 < with_ff < 0.5 * v / gain, (without, with_ff)
+    assert d.health()["simulated_boards"]["commands"] >= k

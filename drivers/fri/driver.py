@@ -32,6 +32,7 @@ from pydantic import Field
 
 from aiohal.errors import AiohalError
 from aiohal.fieldbus import simprocess
+from aiohal.fieldbus.sim_joints import SimulatedJoints
 from aiohal.hal import AnyOptions, Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.robot import Fault, Mode
 
@@ -69,9 +70,9 @@ class KrlOptions(Options):
     started: int = 20
 
 
-class KrcSimulation(Options):
+class KrcSimulation(SimulatedJoints):
     cycle_ms: int = Field(5, ge=1, le=100, description="The simulated KRC's FRI cycle (friOpen's argument).")
-    time_constant: FiniteFloat = Field(0.004, gt=0, description="Its joints' servo time constant (s).")
+    time_constant: FiniteFloat = Field(0.004, gt=0, description="first_order: the tracking time constant (s).")
     drop_answers: FiniteFloat = Field(
         0.0, ge=0, le=1, description="Probability that an answer is lost (fault injection)."
     )
@@ -293,8 +294,7 @@ class FriDriver(Driver):
             str(krl.status_int),
             "--drop-answers",
             repr(sim.drop_answers),
-            "--time-constant",
-            repr(sim.time_constant),
+            *sim.joint_arguments(),
         ]
         if sim.priority is not None:
             args += ["--priority", str(sim.priority)]

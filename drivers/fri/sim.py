@@ -9,8 +9,10 @@ user ints: the strategy is taken from ``$FRI_FRM_INT[strategy_int]`` while in mo
 ``$FRI_FRM_INT[command_int]`` = 10 starts command mode once the quality is PERFECT (the
 command must match the set point, else an interpolation error keeps it in monitor mode), 20
 stops it; ``$FRI_TO_INT[status_int]`` reports 10 (monitor) or 20 (command). In command mode
-with the drives powered the joints follow the command (``aiohal.fieldbus.servo``, no
-physics); when the quality falls to ``drop_quality`` the KRC drops to monitor mode, powers the
+with the drives powered the joints follow the command (``aiohal.fieldbus.servo``:
+``--dynamics first_order``, no physics, or ``servo``, each joint behind a simulated servo
+drive taking the command's slope as velocity feed-forward and, in joint impedance, its added
+torque as torque feed-forward); when the quality falls to ``drop_quality`` the KRC drops to monitor mode, powers the
 drives off and the joints stop (brakes). These thresholds are this simulator's choices: KUKA
 does not publish its own.
 
@@ -33,10 +35,11 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from aiohal.fieldbus.servo import ServoModel
+from aiohal.fieldbus.servo import add_dynamics_arguments, joint_model, servo_from_arguments
 from aiohal.robot import Mode
 
 from .protocol import (
@@ -55,6 +58,9 @@ from .protocol import (
     seq16_newer,
 )
 
+if TYPE_CHECKING:
+    from aiohal.servo import ServoParams
+
 WINDOW = 100  # packets in FRI's statistics
 
 
@@ -68,7 +74,9 @@ class KrcOptions:
     ok_latency: float = 0.5
     drop_quality: Quality = Quality.UNACCEPTABLE  # in CMD at or below this: back to MON, drives off
     ramp_packets: int = 20  # quality is capped while the window fills: BAD, then OK, then graded
-    time_constant: float = 0.004
+    time_constant: float = 0.004  # dynamics "first_order"
+    dynamics: str = "first_order"  # or "servo" (aiohal.fieldbus.servo.joint_model)
+    servo: ServoParams | None = None  # dynamics "servo": the drives (None: aiohal.servo's defaults)
     drop_answers: float = 0.0
     seed: int = 0
 
@@ -87,7 +95,8 @@ class KrcSimulator:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, port))
         self.sock.setblocking(False)
-        self.model = ServoModel(JOINTS, opts.time_constant, np.zeros(JOINTS) if initial is None else initial)
+        start = np.zeros(JOINTS) if initial is None else initial
+        self.model = joint_model(opts.dynamics, JOINTS, start, opts.time_constant, opts.servo)
         self.msr = new_msr()
         self.msr["desired_msr_sample_time"] = self.msr["desired_cmd_sample_time"] = opts.cycle_s
         self.msr["safety_limits"] = 1.0
@@ -310,12 +319,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--command-int", type=int, default=16)
     p.add_argument("--status-int", type=int, default=16)
     p.add_argument("--drop-answers", type=float, default=0.0)
-    p.add_argument("--time-constant", type=float, default=0.004)
+    add_dynamics_arguments(p, time_constant=0.004)
     p.add_argument("--priority", type=int, default=None, help="SCHED_FIFO priority, when allowed")
     p.add_argument("--duration", type=float, default=None)
     args = p.parse_args(argv)
     if not 1 <= args.cycle_ms <= 100:
         p.error("--cycle-ms must be 1..100")
+    servo = servo_from_arguments(p, args)
     opts = KrcOptions(
         cycle_s=args.cycle_ms / 1e3,
         strategy_int=args.strategy_int,
@@ -323,6 +333,8 @@ def main(argv: list[str] | None = None) -> None:
         status_int=args.status_int,
         drop_answers=args.drop_answers,
         time_constant=args.time_constant,
+        dynamics=args.dynamics,
+        servo=servo,
     )
     initial = np.array([float(x) for x in args.initial.split(",")]) if args.initial else None
     sim = KrcSimulator(parse_address(args.remote), opts, initial, args.host, args.port)

@@ -12,7 +12,8 @@ sent; anything else is counted by class and dropped. A board that has not answer
 every board) and holds the robot.
 
 With ``simulate = true`` the driver starts ``python -m aiohal.drivers.udp.sim`` itself, on
-loopback with ports the OS picks, so a demo config is one command.
+loopback with ports the OS picks, so a demo config is one command; ``simulation.dynamics``
+picks its joints' model (``"servo"``: LOLA's cascade, ``simulation.servo``).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from pydantic import Field, field_validator
 
 from aiohal.errors import AiohalError
 from aiohal.fieldbus import simprocess
+from aiohal.fieldbus.sim_joints import SimulatedJoints
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault, Mode
@@ -75,8 +77,7 @@ class BoardOptions(Options):
     port: int = Field(ge=1, le=0xFFFF, description="The board's UDP port.")
 
 
-class SimulationOptions(Options):
-    time_constant: FiniteFloat = Field(0.005, gt=0, description="Servo tracking time constant (s).")
+class SimulationOptions(SimulatedJoints):
     drop: FiniteFloat = Field(0.0, ge=0, le=1, description="Probability that a board drops a reply.")
     delay_ms: FiniteFloat = Field(0.0, ge=0, description="Every reply leaves this late.")
     reorder: FiniteFloat = Field(
@@ -289,8 +290,7 @@ class UdpDriver(Driver):
             "--master",
             f"{host}:{port}",
             "--initial=" + ",".join(repr(float(x)) for x in initial),
-            "--time-constant",
-            repr(sim.time_constant),
+            *sim.joint_arguments(),
             "--drop",
             repr(sim.drop),
             "--delay-ms",

@@ -3,7 +3,9 @@
 Each board has its own socket (its own port, as boards have their own addresses), answers
 every command with its joints' state at once, obeys an e-stop datagram at once (latched until
 RESET) and stops its joints when no command came for its watchdog time. The joints are one
-``aiohal.fieldbus.servo.ServoModel``, advanced whenever the simulator wakes.
+model of ``aiohal.fieldbus.servo``, advanced whenever the simulator wakes: ``--dynamics
+first_order`` (the position error decays with ``--time-constant``) or ``servo`` (each joint
+behind a simulated servo drive, LOLA's cascade, its parameters as ``--servo-json``).
 
 Fault injection (per reply, from a seeded generator): ``drop`` a reply, ``delay_ms`` every
 reply, ``reorder`` (hold a reply back and send it after the next), ``garbage`` (send random
@@ -27,10 +29,11 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from aiohal.fieldbus.servo import ServoModel
+from aiohal.fieldbus.servo import add_dynamics_arguments, joint_model, servo_from_arguments
 
 from .protocol import (
     COMMAND_RECORD,
@@ -48,6 +51,9 @@ from .protocol import (
     seal_parts,
     seq_newer,
 )
+
+if TYPE_CHECKING:
+    from aiohal.servo import ServoParams
 
 RECV_SIZE = 2048
 
@@ -89,7 +95,8 @@ class SimBoard:
 
 
 class BoardSimulator:
-    """``layout``: joints per board (board ids 1..N unless ``ids``); ``initial``: start positions."""
+    """``layout``: joints per board (board ids 1..N unless ``ids``); ``initial``: start positions;
+    ``dynamics`` and ``servo`` (an ``aiohal.servo.ServoParams``): see ``joint_model``."""
 
     def __init__(
         self,
@@ -102,13 +109,16 @@ class BoardSimulator:
         key: bytes | None = None,
         initial: list[float] | None = None,
         time_constant: float = 0.005,
+        dynamics: str = "first_order",
+        servo: ServoParams | None = None,
         watchdog_ms: float = 100.0,
         temperature: float = 35.0,
         servo_period_s: float = 0.0005,
         faults: SimFaults | None = None,
     ) -> None:
         n = sum(layout)
-        self.model = ServoModel(n, time_constant, np.asarray(initial, dtype=np.float64) if initial else None)
+        positions = np.asarray(initial, dtype=np.float64) if initial else None
+        self.model = joint_model(dynamics, n, positions, time_constant, servo)
         self.master = master
         self.key = key
         self.watchdog_s = watchdog_ms / 1e3
@@ -366,7 +376,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--master", default=None, help="host:port: answer commands only from there")
     p.add_argument("--key", default=None, help="shared HMAC key, hex")
     p.add_argument("--initial", default=None, help="start positions, comma separated (rad)")
-    p.add_argument("--time-constant", type=float, default=0.005, help="servo tracking time constant (s)")
+    add_dynamics_arguments(p, time_constant=0.005)
     p.add_argument("--watchdog-ms", type=float, default=100.0)
     p.add_argument("--drop", type=float, default=0.0)
     p.add_argument("--delay-ms", type=float, default=0.0)
@@ -383,6 +393,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     p.add_argument("--duration", type=float, default=None, help="serve this long (default: until SIGTERM)")
     args = p.parse_args(argv)
+    servo = servo_from_arguments(p, args)
     layout = [int(x) for x in args.layout.split(",")] if args.layout else [args.joints_per_board] * args.boards
     ports = [0] * len(layout) if args.port == 0 else [args.port + i for i in range(len(layout))]
     sim = BoardSimulator(
@@ -393,6 +404,8 @@ def main(argv: list[str] | None = None) -> None:
         key=bytes.fromhex(args.key) if args.key else None,
         initial=[float(x) for x in args.initial.split(",")] if args.initial else None,
         time_constant=args.time_constant,
+        dynamics=args.dynamics,
+        servo=servo,
         watchdog_ms=args.watchdog_ms,
         faults=SimFaults(
             args.drop, args.delay_ms, args.reorder, args.garbage, args.die_board, args.die_after_s, args.seed
