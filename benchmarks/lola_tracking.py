@@ -54,7 +54,7 @@ class EthercatBus:
         self.servo = self.raw["driver"][0]["options"]["servo"]
         self.start = float(self.raw["driver"][0]["options"]["initial_position"])
         self.segment = SimulatedSegment(
-            "drive", watchdog_ms=100, extra_args=["--dynamics", "servo", "--servo", json.dumps(self.servo)]
+            "drive", watchdog_ms=100, extra_args=["--dynamics", "servo", "--servo-json", json.dumps(self.servo)]
         )
 
     def __enter__(self) -> EthercatBus:

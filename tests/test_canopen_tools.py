@@ -86,7 +86,7 @@ async def test_the_simulator_command_line_serves_a_driver_until_stopped():
 
 def test_the_simulator_command_line_refuses_bad_servo_parameters(capsys):
     args = ["--interface", "virtual", "--channel", channel(), "--drives", "1", "--dynamics", "servo"]
-    assert sim_main([*args, "--servo", '{"gear_ratio": 0}'], threading.Event(), None) == 2
+    assert sim_main([*args, "--servo-json", '{"gear_ratio": 0}'], threading.Event(), None) == 2
     err = capsys.readouterr().err
     assert "drive: servo: " in err and "gear_ratio" in err
 

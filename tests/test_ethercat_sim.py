@@ -1404,7 +1404,7 @@ def test_cli_bench_and_errors(capsys):
     assert main(["--slaves", "drive*2,imu", "--dynamics", "servo", "--bench", "50"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["state"] == OP and result["drives_enabled"] == 2
-    assert main(["--slaves", "drive", "--dynamics", "servo", "--servo", '{"gear_ratio": -1}', "--bench", "5"]) == 2
+    assert main(["--slaves", "drive", "--dynamics", "servo", "--servo-json", '{"gear_ratio": -1}', "--bench", "5"]) == 2
     assert "drive: servo: " in capsys.readouterr().err
 
 

@@ -49,7 +49,9 @@ def main(
     parser.add_argument(
         "--dynamics", choices=("motor", "servo"), default="motor", help="servo: aiohal.servo's cascade per drive"
     )
-    parser.add_argument("--servo", type=json.loads, default=None, help="with --dynamics servo: ServoParams as JSON")
+    parser.add_argument(
+        "--servo-json", type=json.loads, default=None, help="with --dynamics servo: ServoParams as JSON"
+    )
     parser.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     args = parser.parse_args(argv)
     if not args.drives and not args.sensors:
@@ -66,7 +68,7 @@ def main(
     except Exception as exc:  # python-can raises several kinds for a bus it cannot open
         print(f"cannot open {args.interface}:{args.channel}: {exc}", file=sys.stderr)
         return 1
-    settings = {"dynamics": args.dynamics, **({"servo": args.servo} if args.servo is not None else {})}
+    settings = {"dynamics": args.dynamics, **({"servo": args.servo_json} if args.servo_json is not None else {})}
     try:
         for drive in sim.drives.values():
             drive.configure(**settings)

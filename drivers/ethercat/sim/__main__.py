@@ -61,7 +61,7 @@ def _parser() -> argparse.ArgumentParser:
         help="every drive's dynamics: servo is aiohal.servo's cascade (a hip-like joint behind a gear)",
     )
     p.add_argument(
-        "--servo", metavar="JSON", type=json.loads, help="with --dynamics servo: aiohal.servo.ServoParams fields"
+        "--servo-json", metavar="JSON", type=json.loads, help="with --dynamics servo: aiohal.servo.ServoParams fields"
     )
     p.add_argument("--drop-prob", type=float, help="shortcut for --inject drop prob")
     p.add_argument("--delay-ms", type=float, help="shortcut for --inject delay ms")
@@ -87,10 +87,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     commands = [json.loads(c) for c in args.inject]
-    if args.dynamics is not None or args.servo is not None:
+    if args.dynamics is not None or args.servo_json is not None:
         setting = {"dynamics": args.dynamics or "servo"}
-        if args.servo is not None:
-            setting["servo"] = args.servo
+        if args.servo_json is not None:
+            setting["servo"] = args.servo_json
         drives = [k for k, esc in enumerate(segment.slaves) if esc.device.kind == "drive"]
         commands[:0] = [{"cmd": "device", "slave": k, **setting} for k in drives]
     if args.drop_prob is not None:
