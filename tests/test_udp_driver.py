@@ -319,3 +319,37 @@ async def test_servo_boards_track_a_ramp_and_velocity_feedforward_removes_its_la
     assert without - with_ff == pytest.approx(v / gain, rel=0.2), (without, with_ff)
     assert 0.0 < with_ff < 0.5 * v / gain, (without, with_ff)
     assert d.health()["simulated_boards"]["commands"] >= k
+
+
+@pytest.mark.asyncio
+async def test_after_an_emergency_stop_the_boards_are_reset_and_the_robot_re_armed_without_a_jump():
+    """estop: every board latches its stop; while the loop commands nothing the driver keeps
+    the boards answering (braked where they stand); reset_faults() RESETs them, rearm()
+    restarts the sine from the measured position."""
+    from helpers import assert_bumpless, record
+
+    loop = ControlLoop(parse_config(_config(3, silent_ticks=100, simulation={"priority": None})))
+    async with loop:
+        sent, measured, own = record(loop)
+        await loop.run(duration=0.6)  # the sine moving
+        loop.estop()
+        report = await loop.run(duration=0.3)  # far longer than silent_ticks: the boards still answer
+        assert report["safety_level"] == "estop" and report["drivers"]["boards"]["status"] != "failed"
+        assert np.all(loop.robot.state.fault != 0)  # the boards report their latched stop
+        loop.reset_faults()
+        await loop.run(duration=0.1)  # the RESETs answered
+        held = loop.robot.state.position.copy()
+        rearm_tick = loop.robot.clock.tick
+        loop.rearm()
+        report = await loop.run(duration=1.0)
+    health = loop.report()["drivers"]["boards"]
+    assert report["safety_level"] == "run"
+    assert [t["event"] for t in report["safety"]] == ["activate", "estop", "reset_faults", "rearm"]
+    assert health["simulated_boards"]["estops"] >= 3
+    i = [k for k, _ in sent].index(rearm_tick)
+    assert np.abs(measured[i] - held).max() < 1e-3
+    step = loop.robot.velocity_limit * loop.period_s
+    first = next(q for k, q in own if k > rearm_tick)
+    assert (np.abs(first - measured[i]) <= step + 1e-9).all(), (first, measured[i])
+    assert_bumpless(loop, sent[i + 1:], measured[i + 1:], own, sent[i + 1][0])
+    assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + 200])[:, 0]) > 0.05  # the sine again

@@ -206,6 +206,7 @@ class UdpDriver(Driver):
         self._rtt_ns = np.zeros(RTT_RING, dtype=np.int64)
         self._rtt_count = 0
         self._first_read = True
+        self._written = True  # write() sent this tick's commands (the first read: open's RESET did)
         self._fault_latched = False
         self.sock: socket.socket | None = None
         self.sim_process: asyncio.subprocess.Process | None = None
@@ -422,6 +423,13 @@ class UdpDriver(Driver):
         if self._outstanding:
             self.counters["lost"] += len(self.board_ids) - len(taken)
             self._outstanding = False
+        if not self._written:
+            # the loop commands nothing (emergency stop, disabled): the boards still get a
+            # datagram each tick, every joint braked where it stands (mode NONE), so that they
+            # keep answering and their watchdog does not trip
+            self.tx_records["mode"] = Mode.NONE
+            self._send_commands()
+        self._written = False
         state = view.state
         if taken:
             self._publish_state()
@@ -465,6 +473,7 @@ class UdpDriver(Driver):
         np.copyto(tx["stiffness"], command.stiffness, casting="same_kind")
         np.copyto(tx["damping"], command.damping, casting="same_kind")
         self._send_commands()
+        self._written = True
 
     def _send_commands(self) -> None:
         """Every board its datagram: its header (seq, ack, CRC, MAC) and its run of records."""
@@ -502,6 +511,18 @@ class UdpDriver(Driver):
         for i in range(len(self.addresses)):
             self._seq = (self._seq + 1) & 0xFFFFFFFF
             self._send_control(i, Kind.ESTOP)
+
+    def release_estop(self) -> bool:
+        """Leave the emergency stop: a RESET to every board (it clears the latched stop and its
+        faults); the joints stay braked where they stand until the loop, re-armed, commands
+        them. A RESET that is lost leaves that board's fault bits set: ``rearm()`` says so."""
+        if self.sock is None or self.sock.fileno() < 0:
+            return False
+        self.estopped = False
+        for i in range(len(self.addresses)):
+            self._seq = (self._seq + 1) & 0xFFFFFFFF
+            self._send_control(i, Kind.RESET)
+        return True
 
     def safe_actions(self) -> list:
         """The ESTOP datagram of every board, as :meth:`estop` sends it (with the MAC when a
