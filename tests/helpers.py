@@ -89,3 +89,20 @@ def assert_bumpless(loop, sent, measured, own, rearm_tick, since=0):
     assert first, "the controller did not run after the re-arm"
     assert (np.abs(first[0] - positions[i]) <= step).all(), (first[0], positions[i])
     assert (np.abs(first[0] - measured[i]) <= step + 1e-9).all(), (first[0], measured[i])
+
+
+def assert_rearmed_from_disabled(loop, sent, measured, own, rearm_tick, held, held_within, moving_after):
+    """After a re-arm from ``disabled`` (an emergency stop released), where nothing was sent:
+    the joints stood where the drives held them (``held``, within ``held_within``), the
+    controller's first command lies within one step of the velocity limit of the measured
+    position, every step after it is bumpless, and the first joint moves again (more than
+    0.05 rad peak to peak) ``moving_after`` ticks on."""
+    import numpy as np
+
+    i = [k for k, _ in sent].index(rearm_tick)
+    assert np.abs(measured[i] - held).max() < held_within
+    step = loop.robot.velocity_limit * loop.period_s
+    first = next(q for k, q in own if k > rearm_tick)
+    assert (np.abs(first - measured[i]) <= step + 1e-9).all(), (first, measured[i])
+    assert_bumpless(loop, sent[i + 1 :], measured[i + 1 :], own, sent[i + 1][0])
+    assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + moving_after])[:, 0]) > 0.05

@@ -316,7 +316,7 @@ async def test_after_an_emergency_stop_the_robot_is_released_and_re_armed_withou
     """estop mid-sine: the drives quick-stop (the driver keeps cycling them while the loop
     commands nothing); reset_faults() enables them again where they stand; rearm() restarts
     the sine from the measured position."""
-    from helpers import assert_bumpless, record
+    from helpers import assert_rearmed_from_disabled, record
 
     from aiohal.fieldbus.cia402 import State
 
@@ -349,10 +349,4 @@ async def test_after_an_emergency_stop_the_robot_is_released_and_re_armed_withou
         report = await loop.run(ticks=500)
     assert report["safety_level"] == "run" and report["faults"] == []
     assert [t["event"] for t in report["safety"]] == ["activate", "estop", "reset_faults", "rearm"]
-    i = [k for k, _ in sent].index(rearm_tick)
-    assert np.abs(measured[i] - held).max() < 1e-4
-    step = loop.robot.velocity_limit * loop.period_s
-    first = next(q for k, q in own if k > rearm_tick)
-    assert (np.abs(first - measured[i]) <= step + 1e-9).all(), (first, measured[i])
-    assert_bumpless(loop, sent[i + 1:], measured[i + 1:], own, sent[i + 1][0])
-    assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + 200])[:, 0]) > 0.05  # the sine again
+    assert_rearmed_from_disabled(loop, sent, measured, own, rearm_tick, held, 1e-4, moving_after=200)

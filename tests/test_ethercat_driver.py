@@ -624,7 +624,7 @@ async def test_an_emergency_stop_quick_stops_every_drive_in_split_mode(segment):
 async def test_after_an_emergency_stop_the_robot_is_released_and_re_armed_without_a_jump(segment):
     """estop mid-motion, the drives quick-stop; reset_faults() releases the bus (the drives
     enabled again where they stand), rearm() restarts the sine from the measured state."""
-    from helpers import assert_bumpless, record
+    from helpers import assert_rearmed_from_disabled, record
 
     from aiohal.fieldbus.cia402 import State
 
@@ -659,13 +659,7 @@ async def test_after_an_emergency_stop_the_robot_is_released_and_re_armed_withou
     assert [t["event"] for t in report["safety"]] == ["activate", "estop", "reset_faults", "rearm"]
     # from disabled nothing was sent: the command starts again from the measured position,
     # where the drives held the joints since they were enabled again
-    i = [k for k, _ in sent].index(rearm_tick)
-    assert np.abs(measured[i] - held).max() < 1e-4
-    step = loop.robot.velocity_limit * loop.period_s
-    first = next(q for k, q in own if k > rearm_tick)
-    assert (np.abs(first - measured[i]) <= step + 1e-9).all(), (first, measured[i])
-    assert_bumpless(loop, sent[i + 1:], measured[i + 1:], own, sent[i + 1][0])
-    assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + 1000])[:, 0]) > 0.05  # the sine again
+    assert_rearmed_from_disabled(loop, sent, measured, own, rearm_tick, held, 1e-4, moving_after=1000)
 
 
 @pytest.mark.asyncio

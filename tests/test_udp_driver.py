@@ -326,7 +326,7 @@ async def test_after_an_emergency_stop_the_boards_are_reset_and_the_robot_re_arm
     """estop: every board latches its stop; while the loop commands nothing the driver keeps
     the boards answering (braked where they stand); reset_faults() RESETs them, rearm()
     restarts the sine from the measured position."""
-    from helpers import assert_bumpless, record
+    from helpers import assert_rearmed_from_disabled, record
 
     loop = ControlLoop(parse_config(_config(3, silent_ticks=100, simulation={"priority": None})))
     async with loop:
@@ -346,10 +346,4 @@ async def test_after_an_emergency_stop_the_boards_are_reset_and_the_robot_re_arm
     assert report["safety_level"] == "run"
     assert [t["event"] for t in report["safety"]] == ["activate", "estop", "reset_faults", "rearm"]
     assert health["simulated_boards"]["estops"] >= 3
-    i = [k for k, _ in sent].index(rearm_tick)
-    assert np.abs(measured[i] - held).max() < 1e-3
-    step = loop.robot.velocity_limit * loop.period_s
-    first = next(q for k, q in own if k > rearm_tick)
-    assert (np.abs(first - measured[i]) <= step + 1e-9).all(), (first, measured[i])
-    assert_bumpless(loop, sent[i + 1:], measured[i + 1:], own, sent[i + 1][0])
-    assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + 200])[:, 0]) > 0.05  # the sine again
+    assert_rearmed_from_disabled(loop, sent, measured, own, rearm_tick, held, 1e-3, moving_after=200)
