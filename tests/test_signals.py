@@ -153,6 +153,10 @@ def test_ctrl_c_while_starting_exits_130_without_a_traceback(module):
     script = f"""
 import os, runpy, signal, sys
 
+# as a terminal starts it: a job started in the background by a non-interactive shell (a CI
+# script's `&`) inherits SIGINT ignored, and Python then leaves it ignored
+signal.signal(signal.SIGINT, signal.default_int_handler)
+
 class CtrlC:
     def find_spec(self, name, path=None, target=None):
         if name == {module!r}:
