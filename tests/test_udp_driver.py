@@ -299,25 +299,29 @@ async def test_servo_boards_track_a_ramp_and_velocity_feedforward_removes_its_la
     try:
         rob.command.mode[:] = Mode.POSITION
         t0 = time.monotonic()
-        k = 0
-        while (t := time.monotonic() - t0) < 0.6 and k < 2000:
+        k, feedforward, phase_start = 0, False, 0.0
+        # each phase at least 0.3 s and 20 samples (a stalled host takes longer, bounded by 10 s)
+        while (t := time.monotonic() - t0) < 10.0 and k < 20_000:
+            if t - phase_start >= 0.3 and len(lags[feedforward]) >= 20:
+                if feedforward:
+                    break
+                feedforward, phase_start = True, t
             k += 1
-            feedforward = t >= 0.3
             rob.command.position[:] = v * t
             rob.command.velocity[:] = v if feedforward else 0.0
             await d.write()
             await asyncio.sleep(0.002)
             await tick(d, k)
-            if rob.state.updated_tick[0] == k and (t % 0.3) >= 0.15:  # the board's state when command k came
+            if rob.state.updated_tick[0] == k and t - phase_start >= 0.15:  # the board's state when command k came
                 lags[feedforward].append(v * t - float(rob.state.position[0]))
     finally:
         await d.close()
     assert len(lags[False]) >= 20 and len(lags[True]) >= 20, {ff: len(x) for ff, x in lags.items()}
     without, with_ff = float(np.median(lags[False])), float(np.median(lags[True]))
     print(f"ramp lag: {without * 1e3:.2f} mrad without velocity feed-forward, {with_ff * 1e3:.2f} mrad with it, "
-          f"a command every {0.6 / k * 1e3:.2f} ms")
+          f"a command every {t / k * 1e3:.2f} ms")
     assert without - with_ff == pytest.approx(v / gain, rel=0.2), (without, with_ff)
-    assert 0.0 < with_ff < 0.5 * v / gain, (without, with_ff)
+    assert 0.0 < with_ff < 0.5 * without, (without, with_ff)  # what is left: the hold-off of one command
     assert d.health()["simulated_boards"]["commands"] >= k
 
 
