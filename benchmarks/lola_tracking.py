@@ -135,7 +135,12 @@ async def tracking_run(rate_hz: float, every: int, k_e: float | None, bus: Ether
     t = times[: count[0]]
     error = target[:, 0] - measured[: count[0]]
     keep = t >= settle
+    # the target of a tick against the position read one tick later (on a bus whose slaves
+    # answer with the inputs of the cycle before, that is the position at the target's time)
+    next_tick = (np.round(np.diff(t) * rate_hz) == 1) & keep[:-1]
+    error_next = target[:-1, 0][next_tick] - measured[1 : count[0]][next_tick]
     return {"t": t[keep] - settle, "error": error[keep], "rms": float(np.sqrt(np.mean(error[keep] ** 2))),
+            "rms_one_tick_later": float(np.sqrt(np.mean(error_next**2))),
             "faults": report["faults"], "refused": report["commands_refused"],
             "missed_ticks": report["missed_ticks"], "controller_rms": report["controller"].get("tracking_rms_rad")}
 
@@ -208,6 +213,7 @@ async def main_async(args, bus: EthercatBus | None = None) -> dict:
         "rms_ref_rad": runs["ref"]["rms"],
         "rms_ff_rad": runs["ff"]["rms"],
         "rms_ff_2khz_rad": runs["ff_2khz"]["rms"],
+        "rms_one_tick_later_rad": {name: run["rms_one_tick_later"] for name, run in runs.items()},
         "k_e": k_e,
         "k_e_2khz": k_e_2khz,
         "reduction_ff": 1.0 - runs["ff"]["rms"] / runs["ref"]["rms"],

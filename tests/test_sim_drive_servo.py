@@ -88,7 +88,6 @@ def test_0x60b1_is_the_cascades_velocity_feedforward(velocity_ff):
 def test_cst_gives_the_commanded_joint_torque():
     """Target torque in per mille of the motor's rated torque, through the gear: a joint held
     against a stop (static friction above the command) shows the commanded torque."""
-    drive = None
     drive, image, group, state, command = servo_bus()
     drive.configure(servo={**PARAMS, "coulomb": 50.0})
     k0 = enable(drive, image, group, state, command, Mode.EFFORT)
