@@ -19,6 +19,7 @@ import pytest
 from conftest import CONFIGS, ROOT, require_root, start_segment
 
 from aiohal.config import parse_config
+from aiohal.drivers.ethercat.bus import EthercatError
 from aiohal.errors import ConfigError, DriverError
 from aiohal.loop import ControlLoop
 from aiohal.robot import Fault
@@ -555,6 +556,17 @@ async def test_an_interface_that_does_not_exist_is_named():
     loop = ControlLoop(parse_config(raw))
     with pytest.raises(DriverError, match="'ahnosuchif0' does not exist"):
         await loop.activate()
+
+
+@pytest.mark.asyncio
+async def test_a_driver_never_opened_stops_closes_and_reports_without_touching_a_bus():
+    driver = driver_of(ControlLoop(parse_config(raw_config("ahnosuchif0"))))
+    driver.estop()  # the loop's safe state on a failure elsewhere, before this driver's open
+    assert driver.health() == {}
+    await driver.close()
+    assert not driver.bus.is_open and driver.drives is None
+    with pytest.raises(EthercatError, match="no slave at position 0"):
+        await driver.sdo_read(0, 0x1000)
 
 
 def test_the_shipped_config_runs_from_the_command_line(segment, tmp_path):

@@ -1,9 +1,31 @@
-"""PDO mappings given in a configuration: ``'index:subindex:bits'`` entries per PDO mapping
-object, checked for every bus that maps PDOs (EtherCAT CoE, CANopen)."""
+"""Options shared by the buses that map PDOs to CiA 402 drives (EtherCAT CoE, CANopen):
+``'index:subindex:bits'`` entries per PDO mapping object, and a drive's units."""
 
 from __future__ import annotations
 
+from pydantic import Field
+
+from aiohal.hal import FiniteFloat, Options
+
 from .busvar import encode_mapping
+from .cia402 import DriveUnits
+
+
+class DriveUnitOptions(Options):
+    """A bus's ``drive_defaults``: each drive's own ``counts_per_rev``, ``gear_ratio`` and
+    ``rated_torque`` override them."""
+
+    counts_per_rev: FiniteFloat = Field(131072, gt=0, description="Encoder increments per motor revolution (0x608F).")
+    gear_ratio: FiniteFloat = Field(1.0, gt=0, description="Motor revolutions per joint revolution.")
+    rated_torque: FiniteFloat = Field(1.0, gt=0, description="Motor rated torque in N·m (0x6076 / 1000).")
+
+    def units(
+        self, counts_per_rev: float | None = None, gear_ratio: float | None = None, rated_torque: float | None = None
+    ) -> DriveUnits:
+        """One drive's units: its own values where given, these defaults elsewhere."""
+        return DriveUnits(
+            counts_per_rev or self.counts_per_rev, gear_ratio or self.gear_ratio, rated_torque or self.rated_torque
+        )
 
 
 def parse_pdo_entry(text: str) -> int:

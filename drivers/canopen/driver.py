@@ -39,7 +39,7 @@ from aiohal.errors import AiohalError
 from aiohal.fieldbus.busvar import decode_mapping
 from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec, respond_to_event
-from aiohal.fieldbus.pdo_options import parse_number, parse_pdo_entry, pdo_issues
+from aiohal.fieldbus.pdo_options import DriveUnitOptions, parse_number, parse_pdo_entry, pdo_issues
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
@@ -77,12 +77,6 @@ CAN_ERR_BUSOFF = 0x40  # error class of a socketcan error frame (linux/can/error
 
 class CanopenError(AiohalError, RuntimeError):
     """A CANopen bus or node that cannot be used (bring-up) or was lost (heartbeat)."""
-
-
-class DriveUnitOptions(Options):
-    counts_per_rev: FiniteFloat = Field(131072, gt=0, description="Encoder increments per motor revolution (0x608F).")
-    gear_ratio: FiniteFloat = Field(1.0, gt=0, description="Motor revolutions per joint revolution.")
-    rated_torque: FiniteFloat = Field(1.0, gt=0, description="Motor rated torque in N·m (0x6076 / 1000).")
 
 
 class NodeOptions(Options):
@@ -593,14 +587,7 @@ class CanopenDriver(Driver):
 
     def _units(self) -> list[DriveUnits]:
         defaults = self.options.drive_defaults
-        return [
-            DriveUnits(
-                n.counts_per_rev or defaults.counts_per_rev,
-                n.gear_ratio or defaults.gear_ratio,
-                n.rated_torque or defaults.rated_torque,
-            )
-            for n in self.options.nodes
-        ]
+        return [defaults.units(n.counts_per_rev, n.gear_ratio, n.rated_torque) for n in self.options.nodes]
 
     def _link(self, offsets: list[list[int]]) -> None:
         opts, view = self.options, self.view

@@ -76,6 +76,12 @@ def state_name(state: int) -> str:
     return name + ("+ERROR" if state & STATE_ERROR else "")
 
 
+def shares_a_byte(layout: PdoLayout) -> bool:
+    """A slave of 1-7 bits in a direction: SOEM packs it into a byte it shares with its
+    neighbours, and pysoem reads and writes whole bytes per slave, so this driver refuses it."""
+    return 0 < layout.output_bits < 8 or 0 < layout.input_bits < 8
+
+
 @dataclass
 class SlaveInfo:
     """What bring-up found at one bus position."""

@@ -34,19 +34,15 @@ import logging
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Literal, cast
+from typing import Any, cast
 
 import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
-from pydantic import Field
 
-from aiohal.fieldbus.busvar import PdoLayout, ProcessImage, UnknownVariableError, VariableTypeError
-from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
+from aiohal.fieldbus.busvar import ProcessImage, UnknownVariableError, VariableTypeError
+from aiohal.fieldbus.cia402 import DriveEvent, EventKind, State, Target
 from aiohal.fieldbus.drives import respond_to_event
-from aiohal.fieldbus.pdo_options import parse_number as _number
-from aiohal.fieldbus.pdo_options import parse_pdo_entry
-from aiohal.fieldbus.pdo_options import pdo_issues as _pdo_issues
-from aiohal.hal import Driver, FiniteFloat, Options
+from aiohal.hal import Driver
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 
@@ -60,27 +56,15 @@ from .bus import (
     TransientBringUpError,
     check_identity,
     expected_wkc,
+    shares_a_byte,
     state_name,
 )
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
+from .options import FT_CONTROL, FT_VARIABLES, IMU_VARIABLES, EthercatOptions, option_issues
 
 log = logging.getLogger(__name__)
 
 RING = 1 << 16  # per-cycle timings kept for the report (the last 65 s at 1 kHz)
-IMU_VARIABLES = {
-    "quaternion": "Orientation",
-    "angular_velocity": "Angular velocity",
-    "linear_acceleration": "Linear acceleration",
-    "status": "Status",
-}
-FT_VARIABLES = {"wrench": "Wrench", "status": "Status"}
-FT_CONTROL = "Control"  # the F/T output that tares, used when the slave maps one (variables.control)
-
-
-class DriveUnitOptions(Options):
-    counts_per_rev: FiniteFloat = Field(131072, gt=0, description="Encoder increments per motor revolution (0x608F).")
-    gear_ratio: FiniteFloat = Field(1.0, gt=0, description="Motor revolutions per joint revolution.")
-    rated_torque: FiniteFloat = Field(1.0, gt=0, description="Motor rated torque in N·m (0x6076 / 1000).")
 
 
 def _has_variable(image: ProcessImage, slave: str, name: str) -> bool:
@@ -91,115 +75,6 @@ def _has_variable(image: ProcessImage, slave: str, name: str) -> bool:
     return True
 
 
-def shares_a_byte(layout: PdoLayout) -> bool:
-    """A slave of 1-7 bits in a direction: SOEM packs it into a byte it shares with its
-    neighbours, and pysoem reads and writes whole bytes per slave, so this driver refuses it."""
-    return 0 < layout.output_bits < 8 or 0 < layout.input_bits < 8
-
-
-RX_PDOS, TX_PDOS = (0x1600, 0x17FF), (0x1A00, 0x1BFF)  # where CiA 301 puts the PDO mapping objects
-
-
-class SlaveOptions(Options):
-    name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_ -]*$", description="Bus variables are '<name>.<variable>'.")
-    kind: Literal["cia402", "imu", "force_torque", "other"] = "other"
-    joint: str | None = Field(None, description="cia402: the joint this drive moves.")
-    device: str | None = Field(None, description="imu / force_torque: the robot device it fills.")
-    vendor_id: int | None = Field(None, ge=0, description="Checked at bring-up when given.")
-    product_code: int | None = Field(None, ge=0, description="Checked at bring-up when given.")
-    counts_per_rev: FiniteFloat | None = Field(None, gt=0)
-    gear_ratio: FiniteFloat | None = Field(None, gt=0)
-    rated_torque: FiniteFloat | None = Field(None, gt=0)
-    position_offset: FiniteFloat = Field(0.0, description="rad added to the drive's position.")
-    names: dict[str, str | list[str]] = Field(default_factory=dict, description="Bus variable names by address.")
-    variables: dict[str, str] = Field(default_factory=dict, description="imu / force_torque: which variables to read.")
-    sync0: bool | None = Field(
-        None, description="SYNC0 on this slave (default: options.sync0 for a cia402 drive, off for others)."
-    )
-    rx_pdos: dict[str, list[str]] | None = Field(
-        None,
-        description="Remap the outputs: the RxPDOs assigned (0x1C12), in order, each with its entries "
-        "'index:subindex:bits' (e.g. '0x607A:0:32'; an empty list assigns the PDO as the slave "
-        "maps it). Written over CoE in PREOP, before the mapping is read.",
-    )
-    tx_pdos: dict[str, list[str]] | None = Field(None, description="Remap the inputs: the TxPDOs (0x1C13), as rx_pdos.")
-
-    def pdo_assignments(self) -> list[tuple[int, list[tuple[int, list[int]]]]]:
-        """(0x1C12 or 0x1C13, [(PDO, mapping entries)]) to write; checked by check_config."""
-        return [
-            (assign, [(_number(pdo), [parse_pdo_entry(e) for e in entries]) for pdo, entries in pdos.items()])
-            for assign, pdos in ((0x1C12, self.rx_pdos), (0x1C13, self.tx_pdos))
-            if pdos is not None
-        ]
-
-
-class EthercatOptions(Options):
-    interface: str = Field(min_length=1, description="The one network interface the master opens.")
-    slaves: list[SlaveOptions] = Field(min_length=1, description="Every slave, in bus order.")
-    drive_defaults: DriveUnitOptions = Field(default_factory=DriveUnitOptions)
-    exchange: Literal["split", "immediate"] = "split"
-    receive_timeout_us: int = Field(200, ge=10, le=100_000, description="Wait for the cyclic frame in read().")
-    bringup_receive_timeout_us: int = Field(50_000, ge=1000, le=1_000_000)
-    frame_timeout_us: int | None = Field(
-        None, ge=500, le=100_000, description="pysoem.settings.timeouts.ret (process-wide) for bring-up frames."
-    )
-    take_over: bool = Field(
-        False,
-        description="Bring up a bus whose slaves are in OP under another master (not "
-        "aiohal), knocking that one off; refused otherwise.",
-    )
-    overlap_map: bool = Field(False, description="config_overlap_map (inputs and outputs share logical addresses).")
-    dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
-    sync0: bool = Field(
-        False,
-        description="Activate SYNC0 at the loop's period on every cia402 drive (DC-synchronous "
-        "drives need it, e.g. in CSP); needs dc.",
-    )
-    sync0_shift_us: FiniteFloat = Field(0.0, ge=0, description="SYNC0 pulses this long after the period's DC time.")
-    wkc_error_limit: int = Field(
-        10, ge=1, le=10_000, description="Bad cycles in a row before the slaves' states are read."
-    )
-    al_check_interval_ms: FiniteFloat = Field(
-        20.0,
-        ge=1,
-        le=10_000,
-        description="Every slave's AL state is read this often, off the tick: a slave in SAFEOP "
-        "(+ERROR) keeps its working counter, so only its state tells.",
-    )
-    recover_interval_s: FiniteFloat = Field(1.0, gt=0, description="Between two recovery steps of a lost sensor.")
-    bringup_attempts: int = Field(2, ge=1, le=10, description="A bring-up that fails is tried again from scratch.")
-    enable_on_open: bool = Field(True, description="Enable the drives at bring-up; else enable_drives() does.")
-    keepalive_after_ms: FiniteFloat = Field(
-        20.0, gt=0, le=1000, description="The driver cycles the bus itself when the loop has not for this long."
-    )
-    enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
-    safeop_timeout_s: FiniteFloat = Field(
-        2.0, gt=0, description="Mapped slaves reach SAFEOP within this (a request lost in a stall is sent again)."
-    )
-    op_timeout_s: FiniteFloat = Field(
-        10.0,
-        gt=0,
-        description="SAFEOP -> OP within this (a slave's ESI gives its SafeopOpTimeout; drives can take seconds).",
-    )
-    stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
-    sm_watchdog_ms: FiniteFloat | None = Field(
-        None,
-        ge=0.1,
-        le=6000,
-        description="The process-data (SM) watchdog time written to every slave with "
-        "outputs before OP: when no frame reaches it for this long (the whole process frozen), the slave leaves "
-        "OP and its drive goes to its safe state (0x6007) on its own. Default: the slaves' own setting.",
-    )
-
-    def sync0_slaves(self) -> list[int]:
-        """Bus positions of the slaves whose SYNC0 is activated."""
-        return [
-            i
-            for i, s in enumerate(self.slaves)
-            if (s.sync0 if s.sync0 is not None else self.sync0 and s.kind == "cia402")
-        ]
-
-
 class EthercatDriver(Driver):
     Options = EthercatOptions
     device_kinds = frozenset({"imu", "force_torque"})
@@ -207,58 +82,14 @@ class EthercatDriver(Driver):
 
     @classmethod
     def check_config(cls, options, joints, devices, robot):
-        issues: list[tuple[str, str]] = []
-        seen: dict[str, int] = {}
-        drives_for: dict[str, int] = {}
-        # the keep-alive cycles the bus within 1.5 x keepalive_after_ms of the last tick
-        if options.sm_watchdog_ms is not None and options.sm_watchdog_ms < 1.5 * options.keepalive_after_ms + 2:
-            issues.append(
-                (
-                    "options.sm_watchdog_ms",
-                    f"{options.sm_watchdog_ms:g} ms would trip between runs: make it "
-                    f"at least 1.5 x keepalive_after_ms + 2 ms ({1.5 * options.keepalive_after_ms + 2:g})",
-                )
-            )
-        for i, s in enumerate(options.slaves):
-            where = f"options.slaves[{i}]"
-            key = s.name.strip().lower().replace(" ", "_")
-            if key in seen:
-                issues.append((f"{where}.name", f"{s.name!r} is also the name of slaves[{seen[key]}]"))
-            seen[key] = i
-            if s.kind == "cia402":
-                if s.joint is None:
-                    issues.append((f"{where}.joint", "a cia402 drive needs the joint it moves"))
-                elif s.joint not in joints:
-                    issues.append((f"{where}.joint", f'"{s.joint}" is not one of this driver\'s joints {joints}'))
-                elif s.joint in drives_for:
-                    issues.append((f"{where}.joint", f'"{s.joint}" is already moved by slaves[{drives_for[s.joint]}]'))
-                else:
-                    drives_for[s.joint] = i
-            elif s.joint is not None:
-                issues.append((f"{where}.joint", f"only a cia402 drive moves a joint, this slave is {s.kind!r}"))
-            if s.kind in ("imu", "force_torque"):
-                if s.device is None:
-                    issues.append((f"{where}.device", f"an {s.kind} slave needs the device it fills"))
-                elif devices.get(s.device) != s.kind:
-                    issues.append((f"{where}.device", f'"{s.device}" is not an {s.kind} device of this driver'))
-                allowed = IMU_VARIABLES if s.kind == "imu" else {**FT_VARIABLES, "control": FT_CONTROL}
-                for key in s.variables:
-                    if key not in allowed:
-                        issues.append((f"{where}.variables.{key}", f"unknown; expected one of {sorted(allowed)}"))
-            elif s.device is not None:
-                issues.append((f"{where}.device", f"a {s.kind} slave fills no device"))
-            for key, pdos, (low, high) in (("rx_pdos", s.rx_pdos, RX_PDOS), ("tx_pdos", s.tx_pdos, TX_PDOS)):
-                issues += _pdo_issues(f"{where}.{key}", pdos, low, high)
-        if not options.dc and options.sync0_slaves():
-            issues.append(("options.sync0", "SYNC0 needs distributed clocks (options.dc = true)"))
-        for joint in joints:
-            if joint not in drives_for:
-                issues.append(("joints", f'joint "{joint}" has no cia402 drive in options.slaves'))
-        served = {s.device for s in options.slaves}
-        for name in devices:
-            if name not in served:
-                issues.append(("devices", f'device "{name}" has no slave in options.slaves'))
-        return issues
+        return option_issues(options, joints, devices)
+
+    def __init__(self, name, view, options) -> None:
+        super().__init__(name, view, options)
+        self.bus = self._new_bus()  # opens nothing: open() does, on a fresh one per attempt
+        self._executor: ThreadPoolExecutor | None = None  # the driver's own thread, from open() on
+        self._loop_thread = threading.get_ident()
+        self._init_state()
 
     # ------------------------------------------------------------ lifecycle
 
@@ -266,19 +97,19 @@ class EthercatDriver(Driver):
         opts = self.options
         if opts.frame_timeout_us is not None:
             pysoem.settings.timeouts.ret = opts.frame_timeout_us
-        self._executor = ThreadPoolExecutor(1, thread_name_prefix=f"ethercat-{self.name}")
+        self._executor = executor = ThreadPoolExecutor(1, thread_name_prefix=f"ethercat-{self.name}")
         loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
         first: BaseException | None = None
         for attempt in range(1, opts.bringup_attempts + 1):
             self._init_state()
-            self.bus = Bus(pysoem, opts.interface, overlap=opts.overlap_map, take_over=opts.take_over)
+            self.bus = self._new_bus()
             try:
-                await loop.run_in_executor(self._executor, self._bring_up)
+                await loop.run_in_executor(executor, self._bring_up)
                 return
             except BaseException as exc:
                 self._stop_keepalive(raise_error=False)
-                await loop.run_in_executor(self._executor, self._shutdown)
+                await loop.run_in_executor(executor, self._shutdown)
                 # a frame lost in a stall (an SII or mailbox read, a state change) fails a
                 # bring-up that works the next time; a configuration error fails every attempt,
                 # and the first error is the one that says why
@@ -295,7 +126,12 @@ class EthercatDriver(Driver):
                     raise
                 log.warning("ethercat %s: bring-up attempt %d failed (%s), trying again", self.name, attempt, exc)
 
+    def _new_bus(self) -> Bus:
+        opts = self.options
+        return Bus(pysoem, opts.interface, overlap=opts.overlap_map, take_over=opts.take_over)
+
     def _init_state(self) -> None:
+        """Everything a bring-up attempt starts from (the counters included)."""
         period_ns = self.view.clock.period_ns
         self._lock = threading.Lock()  # one thread at a time on the cyclic frame and the device state
         self._activated = False  # the first read (activation) was done
@@ -437,11 +273,7 @@ class EthercatDriver(Driver):
         defaults = opts.drive_defaults
         for i, s in enumerate(opts.slaves):
             if s.kind == "cia402":
-                units = DriveUnits(
-                    s.counts_per_rev or defaults.counts_per_rev,
-                    s.gear_ratio or defaults.gear_ratio,
-                    s.rated_torque or defaults.rated_torque,
-                )
+                units = defaults.units(s.counts_per_rev, s.gear_ratio, s.rated_torque)
                 joint = cast(str, s.joint)  # check_config: every cia402 slave names its joint
                 specs.append(DriveSpec(s.name, joint, view.joint_names.index(joint), units, s.position_offset))
             elif s.kind == "imu":
@@ -914,11 +746,9 @@ class EthercatDriver(Driver):
     def estop(self) -> None:
         """Quick stop every drive: a frame is sent from here at once when the bus is free
         (within 2 ms); otherwise the next cycle, the tick's or the keep-alive's, carries it."""
-        if not hasattr(self, "_lock"):
-            return  # never opened
         self._estop_requested = True  # bring-up in progress: it stops and does not enable
-        drives, bus = self.drives, getattr(self, "bus", None)
-        if drives is None or self._estop_sent or bus is None or not bus.is_open:
+        drives, bus = self.drives, self.bus
+        if drives is None or self._estop_sent or not bus.is_open:
             return
         self._estop_sent = True
         drives.request(Target.QUICK_STOP)
@@ -938,8 +768,8 @@ class EthercatDriver(Driver):
             self._lock.release()
 
     async def close(self) -> None:
-        if not hasattr(self, "bus"):
-            return
+        if self._executor is None:
+            return  # never opened
         self._stop_keepalive(raise_error=False)
         if self.drives is not None:  # for the report: how the run left them, not the shutdown
             self._enabled_at_close = sum(m.enabled for m in self.drives.machines)
@@ -976,8 +806,8 @@ class EthercatDriver(Driver):
             bus.close()
 
     def health(self) -> dict[str, Any]:
-        if not hasattr(self, "cycles"):
-            return {}
+        if self._executor is None:
+            return {}  # never opened
         n = min(self.cycles, RING)
         out: dict[str, Any] = {
             "interface": self.options.interface,

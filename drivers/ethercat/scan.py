@@ -36,7 +36,7 @@ from typing import Any
 from aiohal.fieldbus.busvar import BusVarError, PdoLayout, ProcessImage
 from aiohal.fieldbus.drives import check_types
 
-from .bus import Bus, EthercatError, state_name
+from .bus import Bus, EthercatError, shares_a_byte, state_name
 from .devices import (
     DRIVE_INPUT_TYPES,
     DRIVE_INPUTS,
@@ -46,7 +46,7 @@ from .devices import (
     ImuDevice,
     _check_group,
 )
-from .driver import FT_VARIABLES, IMU_VARIABLES, shares_a_byte
+from .options import FT_VARIABLES, IMU_VARIABLES
 from .sii import has_coe
 
 SHARES_A_BYTE = "fewer than 8 bits of process data in a direction, which the ethercat driver does not support"
