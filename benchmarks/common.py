@@ -49,10 +49,11 @@ class StealMeter:
 def machine() -> dict:
     cpu = ""
     try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
+        with open("/proc/cpuinfo") as info:
+            for line in info:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
     except OSError:
         pass
     return {"python": platform.python_version(), "kernel": platform.release(), "cpu": cpu, "cores": os.cpu_count()}

@@ -12,8 +12,6 @@ import argparse
 import statistics
 import time
 
-import numpy as np
-
 from aiohal import kernel_call
 
 from .common import StealMeter, table, write_json
@@ -32,10 +30,10 @@ def _limiter_case(joints: int):
 
 
 def _decode_case(drives: int):
-    from aiohal.fieldbus.busvar import PdoLayout, ProcessImage, encode_mapping
-    from aiohal.fieldbus.cia402 import DriveUnits
     from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec
     from aiohal.fieldbus import drive_kernels as kernels
+    from aiohal.fieldbus.busvar import PdoLayout, ProcessImage, encode_mapping
+    from aiohal.fieldbus.cia402 import DriveUnits
     from aiohal.robot import JointState
 
     rx = [(0x6040, 16), (0x607A, 32), (0x60FF, 32), (0x6071, 16), (0x6060, 8)]

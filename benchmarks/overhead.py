@@ -151,7 +151,7 @@ def setup_nohal_mujoco(spec: dict, phase_log: list | None = None):
     mj_names = [opts.joint_map.get(j, j) for j in names]
     qpos_adr, dof_adr = joint_addresses(model, mj_names)
     actuators = actuator_for_joints(model, mj_names)
-    substeps = int(round(period_s / model.opt.timestep))
+    substeps = round(period_s / model.opt.timestep)
     kp, kd = per_joint(opts.kp), per_joint(opts.kd)
     limited = model.actuator_ctrllimited[actuators].astype(bool)
     tau_min = np.where(limited, model.actuator_ctrlrange[actuators, 0], -np.inf)
@@ -556,7 +556,7 @@ def main() -> None:
             bare_runs.append(spawn(MODULE, nohal_spec, timeout_for(args.seconds * 5)))
         hal_us = [1e6 * r["cpu_s"] / r["report"]["ticks"] for r in hal_runs]
         bare_us = [1e6 * r["cpu_s"] / r["ticks"] for r in bare_runs]
-        ratios = [h / b for h, b in zip(hal_us, bare_us)]
+        ratios = [h / b for h, b in zip(hal_us, bare_us, strict=True)]
         hal_med, bare_med = statistics.median(hal_us), statistics.median(bare_us)
         last_hal, last_bare = hal_runs[-1], bare_runs[-1]
         dq = float(np.max(np.abs(np.array(last_hal["final_position"]) - np.array(last_bare["final_position"]))))
@@ -598,8 +598,8 @@ def _phase_row(name: str, hal: list[list[float]], bare: list[list[float]]) -> di
     """Medians over the rounds of each side's per-round phase medians (µs), matched up: the
     HAL's write holds the driver's torque law and ``mj_step``; check and limits have no
     counterpart in the no-HAL loop."""
-    h = dict(zip(PHASES, (statistics.median(col) for col in zip(*hal))))
-    b_read, b_control, b_torque, b_step = (statistics.median(col) for col in zip(*bare))
+    h = dict(zip(PHASES, (statistics.median(col) for col in zip(*hal, strict=True)), strict=True))
+    b_read, b_control, b_torque, b_step = (statistics.median(col) for col in zip(*bare, strict=True))
 
     def pair(x: float, y: float) -> str:
         return f"{x:.1f} / {y:.1f} ({x / y:.2f})"

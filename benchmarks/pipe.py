@@ -272,7 +272,7 @@ def main() -> None:
     started = time.monotonic()
 
     def run(spec: dict, label: str) -> dict:
-        for attempt in range(1, args.retries + 2):
+        for attempt in range(1, args.retries + 2):  # noqa: B007 - reported after the loop
             waited = _wait_calm(args.calm_wait)
             res = spawn(MODULE, {**spec, "seconds": args.seconds, "warmup": args.warmup}, timeout)
             if res.get("steal_percent", 0.0) < STEAL_OK:

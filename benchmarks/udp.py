@@ -91,7 +91,7 @@ async def _run(ports: list[int], seconds: float, block: int, keyed: bool) -> dic
             else:
                 # one sequence for both variants: a board takes only commands newer than its last
                 seq = driver._seq = driver._seq + 1
-                for data, addr in zip(datagrams, addresses):
+                for data, addr in zip(datagrams, addresses, strict=True):
                     seq_at.pack_into(data, 16, seq)
                     if key is None:
                         crc_at.pack_into(data, 4, zlib.crc32(memoryview(data)[8:]))

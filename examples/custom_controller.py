@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import Field
 
-from aiohal import ControlLoop, Controller, Options, load_config
+from aiohal import Controller, ControlLoop, Options, load_config
 from aiohal.robot import Mode
 
 CONFIG = Path(__file__).resolve().parent.parent / "configs" / "mock_arm.toml"

@@ -16,12 +16,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import mujoco
+import numpy as np
 
-from aiohal import ControlLoop, load_config  # noqa: E402
-from aiohal.ticker import VirtualTickSource  # noqa: E402
+from aiohal import ControlLoop, load_config
+from aiohal.ticker import VirtualTickSource
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOTS = [("kuka_lwr_sim", "KUKA LWR-like, 7 DOF"), ("centauro_upper_sim", "CENTAURO-like, 15 DOF"),
@@ -43,7 +43,7 @@ async def record(name: str, seconds: float = 6.0):
 
 async def main(out: Path) -> None:
     fig, axes = plt.subplots(1, 4, figsize=(16, 4.4))
-    for ax, (name, title) in zip(axes, ROBOTS):
+    for ax, (name, title) in zip(axes, ROBOTS, strict=True):
         params, paths, report = await record(name)
         a, b = AXES[params.plane]
         ramp = int(params.ramp * 1000)

@@ -50,7 +50,6 @@ def register_driver(monkeypatch, name: str, target: str) -> None:
 def record(loop):
     """Per tick run: the tick, the position sent and the measured position; and per update of
     the loop's controller, what it wrote itself, before the limits."""
-    import numpy as np
 
     sent, measured, own = [], [], []
     controller = loop.controller

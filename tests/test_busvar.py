@@ -10,6 +10,15 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from aiohal.drivers.ethercat.names import (
+    AIOHAL_VENDOR_ID,
+    KNOWN_DEVICES,
+    PRODUCT_DIO,
+    PRODUCT_DRIVE,
+    PRODUCT_FT,
+    PRODUCT_IMU,
+)
+from aiohal.errors import AiohalError
 from aiohal.fieldbus.busvar import (
     CIA402_NAMES,
     BitsVar,
@@ -30,8 +39,6 @@ from aiohal.fieldbus.busvar import (
     parse_address,
     parse_names,
 )
-from aiohal.drivers.ethercat.names import AIOHAL_VENDOR_ID, KNOWN_DEVICES, PRODUCT_DIO, PRODUCT_DRIVE, PRODUCT_FT, PRODUCT_IMU
-from aiohal.errors import AiohalError
 
 # What the simulated devices report over CoE (docs/ethercat.md): 0x1C12/0x1C13 and the mappings.
 DRIVE_RX = [0x60400010, 0x607A0020, 0x60FF0020, 0x60710010, 0x60600008]
@@ -152,7 +159,7 @@ def test_unknown_objects_are_named_by_address_or_sii_name():
 def test_name_overrides_from_config():
     names = names_for(AIOHAL_VENDOR_ID, PRODUCT_DRIVE, known=KNOWN_DEVICES, overrides={
         "0x6041:00": "Status", "0x2001": ["Motor temperature", "INT16"], (0x607A, 0): "Setpoint"})
-    layout = PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: DRIVE_RX, 0x1A00: DRIVE_TX + [0x20010010]}, names)
+    layout = PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: DRIVE_RX, 0x1A00: [*DRIVE_TX, 536936464]}, names)
     assert layout.inputs[0].name == "Status" and layout.inputs[0].type == "u16"  # type kept from the table
     assert (layout.inputs[-1].name, layout.inputs[-1].type) == ("Motor temperature", "i16")
     assert layout.outputs[1].name == "Setpoint"
@@ -318,7 +325,7 @@ def test_inputs_are_read_only():
     assert not status.flags.writeable
     with pytest.raises(ValueError, match="read-only"):
         status[...] = 1
-    with pytest.raises(ReadOnlyVariableError, match='"drive1.Statusword" is an input') as info:
+    with pytest.raises(ReadOnlyVariableError, match=r'"drive1.Statusword" is an input') as info:
         image.link("drive1.Statusword", writable=True)
     assert isinstance(info.value, AiohalError) and isinstance(info.value, TypeError)
     with pytest.raises(ReadOnlyVariableError):
@@ -438,7 +445,7 @@ def test_link_many_errors():
         image.link_many([], "Statusword")
     with pytest.raises(UnknownVariableError, match="non-empty list"):
         image.link_many("drive1", "Statusword")
-    with pytest.raises(UnknownVariableError, match='unknown variable "imu.Statusword"'):
+    with pytest.raises(UnknownVariableError, match=r'unknown variable "imu.Statusword"'):
         image.link_many(["drive1", "imu"], "Statusword")
 
 
@@ -477,13 +484,13 @@ def test_group_with_gaps_cannot_be_one_array():
     layout = PdoLayout.from_sii({}, {0x1A00: [(0x6000, 1, 32, "Gain.1"), (0x6001, 0, 8, "Other"),
                                              (0x6000, 2, 32, "Gain.2")]}, names={})
     image = ProcessImage({"s": layout})
-    with pytest.raises(VariableTypeError, match='link them one by one: "s.Gain.1", "s.Gain.2"'):
+    with pytest.raises(VariableTypeError, match=r'link them one by one: "s.Gain.1", "s.Gain.2"'):
         image.link("s.Gain")
     assert image.link("s.Gain.2").dtype == np.dtype("<u4")
 
 
 def test_image_construction_errors():
-    with pytest.raises(LayoutError, match="without '.'"):
+    with pytest.raises(LayoutError, match=r"without '.'"):
         ProcessImage({"a.b": drive_layout()})
     with pytest.raises(LayoutError, match="are the same name"):
         ProcessImage([("Drive 1", drive_layout()), ("drive_1", drive_layout())])

@@ -265,7 +265,7 @@ def test_an_estop_frame_that_is_not_id_hash_data_is_named():
     from aiohal.errors import ConfigError
 
     for bad in ("1A0", "1A0#ABC", "1A0#" + "00" * 9, "1A00#00"):
-        with pytest.raises(ConfigError, match="options.estop_frame"):
+        with pytest.raises(ConfigError, match=r"options.estop_frame"):
             parse_config(raw_config(channel(), estop_frame=bad))
 
 

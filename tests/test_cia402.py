@@ -588,7 +588,7 @@ def test_stacked_units_convert_arrays_into_int_views():
     per_drive = [DriveUnits(131072, 100, 1.0), DriveUnits(4096, 50, 2.0), DriveUnits(1 << 20, 1, 0.5)]
     u = DriveUnits.stack(per_drive)
     rad = np.array([0.1, -0.2, 3.0])
-    expected = [int(p.position_to_counts(r)) for p, r in zip(per_drive, rad)]
+    expected = [int(p.position_to_counts(r)) for p, r in zip(per_drive, rad, strict=True)]
     # an int32 view with a stride, as a bus variable across slaves is
     image = np.zeros(3 * 13, dtype=np.uint8)
     target = np.ndarray((3,), dtype="<i4", buffer=image, offset=2, strides=(13,))

@@ -8,16 +8,15 @@ import tomllib
 
 import numpy as np
 import pytest
+from conftest import CONFIGS, require_module
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import CONFIGS, require_module
-
 mujoco = require_module("mujoco")
 
-from aiohal.config import parse_config  # noqa: E402
-from aiohal.loop import ControlLoop  # noqa: E402
-from aiohal.ticker import VirtualTickSource  # noqa: E402
+from aiohal.config import parse_config
+from aiohal.loop import ControlLoop
+from aiohal.ticker import VirtualTickSource
 
 
 def plain_step(c, q_all: np.ndarray, elapsed: float, dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from bad_configs import CASES, MANY, matches
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -79,7 +78,7 @@ def test_check_malformed_config_exits_2(tmp_path, case):
     assert proc.stderr.splitlines()[0] == f"{path}: invalid configuration ({len(case.expected)} error(s)):"
     printed = issue_lines(proc.stderr)
     assert len(printed) == len(case.expected)
-    for expected, line in zip(case.expected, printed):
+    for expected, line in zip(case.expected, printed, strict=True):
         assert matches(expected, line), (expected, line)
 
 
@@ -188,7 +187,7 @@ def test_short_virtual_run_writes_a_report(tmp_path):
     assert proc.stdout.startswith("aiohal run report: mock_arm (7 joints, clock virtual on asyncio, overrun policy skip)")
     assert "ticks        300 in " in proc.stdout
     report = json.loads(report_path.read_text())
-    assert REPORT_KEYS <= set(report)
+    assert set(report) >= REPORT_KEYS
     assert {"p50", "p99", "p999", "max"} <= set(report["lateness_us"])
     assert {"p50", "p99"} <= set(report["work_us"])
     assert isinstance(report["controller"], dict) and report["controller"]["type"] == "sine"

@@ -6,13 +6,13 @@ from __future__ import annotations
 from typing import Literal
 
 import pytest
+from helpers import arm_raw
 from pydantic import Field
 
 from aiohal import ConfigError, Controller, Mode, Options
 from aiohal.config import from_parts, parse_config
 from aiohal.loop import ControlLoop
 from aiohal.plugins import load
-from helpers import arm_raw
 
 LWR = {f"a{i}": {"position": [-2.9, 2.9], "velocity": 1.9} for i in range(1, 8)}
 

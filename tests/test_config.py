@@ -6,14 +6,14 @@ import json
 import math
 
 import pytest
+from bad_configs import CASES, GOOD, MANY, assert_issues
+from conftest import CONFIGS
+from helpers import arm_raw
 from pydantic import ValidationError
 
 from aiohal.config import json_schema, load_config, parse_config
 from aiohal.drivers.mock import MockDriver
 from aiohal.errors import ConfigError, ConfigIssue
-from bad_configs import CASES, GOOD, MANY, assert_issues
-from conftest import CONFIGS
-from helpers import arm_raw
 
 
 def _load_text(tmp_path, text: str, name: str = "robot.toml"):

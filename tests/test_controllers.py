@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-
 from helpers import arm_raw, virtual_loop
 
 

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from aiohal.drivers.ethercat.sim.drive import Drive
 from aiohal.fieldbus.cia402 import DriveUnits
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec
-from aiohal.drivers.ethercat.sim.drive import Drive
 from aiohal.robot import JointCommand, JointState, Mode
 
 COUNTS_PER_RAD = 131072 / (2 * math.pi)
@@ -71,7 +71,7 @@ def test_velocity_and_torque_feedforward_arrive_as_0x60b1_and_0x60b2_in_csp():
 
 
 def test_a_drive_without_the_offsets_still_gets_its_csp_target():
-    drive, image, group, state, command = bus(Drive, RX[:5] + [-1, -1])  # RxPDO 0x1600: no offsets
+    drive, image, group, state, command = bus(Drive, [*RX[:5], -1, -1])  # RxPDO 0x1600: no offsets
     k = enable(drive, image, group, command)
     command.position[:] = state.position + 0.01
     command.velocity[:] = 0.25
@@ -102,7 +102,7 @@ def test_the_simulated_drive_takes_0x60b1_as_its_velocity_feedforward():
     """A ramp: with the target velocity as 0x60B1 the drive follows without the lag of
     deriving it from its targets' slope."""
     lags = {}
-    for drive_cls, offsets in ((FeedforwardDrive, RX), (Drive, RX[:5] + [-1, -1])):
+    for drive_cls, offsets in ((FeedforwardDrive, RX), (Drive, [*RX[:5], -1, -1])):
         drive, image, group, state, command = bus(drive_cls, offsets)
         k = enable(drive, image, group, command)
         start = float(state.position[0])

@@ -5,10 +5,10 @@ driver's rate is refused by ``check`` with the figure and what to change."""
 from __future__ import annotations
 
 import pytest
+from helpers import arm_raw, virtual_loop
 
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError
-from helpers import arm_raw, virtual_loop
 
 
 @pytest.mark.asyncio

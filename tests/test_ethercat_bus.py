@@ -236,7 +236,7 @@ class ScanPysoem:
     def __init__(self, zero_scans: int) -> None:
         self.master = ScanMaster(zero_scans)
 
-    def Master(self) -> ScanMaster:  # noqa: N802 (pysoem's name)
+    def Master(self) -> ScanMaster:
         return self.master
 
 
@@ -269,10 +269,10 @@ def test_an_identity_still_zero_after_three_scans_fails_with_the_reason():
 
 # ---------------------------------------------------------------- slave-supplied bytes
 
-from hypothesis import given  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
+from hypothesis import given
+from hypothesis import strategies as st
 
-from aiohal.drivers.ethercat.bus import (  # noqa: E402
+from aiohal.drivers.ethercat.bus import (
     SlaveDataError,
     TransientBringUpError,
     mapping_entry,
@@ -346,7 +346,7 @@ GOOD_OD = {(0x1000, 0): (0x00020192).to_bytes(4, "little"),
 def _coe_bus(od: dict) -> Bus:
     bus = Bus(SdoPysoem, "scripted")
     bus.slaves = [SdoSlave(od)]
-    bus.sii = lambda position: None  # noqa: E731 (read only through has_coe / read_pdos, scripted)
+    bus.sii = lambda position: None
     return bus
 
 

@@ -9,10 +9,10 @@ import pytest
 from conftest import require_module
 
 require_module("numba")  # the drives' kernels (extra ethercat)
-from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec, ImuDevice  # noqa: E402
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from aiohal.drivers.ethercat.devices import DriveGroup, DriveSpec, ImuDevice
 from aiohal.fieldbus.busvar import (
     PdoLayout,
     ProcessImage,
@@ -75,7 +75,7 @@ def test_codec_link_errors():
 
 def test_a_drive_mapping_without_a_needed_variable_is_named_at_link_time():
     image = ProcessImage([("d0", layout(rx=RX_COMPACT))])
-    with pytest.raises(UnknownVariableError, match='"d0.Target velocity"'):
+    with pytest.raises(UnknownVariableError, match=r'"d0.Target velocity"'):
         DriveGroup(image, [DriveSpec("d0", "j0", 0, DriveUnits())], stuck_after=10)
 
 
@@ -196,9 +196,9 @@ def test_imu_device_fills_its_record_and_faults_when_invalid_or_lost():
 
 
 def test_force_torque_tare_holds_the_control_bit_for_a_few_cycles_then_clears_it():
+    from aiohal.drivers.ethercat.devices import ForceTorqueDevice
     from aiohal.drivers.ethercat.names import AIOHAL_VENDOR_ID, KNOWN_DEVICES, PRODUCT_FT
     from aiohal.fieldbus.busvar import VariableTypeError, names_for
-    from aiohal.drivers.ethercat.devices import ForceTorqueDevice
     from aiohal.robot import ForceTorqueGroup
     tx = [(0x6000, s, 32) for s in range(1, 7)] + [(0x6010, 0, 16)]
     ft_layout = PdoLayout.from_coe([0x1600], [0x1A00], {0x1600: [encode_mapping(0x7000, 0, 16)],

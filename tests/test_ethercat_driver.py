@@ -433,7 +433,7 @@ async def test_the_force_torque_sensor_is_tared_through_its_control_output(segme
         driver.tare("ft")  # by its slave's name; a second edge
         await runs.run(loop, 100)
         second = (await asyncio.to_thread(segment.status))["slaves"][8]["device"]["tares"]
-        with pytest.raises(EthercatError, match="no force/torque sensor 'base_imu' on this bus .there are: wrist_ft"):
+        with pytest.raises(EthercatError, match=r"no force/torque sensor 'base_imu' on this bus .there are: wrist_ft"):
             driver.tare("base_imu")
     assert before == pytest.approx([1.0, -2.0, 30.0], abs=1e-5)
     assert after == pytest.approx([0.0, 0.0, 0.0], abs=1e-5)

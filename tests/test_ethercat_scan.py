@@ -15,9 +15,9 @@ import tomllib
 import pytest
 from conftest import ROOT, require_module, start_segment
 
+from aiohal.config import parse_config
 from aiohal.drivers.ethercat.names import FT_NAMES, IMU_NAMES
 from aiohal.fieldbus.busvar import CIA402_NAMES, PdoLayout
-from aiohal.config import parse_config
 
 require_module("pysoem")
 

@@ -9,12 +9,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal.drivers.ethercat.names import DIO_NAMES
-from aiohal.fieldbus.busvar import LayoutError, PdoLayout, names_for
 from aiohal.drivers.ethercat import sii
+from aiohal.drivers.ethercat.names import DIO_NAMES
 from aiohal.drivers.ethercat.sim.devices import DigitalIO
 from aiohal.drivers.ethercat.sim.drive import Drive
 from aiohal.drivers.ethercat.sim.sii import SiiDescription, SiiPdo, SiiPdoEntry, build_sii
+from aiohal.fieldbus.busvar import LayoutError, PdoLayout, names_for
 
 
 class Eeprom:

@@ -13,6 +13,9 @@ import subprocess
 import sys
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from aiohal.drivers.ethercat.sim import control
 from aiohal.drivers.ethercat.sim.bench import soem_map
 from aiohal.drivers.ethercat.sim.od import (
@@ -28,8 +31,6 @@ from aiohal.drivers.ethercat.sim.od import (
 )
 from aiohal.drivers.ethercat.sim.segment import Segment
 from aiohal.drivers.ethercat.sim.sii import crc8
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 NOP, APRD, APWR, APRW, FPRD, FPWR, FPRW, BRD, BWR, BRW, LRD, LWR, LRW, ARMW, FRMW = range(15)
 INIT, PREOP, BOOT, SAFEOP, OP = 1, 2, 3, 4, 8
@@ -1334,7 +1335,7 @@ def test_replay_soem_bring_up_sequence_to_op():
     assert (dio_out, dio_in) == (8, 8)
     # SM programming (non-mailbox slave: from its SII SM category; SM2/SM3 for everyone)
     dio_sms = [struct.unpack_from("<HHBBBB", cats[dio][41], 8 * i) for i in range(4)]
-    for n, (start, length, ctrl, _st, enable, _kind) in enumerate(dio_sms):
+    for n, (start, _length, ctrl, _st, enable, _kind) in enumerate(dio_sms):
         if start:
             bus.fpwr(dio, 0x0800 + 8 * n, struct.pack("<HHBBBB", start, (dio_out if n == 2 else dio_in) // 8, ctrl, 0, enable, 0))
     bus.fpwr(drv, 0x0810, struct.pack("<HHBBBB", 0x1100, bits[2] // 8, 0x64, 0, 1, 0))

@@ -384,7 +384,7 @@ def test_drive_enable_and_follow_csp(master, pysoem):
     # the last target held until the drive stands on it (bounded): a stall of this machine in
     # the ramp (seen with emulated stalls) leaves the simulated drive behind for a while
     for _ in range(500):
-        sw, pos, vel, _tq, mode, code = _drive_inputs(drive)
+        sw, pos, _vel, _tq, mode, code = _drive_inputs(drive)
         if abs(target - pos) < 1_000:
             break
         master.cycle(1)

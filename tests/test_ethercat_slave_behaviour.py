@@ -19,8 +19,7 @@ import time
 
 import pytest
 from conftest import ROOT, start_segment
-from test_ethercat_driver import CONFIG, TicksRun, driver_of, one_drive_and, raw_config
-from test_ethercat_driver import segment, sim  # noqa: F401 (fixtures: this module's own segment of the same line)
+from test_ethercat_driver import CONFIG, TicksRun, driver_of, one_drive_and, raw_config, segment, sim  # noqa: F401 (fixtures: this module's own segment of the same line)
 
 from aiohal.config import parse_config
 from aiohal.errors import DriverError
@@ -175,9 +174,8 @@ async def test_a_drive_without_pdo_assignment_objects_is_mapped_from_its_sii(seg
 async def test_a_configuration_error_is_not_retried_and_its_message_stays(segment, caplog):
     segment.control({"cmd": "dc", "slave": 3, "supported": False})
     loop = ControlLoop(parse_config(raw_config(segment.ifname)))  # the shipped sync0 = true
-    with caplog.at_level("WARNING", logger="aiohal.drivers.ethercat.driver"):
-        with pytest.raises(DriverError) as err:
-            await loop.activate()
+    with caplog.at_level("WARNING", logger="aiohal.drivers.ethercat.driver"), pytest.raises(DriverError) as err:
+        await loop.activate()
     assert "slave 3 (AIOHAL-Drive) did not take SYNC0 at 1000000 ns" in str(err.value)
     assert "trying again" not in caplog.text
     assert segment.status()["counters"]["frames"] > 0 and not driver_of(loop).bus.is_open
@@ -228,7 +226,7 @@ async def test_slaves_left_in_op_are_refused_unless_the_config_takes_the_bus_ove
         master.close()  # gone, its slave left in OP
         assert line.status()["slaves"][0]["state"] == "OP"
         loop = ControlLoop(parse_config(one_drive_and(line.ifname)))
-        with pytest.raises(DriverError, match="are in OP .* another master is running this bus"):
+        with pytest.raises(DriverError, match=r"are in OP .* another master is running this bus"):
             await loop.activate()
         assert line.status()["slaves"][0]["state"] == "OP"  # nothing written
         raw = one_drive_and(line.ifname)

@@ -6,9 +6,9 @@ import importlib.util
 
 import numpy as np
 import pytest
+from conftest import ROOT
 
 from aiohal import plugins
-from conftest import ROOT
 
 
 def load(name):

@@ -21,24 +21,24 @@ import time
 import numpy as np
 import pytest
 from conftest import CONFIGS, ROOT, require_root
-from test_hand import FaultWatch, hand_raw
-from test_safety_paths import Stuck
-from test_ethercat_driver import At, in_thread, raw_config, segment, sim  # noqa: F401  (fixtures)
-from test_watchdog import WATCHDOG_MS, SLACK_MS, Board, board, start_robot  # noqa: F401  (board: fixture)
+from helpers import arm_raw, register_driver, virtual_loop
 from test_canopen_driver import SINE, channel, driver_of
 from test_canopen_driver import raw_config as can_config
+from test_ethercat_driver import At, in_thread, raw_config, segment, sim  # noqa: F401  (fixtures)
 from test_fri import Krc
-from udp_helpers import wait_for
-from aiohal.drivers.fri.protocol import State
+from test_hand import FaultWatch, hand_raw
+from test_safety_paths import Stuck
 from test_udp_driver import KEY, KEY_HEX
 from test_udp_driver import _config as udp_config
+from test_watchdog import SLACK_MS, WATCHDOG_MS, Board, board, start_robot  # noqa: F401  (board: fixture)
+from udp_helpers import wait_for
 
 from aiohal.config import parse_config
+from aiohal.drivers.fri.protocol import State
 from aiohal.errors import DriverError
 from aiohal.hal import Controller
 from aiohal.loop import ControlLoop
 from aiohal.robot import Fault
-from helpers import arm_raw, register_driver, virtual_loop
 
 AT = 200  # the tick a fault is injected at
 MAX_AGE = 20  # loop.max_feedback_age of these runs
@@ -132,7 +132,7 @@ async def test_a_read_that_never_returns_estops_within_the_stall_timeout(monkeyp
     assert report["safety_level"] == "estop" and level_change(report, "estop")["event"] == "watchdog"
     # the stall watchdog checks every timeout / 4: estop between 100 and 125 ms after the last tick
     # (plus the time the event loop takes to run the cancellation, measured up to `stopped`)
-    assert 100 <= (stopped - seen[-1]) / 1e6
+    assert (stopped - seen[-1]) / 1e6 >= 100
     assert loop.slots[0].driver.estopped >= 1
 
 
@@ -207,7 +207,7 @@ def test_a_frozen_process_is_stopped_by_the_watchdog_process_within_its_time(tmp
         assert took_ms <= WATCHDOG_MS + SLACK_MS, took_ms
         proc.send_signal(signal.SIGCONT)
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
+        _out, _err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -310,7 +310,7 @@ async def test_udp_board_silence_fails_the_driver_after_silent_ticks():
         ("driver:boards", "hold", change["tick"]), ("loop", "estop", change["tick"])]
     last = int(loop.slots[0].driver.board_tick[1])  # board 2's last answer
     # the first tick run more than silent_ticks after it
-    assert change["tick"] == min(k for k in ran + [change["tick"]] if k - last > silent), (last, change)
+    assert change["tick"] == min(k for k in [*ran, change["tick"]] if k - last > silent), (last, change)
     assert "board(s) [2] silent" in report["faults"][0]["error"]
 
 
@@ -335,12 +335,12 @@ async def test_udp_forgery_moves_nothing_is_counted_and_the_robot_runs_on():
         state["position"] = 1.5
         command = np.zeros(1, dtype=COMMAND_RECORD)
         command["mode"], command["position"] = 1, 1.5
-        for board, address in zip(driver.board_ids, driver.addresses):
+        for board_id, address in zip(driver.board_ids, driver.addresses, strict=True):
             # to the driver: states with the right key from a stranger, with a wrong key
-            forger.sendto(bytes(encode(Kind.STATE, board, 1 << 30, driver._seq, state, KEY)), driver.sock.getsockname())
-            forger.sendto(bytes(encode(Kind.STATE, board, 1 << 30, driver._seq, state, bytes(16))), driver.sock.getsockname())
+            forger.sendto(bytes(encode(Kind.STATE, board_id, 1 << 30, driver._seq, state, KEY)), driver.sock.getsockname())
+            forger.sendto(bytes(encode(Kind.STATE, board_id, 1 << 30, driver._seq, state, bytes(16))), driver.sock.getsockname())
             # to the board: a command with the right key from a stranger
-            forger.sendto(bytes(encode(Kind.COMMAND, board, 1 << 30, 0, command, KEY)), address)
+            forger.sendto(bytes(encode(Kind.COMMAND, board_id, 1 << 30, 0, command, KEY)), address)
 
     loop.add_publisher(forge)
     try:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import arm_raw, virtual_loop
 
 from aiohal.config import load_config, parse_config
 from aiohal.errors import ConfigError
@@ -17,7 +18,6 @@ from aiohal.hal import Controller
 from aiohal.learn_feedforward import main as learn_main
 from aiohal.loop import ControlLoop
 from aiohal.robot import JointCommand, JointState, Mode
-from helpers import arm_raw, virtual_loop
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "lola_hip_sim.toml"
 
@@ -139,13 +139,13 @@ def test_a_gains_file_naming_an_unknown_joint_is_a_config_error(tmp_path):
     write_gains(tmp_path / "gains.toml", {"hip": 0.2})
     raw = arm_raw(2)
     raw["feedforward"] = {"gains": str(tmp_path / "gains.toml")}
-    with pytest.raises(ConfigError, match="feedforward.gains"):
+    with pytest.raises(ConfigError, match=r"feedforward.gains"):
         parse_config(raw)
     raw["feedforward"] = {"gains": str(tmp_path / "missing.toml")}
-    with pytest.raises(ConfigError, match="feedforward.gains"):
+    with pytest.raises(ConfigError, match=r"feedforward.gains"):
         parse_config(raw)
     raw["feedforward"] = {"k_e": {"j9": 0.1}}
-    with pytest.raises(ConfigError, match="feedforward.k_e.j9"):
+    with pytest.raises(ConfigError, match=r"feedforward.k_e.j9"):
         parse_config(raw)
 
 

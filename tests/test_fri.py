@@ -11,17 +11,29 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from udp_helpers import wait_for
 
 from aiohal.config import parse_config
 from aiohal.drivers.fri.driver import FriDriver, FriDriverError, FriOptions
-from aiohal.drivers.fri.protocol import (CMD, CMD_ID, CMD_SIZE, MSR, MSR_ID, MSR_SIZE, Control, FriError, Quality,
-                                         State, check, new_cmd, new_msr)
+from aiohal.drivers.fri.protocol import (
+    CMD,
+    CMD_ID,
+    CMD_SIZE,
+    MSR,
+    MSR_ID,
+    MSR_SIZE,
+    Control,
+    FriError,
+    Quality,
+    State,
+    check,
+    new_cmd,
+    new_msr,
+)
 from aiohal.drivers.fri.sim import KrcOptions, KrcSimulator
 from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, JointSpec, Mode, Robot
 from aiohal.servo import ServoParams
-
-from udp_helpers import wait_for
 
 # (field, byte offset, bytes) as the reference (shared/reference/kuka_fri.md §1, §2) gives them
 MSR_LAYOUT = [
@@ -35,11 +47,7 @@ MSR_LAYOUT = [
     ("cmd_cart_pos_fri_offset", 396, 48), ("msr_jnt_trq", 444, 28), ("est_ext_jnt_trq", 472, 28),
     ("est_ext_tcp_ft", 500, 24), ("jacobian", 524, 168), ("mass_matrix", 692, 196), ("gravity", 888, 28),
 ]
-CMD_LAYOUT = MSR_LAYOUT[:8] + [
-    ("cmd_flags", 140, 4), ("jnt_pos", 144, 28), ("cart_pos", 172, 48), ("add_jnt_trq", 220, 28),
-    ("add_tcp_ft", 248, 24), ("jnt_stiffness", 272, 28), ("jnt_damping", 300, 28), ("cart_stiffness", 328, 24),
-    ("cart_damping", 352, 24),
-]
+CMD_LAYOUT = [*MSR_LAYOUT[:8], ("cmd_flags", 140, 4), ("jnt_pos", 144, 28), ("cart_pos", 172, 48), ("add_jnt_trq", 220, 28), ("add_tcp_ft", 248, 24), ("jnt_stiffness", 272, 28), ("jnt_damping", 300, 28), ("cart_stiffness", 328, 24), ("cart_damping", 352, 24)]
 
 
 @pytest.mark.parametrize("dtype, layout, size", [(MSR, MSR_LAYOUT, 916), (CMD, CMD_LAYOUT, 376)])
@@ -109,9 +117,9 @@ class Krc:
     async def ticks(self, n: int) -> None:
         """n ticks of 5 ms: read, then write the command rows."""
         d = self.driver
-        for k in range(n):
+        for _ in range(n):
             seen = d.counters["received"]
-            await wait_for(lambda: d.counters["received"] > seen)
+            await wait_for(lambda seen=seen: d.counters["received"] > seen)
             d.view.clock.tick += 1
             await d.read()
             await d.write()

@@ -5,12 +5,12 @@ from __future__ import annotations
 import math
 
 import pytest
+from helpers import arm_raw
 
 from aiohal import ConfigError, ControlLoop, JointSpec, plugins
 from aiohal.config import from_parts, parse_config
 from aiohal.controllers.sine import SineController, SineParams
 from aiohal.drivers.mock import MockDriver
-from helpers import arm_raw
 
 
 def test_the_same_config_as_from_the_file():
@@ -90,7 +90,7 @@ def test_register_a_class_or_a_target():
         assert plugins.load("driver", "mine") is MockDriver
         with pytest.raises(plugins.PluginError, match='driver "mock" is built in'):
             plugins.register("driver", "mock", MockDriver)
-        with pytest.raises(plugins.PluginError, match="not a subclass of aiohal.Driver"):
+        with pytest.raises(plugins.PluginError, match=r"not a subclass of aiohal.Driver"):
             plugins.register("driver", "wrong", SineController)
     finally:
         plugins.unregister("driver", "mine")

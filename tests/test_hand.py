@@ -10,19 +10,18 @@ import time
 
 import numpy as np
 import pytest
+from conftest import require_module
+from helpers import arm_raw
 
 from aiohal.config import parse_config
+from aiohal.drivers.hands.base import FAULT_BACKEND, HandError
+from aiohal.drivers.hands.messages import HandCommandMsg, HandStateMsg
+from aiohal.drivers.hands.sim import SimHand
 from aiohal.errors import ConfigError, DriverError
 from aiohal.loop import ControlLoop
 from aiohal.pipe import NrtPeer
 from aiohal.report import format_report
 from aiohal.robot import Fault
-from aiohal.drivers.hands.base import FAULT_BACKEND, HandError
-from aiohal.drivers.hands.messages import HandCommandMsg, HandStateMsg
-from aiohal.drivers.hands.sim import SimHand
-
-from conftest import require_module
-from helpers import arm_raw
 
 SERVICE = "aiohal.drivers.hands.service:serve"
 

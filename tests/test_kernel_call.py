@@ -63,7 +63,7 @@ def test_the_entry_point_is_given_only_for_checked_arrays_and_one_signature():
     def twice(x):
         return 2 * x
 
-    with pytest.raises(TypeError, match="one explicit signature is needed.*it has 2"):
+    with pytest.raises(TypeError, match=r"one explicit signature is needed.*it has 2"):
         kernel_call.compiled_for(twice, (1.0,))
 
 

@@ -38,7 +38,9 @@ def robots_some_unlimited(draw):
     for i in range(draw(st.integers(1, 3))):
         lo = draw(st.floats(-10, 10) | st.just(-math.inf))
         hi = draw(st.just(math.inf) | st.floats(0.01, 10).map(lambda d, lo=lo: (0.0 if math.isinf(lo) else lo) + d))
-        limit = lambda low, high: st.floats(low, high) | st.just(math.inf)
+        def limit(low, high):
+            return st.floats(low, high) | st.just(math.inf)
+
         specs.append(JointSpec(f"j{i}", i, lo, hi, draw(limit(0.1, 10)), draw(limit(0.1, 100)), draw(limit(0.1, 100))))
     return Robot("r", specs)
 

@@ -7,12 +7,12 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import arm_raw, virtual_loop
 
 from aiohal.errors import DriverError, LifecycleError
 from aiohal.hal import Controller
 from aiohal.robot import Fault, Mode
 from aiohal.safety import SafetyLevel
-from helpers import arm_raw, virtual_loop
 
 
 def two_driver_raw(**faults_b):

@@ -7,15 +7,15 @@ import time
 
 import numpy as np
 import pytest
+from helpers import arm_raw, virtual_loop
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from aiohal import kernel_call
 from aiohal.drivers import mock_kernels
 from aiohal.drivers.mock import MOVED_ROWS
-from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, CommandRow, Mode
-from helpers import arm_raw, virtual_loop
 from aiohal.hal import Controller
+from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, CommandRow, Mode
 
 
 class Fixed(Controller):

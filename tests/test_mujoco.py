@@ -11,15 +11,14 @@ import tomllib
 
 import numpy as np
 import pytest
-
 from conftest import CONFIGS, require_module
 
 mujoco = require_module("mujoco")
 
-from aiohal.config import load_config, parse_config  # noqa: E402
-from aiohal.errors import ConfigError  # noqa: E402
-from aiohal.loop import ControlLoop  # noqa: E402
-from aiohal.ticker import VirtualTickSource  # noqa: E402
+from aiohal.config import load_config, parse_config
+from aiohal.errors import ConfigError
+from aiohal.loop import ControlLoop
+from aiohal.ticker import VirtualTickSource
 
 ROBOTS = ["kuka_lwr_sim", "centauro_upper_sim", "coman_sim", "walkman_sim"]
 
@@ -406,7 +405,7 @@ async def test_an_absolute_center_draws_the_same_circle_as_its_offset():
         start = loop.controller.x_start.copy()
         by_offset = await loop.run(ticks=3000)
         centre = loop.controller.center.copy()
-    np.testing.assert_allclose(centre, start + [0.0, -0.1, 0.0])  # the default offset: -radius along y
+    np.testing.assert_allclose(centre, [*start, 0.0, -0.1, 0.0])  # the default offset: -radius along y
     loop = lockstep(parse_config(kuka_raw(center=centre.tolist()), base_dir=CONFIGS))
     async with loop:
         by_center = await loop.run(ticks=3000)

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import arm_raw, virtual_loop
 
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError
 from aiohal.hal import Controller
 from aiohal.multirate import TargetExtrapolator
 from aiohal.robot import JointCommand, Mode
-from helpers import arm_raw, virtual_loop
 
 PERIOD = 1e-3
 
@@ -60,7 +60,7 @@ async def run_sent(raw: dict, controller: Controller, ticks: int):
 @pytest.mark.asyncio
 async def test_the_controller_runs_every_nth_tick_and_a_ramp_stays_a_ramp():
     ramp = Motion(v0=0.2)
-    sent, times, report, loop = await run_sent(raw_with(every=5), ramp, ticks=200)
+    sent, times, report, _loop = await run_sent(raw_with(every=5), ramp, ticks=200)
     assert np.diff(ramp.ran).tolist() == [5] * (len(ramp.ran) - 1)
     assert report["controller"]["every"] == 5 and report["controller"]["updates"] == len(ramp.ran) == 40
     # on every tick, the controller's or not, the target is on the line: nothing but a ramp
@@ -128,7 +128,7 @@ async def test_the_limits_apply_to_extrapolated_targets():
 @pytest.mark.asyncio
 async def test_hold_runs_on_every_tick_after_a_controller_failure():
     failing = Motion(v0=0.5, fail_at=101)
-    sent, _, report, loop = await run_sent(raw_with(every=4), failing, ticks=400)
+    sent, _, report, _loop = await run_sent(raw_with(every=4), failing, ticks=400)
     assert report["controller"]["type"] == "hold" and report["faults"][0]["tick"] == 101
     assert failing.ran[-1] == 97
     # from the failure on, hold updated the command on each of the 300 ticks left

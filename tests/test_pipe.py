@@ -20,10 +20,10 @@ import threading
 import time
 
 import pytest
+from conftest import NOT_HUNG_S, require_root
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal.pipe import codec
 from aiohal.pipe import (
     HEADER,
     MAGIC,
@@ -38,9 +38,9 @@ from aiohal.pipe import (
     PeerGone,
     PipeError,
     PipeTimeout,
+    codec,
     pipe_pair,
 )
-from conftest import NOT_HUNG_S, require_root
 
 
 class Grip(Message):
@@ -267,7 +267,7 @@ def test_capacity_full_pipe_and_loss_counted(pair):
     assert nrt.receive(timeout=1.0).seq == 96
     assert nrt.counters["lost"] == 64  # the gap in the fast side's seq: what it dropped
     # the other way the NRT side waits for room, then times out
-    for i in range(32):
+    for _ in range(32):
         nrt.send(Beat(), timeout=0)
     t0 = time.monotonic()
     with pytest.raises(PipeTimeout):
@@ -563,7 +563,7 @@ def test_peer_start_refuses_bad_arguments():
         NrtPeer.start("benchmarks.pipe_targets:echo", mode="fork")
     with pytest.raises(TypeError):
         NrtPeer.start("benchmarks.pipe_targets:echo", {"when": object()}, mode="thread")
-    with pytest.raises(ValueError, match="package.module:function"):
+    with pytest.raises(ValueError, match=r"package.module:function"):
         NrtPeer.start("aiohal.pipe", mode="thread")
     with pytest.raises(AttributeError):
         NrtPeer.start("aiohal.pipe:no_such_target", mode="thread")

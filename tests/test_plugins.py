@@ -10,11 +10,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import arm_raw
 
 from aiohal import plugins
 from aiohal.config import parse_config
 from aiohal.errors import AiohalError, ConfigError, MissingDependencyError, PluginError
-from helpers import arm_raw
 
 ROOT = Path(__file__).resolve().parent.parent
 TIMEOUT = 30
@@ -359,6 +359,6 @@ def test_schema_works_and_offers_only_loadable_plugins(plugin_dir):
     controller_types = schema["properties"]["controller"]["properties"]["type"]["enum"]
     assert "fake" in driver_types and "a_driver_with_a_rather_long_name" in driver_types
     assert "fakectl" in controller_types
-    for kind, name in NOT_PLUGINS:
+    for _kind, name in NOT_PLUGINS:
         assert name not in driver_types + controller_types
     assert "broken" not in driver_types  # a missing dependency: not a choice either

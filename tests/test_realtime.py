@@ -5,13 +5,13 @@ from __future__ import annotations
 import os
 
 import pytest
+from conftest import require_root
+from helpers import arm_raw, virtual_loop
 
 from aiohal import realtime
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError
-from conftest import require_root
 from aiohal.loop import ControlLoop
-from helpers import arm_raw, virtual_loop
 
 
 def test_fifo_is_applied_and_restored():

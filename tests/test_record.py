@@ -19,13 +19,13 @@ import pytest
 
 pytest.importorskip("mcap")
 
-from mcap.reader import make_reader  # noqa: E402
-from mcap.stream_reader import StreamReader  # noqa: E402
+from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
 
-from aiohal import ControlLoop, load_config  # noqa: E402
-from aiohal.record import RecordSection, load  # noqa: E402
-from aiohal.record.recorder import Recorder  # noqa: E402
-from aiohal.ticker import VirtualTickSource  # noqa: E402
+from aiohal import ControlLoop, load_config
+from aiohal.record import RecordSection, load
+from aiohal.record.recorder import Recorder
+from aiohal.ticker import VirtualTickSource
 
 ROOT = Path(__file__).resolve().parents[1]
 HUMANOID = ROOT / "configs" / "mock_humanoid.toml"
@@ -124,7 +124,6 @@ def test_writer_behind_drops_and_counts_and_never_holds_the_tick(tmp_path):
     StuckWriter.release.clear()
     try:
         # the run can only end while the writer is stuck if the tick never waits for it
-        control, snaps, recorder, _, report = None, None, None, None, None
 
         async def main():
             control = ControlLoop(load_config(HUMANOID), tick_source=VirtualTickSource())

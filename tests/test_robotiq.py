@@ -16,29 +16,28 @@ import sys
 import time
 
 import pytest
-
 from conftest import NOT_HUNG_S, require_module
 
 require_module("pymodbus")
 
-from pymodbus.client import ModbusTcpClient  # noqa: E402
+from pymodbus.client import ModbusTcpClient
 
-from aiohal.drivers.hands.base import (  # noqa: E402
+from aiohal.drivers.hands.base import (
     FAULT_COMMUNICATION,
     FAULT_NONE,
     FAULT_NOT_READY,
     VENDOR_FAULT_BASE,
     HandError,
 )
-from aiohal.drivers.hands.robotiq import (  # noqa: E402
+from aiohal.drivers.hands.robotiq import (
     RawStatus,
     Robotiq2F85,
     decode_status,
     encode_command,
     fault_code,
 )
-from aiohal.drivers.hands.robotiq_sim import RobotiqSimServer, running_in_thread  # noqa: E402
-from aiohal.errors import MissingDependencyError  # noqa: E402
+from aiohal.drivers.hands.robotiq_sim import RobotiqSimServer, running_in_thread
+from aiohal.errors import MissingDependencyError
 
 HOST = "127.0.0.1"
 TIMEOUT_S = 2.5  # per request; generous: a stall of the host (1.3 s seen) must not fail a healthy link

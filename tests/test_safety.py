@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import CONFIGS, require_module
+from helpers import arm_raw, assert_bumpless, at, record, virtual_loop
 
 from aiohal.config import load_config
 from aiohal.hal import Controller
 from aiohal.loop import ControlLoop
 from aiohal.safety import TRANSITIONS, SafetyEvent, SafetyLevel, SafetyMachine, SafetyRequestRefused
 from aiohal.ticker import VirtualTickSource
-from helpers import arm_raw, assert_bumpless, at, record, virtual_loop
 
 L, E = SafetyLevel, SafetyEvent
 

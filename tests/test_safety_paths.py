@@ -6,13 +6,13 @@ import asyncio
 
 import numpy as np
 import pytest
+from helpers import arm_raw, register_driver, virtual_loop
 
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError, DriverError
 from aiohal.hal import Controller, Driver
 from aiohal.loop import ControlLoop
 from aiohal.robot import Mode
-from helpers import arm_raw, register_driver, virtual_loop
 
 
 def spy_writes(loop):

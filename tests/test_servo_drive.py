@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from aiohal.servo import CURRENT_LOOP, OFF, POSITION_LOOP, Q, VELOCITY_LOOP, W, ReferenceServo, ServoBank, ServoParams
+from aiohal.servo import CURRENT_LOOP, OFF, POSITION_LOOP, VELOCITY_LOOP, Q, ReferenceServo, ServoBank, ServoParams, W
 
 
 def trajectory(k: int, period: float):

@@ -14,6 +14,8 @@ import uuid
 
 import numpy as np
 import pytest
+from conftest import ROOT
+from helpers import arm_raw, virtual_loop
 
 from aiohal import shm
 from aiohal.client import BufferFull, CommandBusy, JointMismatch, NotStreaming, RobotClient, RobotNotRunning
@@ -21,8 +23,6 @@ from aiohal.config import parse_config
 from aiohal.errors import ConfigError
 from aiohal.loop import ControlLoop
 from aiohal.safety import SafetyLevel
-from conftest import ROOT
-from helpers import arm_raw, virtual_loop
 
 JOINTS = ["j0", "j1", "j2"]
 
@@ -183,9 +183,9 @@ async def test_a_point_the_tick_finds_invalid_is_refused_and_counted():
     async with loop:
         with RobotClient(name, command=True) as client:
             await loop.run(ticks=1)
-            with pytest.raises(ValueError, match="not finite for.*j1"):
+            with pytest.raises(ValueError, match=r"not finite for.*j1"):
                 client.send([0.0, np.nan, 0.0])
-            with pytest.raises(ValueError, match="out of range for.*j2"):
+            with pytest.raises(ValueError, match=r"out of range for.*j2"):
                 client.send([0.0, 0.0, 5.0])
             with pytest.raises(ValueError, match="expected 3 values"):
                 client.send([0.0, 0.0])
@@ -240,7 +240,7 @@ async def test_safety_request_from_a_client(request_name, level):
 
 
 def test_not_running_is_a_clear_error():
-    with pytest.raises(RobotNotRunning, match="no shared memory /aiohal.nobody_here"):
+    with pytest.raises(RobotNotRunning, match=r"no shared memory /aiohal.nobody_here"):
         RobotClient("nobody_here")
     with pytest.raises(shm.ShmError, match="cannot name a shared-memory segment"):
         RobotClient("a/b")

@@ -9,9 +9,7 @@ import sys
 import time
 
 import pytest
-
 from conftest import CONFIGS, NOT_HUNG_S, ROOT
-
 
 _STARTED: list[subprocess.Popen] = []
 
@@ -81,7 +79,7 @@ def test_second_signal_forces_emergency_stop(tmp_path):
         if not line or "received: stopping" in line:
             break
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=30)
+    _out, err = proc.communicate(timeout=30)
     data = json.loads(report.read_text())
     assert proc.returncode == 1  # the run ended with a fault: not every driver closed
     assert data["drivers"]["arm"]["estops"] >= 1
@@ -195,7 +193,7 @@ def test_safety_signals_hold_estop_and_rearm_a_running_robot(tmp_path):
         proc.send_signal(sig)
         _wait_for(proc, seen)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=30)
+    _out, err = proc.communicate(timeout=30)
     assert proc.returncode == 1, err  # a run with an emergency stop is never a success, even re-armed
     report = json.loads(report_path.read_text())
     assert report["safety_worst"] == "estop" and report["safety_level"] == "off"

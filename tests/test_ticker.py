@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import math
 import socket
 import sys
@@ -301,7 +302,7 @@ async def test_an_idle_wait_blocks_on_the_timer_on_asyncio_and_goes_round_the_lo
         on_timer = source.waits_on_timer
     finally:
         ticker.close()
-    assert all(b > a for a, b in zip(ks, ks[1:]))  # every wait returned a later deadline
+    assert all(b > a for a, b in itertools.pairwise(ks))  # every wait returned a later deadline
     assert on_timer == _on_asyncio_epoll_loop()
     assert not source.waits_on_timer  # closed
     if on_timer:
@@ -332,7 +333,7 @@ async def test_on_an_untested_python_every_wait_goes_round_the_loop(monkeypatch)
         on_timer = source.waits_on_timer
     finally:
         ticker.close()
-    assert all(b > a for a, b in zip(ks, ks[1:]))
+    assert all(b > a for a, b in itertools.pairwise(ks))
     assert not on_timer and source.idle_waits == 0 and source.loop_waits > 0
 
 
@@ -498,7 +499,7 @@ async def test_a_timer_weeks_away_does_not_break_the_wait():
     finally:
         ticker.close()
         handle.cancel()
-    assert all(b > a for a, b in zip(ks, ks[1:]))
+    assert all(b > a for a, b in itertools.pairwise(ks))
 
 
 @pytest.mark.asyncio

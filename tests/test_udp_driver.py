@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 import pytest_asyncio
+from udp_helpers import FakeBoard, driver_for, robot, tick, wait_for
 
 from aiohal.config import parse_config
 from aiohal.drivers.udp.driver import UdpDriver, UdpError, UdpOptions, board_layout
@@ -17,8 +18,6 @@ from aiohal.drivers.udp.protocol import COMMAND_RECORD, STATE_RECORD, BoardFault
 from aiohal.drivers.udp.sim import BoardSimulator
 from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, Mode
-
-from udp_helpers import FakeBoard, driver_for, robot, tick, wait_for
 
 KEY_HEX = "00112233445566778899aabbccddeeff"
 KEY = bytes.fromhex(KEY_HEX)
@@ -162,7 +161,7 @@ async def test_every_class_of_bad_datagram_is_counted_and_dropped(fake):
     await tick(d, 3)
     assert rob.state.position.tolist() == [0.75, 0.75]
     assert d.counters["duplicated"] == 1 and d.counters["reordered"] == 1
-    seq4, addr = await _command(board, d, 4)
+    _seq4, addr = await _command(board, d, 4)
     board.reply(addr, seq3, position=0.1, seq=51)  # answers the command before: late
     await tick(d, 4)
     assert d.counters["late"] == 1 and rob.state.position.tolist() == [0.75, 0.75]
@@ -188,7 +187,7 @@ async def test_board_fault_bits_fault_the_joints_and_hold_the_robot(fake):
 
 @pytest.mark.asyncio
 async def test_a_silent_board_fails_the_driver_after_its_ticks(fake):
-    board, rob, d = fake
+    _board, rob, d = fake
     limit = d.options.silent_ticks
     for k in range(1, limit + 1):  # it answered at open (tick 0); silent for 1..limit ticks is tolerated
         await d.write()

@@ -11,8 +11,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal.drivers.udp.protocol import (COMMAND_RECORD, HEADER_SIZE, MAGIC, STATE_RECORD, Kind, ProtocolError,
-                                         decode, encode, seq_newer)
+from aiohal.drivers.udp.protocol import (
+    COMMAND_RECORD,
+    HEADER_SIZE,
+    MAGIC,
+    STATE_RECORD,
+    Kind,
+    ProtocolError,
+    decode,
+    encode,
+    seq_newer,
+)
 
 KEY = bytes(range(16))
 

@@ -11,11 +11,11 @@ from conftest import CONFIGS, require_module
 
 mujoco = require_module("mujoco")
 
-from aiohal.config import parse_config  # noqa: E402
-from aiohal.errors import ConfigError  # noqa: E402
-from aiohal.loop import ControlLoop  # noqa: E402
-from aiohal.safety import SafetyRequestRefused  # noqa: E402
-from aiohal.ticker import VirtualTickSource  # noqa: E402
+from aiohal.config import parse_config
+from aiohal.errors import ConfigError
+from aiohal.loop import ControlLoop
+from aiohal.safety import SafetyRequestRefused
+from aiohal.ticker import VirtualTickSource
 
 CONFIG = CONFIGS / "kuka_lwr_sim.toml"
 MODEL = str(CONFIGS / "models" / "kuka_lwr.xml")
@@ -135,5 +135,5 @@ def test_workspace_config_errors_name_the_key(entry, key, message):
 def test_a_workspace_needs_the_model():
     raw = raw_config([{"site": "ee", "sphere": {"center": [0, 0, 0], "radius": 1}}])
     del raw["robot"]["model"]
-    with pytest.raises(ConfigError, match="needs? the robot's model|need the robot's model"):
+    with pytest.raises(ConfigError, match=r"needs? the robot's model|need the robot's model"):
         parse_config(raw)

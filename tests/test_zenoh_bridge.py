@@ -16,16 +16,15 @@ import time
 import uuid
 
 import pytest
-
 from conftest import ROOT, require_module
 from helpers import arm_raw
 
 zenoh = require_module("zenoh")
 
-from aiohal.bridge import ZenohBridgeSection  # noqa: E402
-from aiohal.bridge.zenoh import decode_state, zenoh_config  # noqa: E402
-from aiohal.config import parse_config  # noqa: E402
-from aiohal.errors import ConfigError  # noqa: E402
+from aiohal.bridge import ZenohBridgeSection
+from aiohal.bridge.zenoh import decode_state, zenoh_config
+from aiohal.config import parse_config
+from aiohal.errors import ConfigError
 
 
 def free_ports(n: int) -> list[int]:
@@ -72,11 +71,11 @@ def robot_toml(name: str, listen: int, connect: list[int], *, commands: bool) ->
 def test_accepting_setpoints_needs_the_shm_stream_path():
     raw = arm_raw(3)
     raw["bridge"] = {"zenoh": {"accept_setpoints": True, "multicast_scouting": False}}
-    with pytest.raises(ConfigError, match="bridge.zenoh.accept_setpoints: setpoints go through the shared-memory"):
+    with pytest.raises(ConfigError, match=r"bridge.zenoh.accept_setpoints: setpoints go through the shared-memory"):
         parse_config(raw)
     raw["bridge"]["zenoh"]["accept_safety"] = ["reboot"]
     raw["bridge"]["zenoh"]["accept_setpoints"] = False
-    with pytest.raises(ConfigError, match="bridge.zenoh.accept_safety"):
+    with pytest.raises(ConfigError, match=r"bridge.zenoh.accept_safety"):
         parse_config(raw)
 
 
