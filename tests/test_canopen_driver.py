@@ -112,9 +112,27 @@ async def test_a_drive_fault_sends_an_emcy_holds_the_robot_and_a_reset_enables_i
         assert driver.drives.machines[1].enabled and int(state.fault[1]) & Fault.HARDWARE == 0
         assert abs(command.position[1] - state.position[1]) < 0.01  # bumpless
     errors = [f.error for f in loop.faults if f.source == "driver:bus"]
-    assert any("EMCY from node 2" in e and "0x2310" in e for e in errors)
-    assert any("joint j1" in e and "EMCY error code 0x2310" in e for e in errors)
+    assert any("joint j1: EMCY from node 2" in e and "0x2310" in e for e in errors)
     assert report["drivers"]["bus"]["drive_faults"] == 1 and report["drivers"]["bus"]["emergencies"] >= 1
+
+
+@pytest.mark.asyncio
+async def test_an_emcy_that_comes_after_its_fault_still_gives_the_fault_its_code():
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver = driver_of(loop)
+        emcy = driver.sim.drives[2].node.emcy
+        held, send = [], emcy.send
+        emcy.send = lambda *args: held.append(args)  # the drive's EMCY a few cycles late
+        driver.sim.drives[2].inject_fault(0x2310)
+        loop.add_publisher(stop_when(lambda lp: driver.drives.machines[1].faulted, 5))
+        await loop.run(ticks=1000)
+        machine = driver.drives.machines[1]
+        assert machine.faulted and machine.error_code == 0 and held  # no code yet: 0x603F is not mapped
+        for args in held:
+            send(*args)
+        loop.add_publisher(stop_when(lambda lp: driver.emergencies, 0))
+        await loop.run(ticks=1000)
+        assert machine.faulted and machine.error_code == 0x2310
 
 
 @pytest.mark.asyncio

@@ -24,6 +24,7 @@ import asyncio
 import logging
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, cast
 
@@ -352,7 +353,7 @@ class CanopenDriver(Driver):
         self._heard = np.zeros(len(options.nodes))  # monotonic time of each node's last heartbeat
         self._next_heartbeat_check = 0.0
         self._heartbeat_check_s = options.heartbeat_timeout_ms * 1e-4
-        self._emcy: list[tuple[int, int, int]] = []  # (node index, code, register) from the notifier thread
+        self._emcy: deque[tuple[int, int, int]] = deque()  # (node index, code, register) from the notifier thread
         self._last_emcy = [0] * len(options.nodes)  # each node's last EMCY error code (0: none or reset)
         self._drive_mask = np.zeros(view.dof, dtype=bool)
         self._lock = threading.Lock()  # the tick, bring-up/close cycles and estop on the bus
@@ -759,14 +760,17 @@ class CanopenDriver(Driver):
         )
 
     def _handle_emergencies(self) -> None:
-        pending, self._emcy = self._emcy, []
-        for k, code, register in pending:
+        while self._emcy:  # popleft: an EMCY the notifier appends meanwhile is taken too, never lost
+            k, code, register = self._emcy.popleft()
             node = self.options.nodes[k]
             self._last_emcy[k] = code
             if code == 0:
                 log.info("canopen %s: node %d (%s): error reset", self.name, node.node_id, node.label)
                 continue
             self.emergencies += 1
+            machine = self.drives.machines[k] if self.drives is not None else None
+            if machine is not None and machine.faulted and not machine.error_code:
+                machine.error_code = code  # the fault came first (its TPDO, or the EMCY a cycle late)
             self.view.report_fault(
                 "read",
                 f"joint {node.joint}: EMCY from node {node.node_id} ({node.label}): "
@@ -782,7 +786,10 @@ class CanopenDriver(Driver):
         if event.kind is EventKind.FAULT_ENTERED:
             self.drive_faults += 1
             machine = drives.machines[i]
-            if not machine.error_code and self._last_emcy[i]:  # 0x603F unmapped: the code the EMCY gave
+            from_drive = machine.error_code  # 0x603F, when the drive maps it
+            if self._emcy:  # an EMCY the notifier took after this read began: the fault's code
+                self._handle_emergencies()
+            if not from_drive and self._last_emcy[i]:  # 0x603F unmapped: the code the EMCY gave
                 machine.error_code = self._last_emcy[i]
                 detail = f" (EMCY error code 0x{machine.error_code:04X})"
         respond_to_event(drives, i, event, self.view, self._drive_mask, f"canopen {self.name}", detail)
