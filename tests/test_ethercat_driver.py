@@ -560,7 +560,9 @@ async def test_an_interface_that_does_not_exist_is_named():
 
 @pytest.mark.asyncio
 async def test_a_driver_never_opened_stops_closes_and_reports_without_touching_a_bus():
-    driver = driver_of(ControlLoop(parse_config(raw_config("ahnosuchif0"))))
+    loop = ControlLoop(parse_config(raw_config("ahnosuchif0")))
+    loop.configure()  # drivers made, nothing opened
+    driver = driver_of(loop)
     driver.estop()  # the loop's safe state on a failure elsewhere, before this driver's open
     assert driver.health() == {}
     await driver.close()

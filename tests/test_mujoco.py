@@ -405,7 +405,7 @@ async def test_an_absolute_center_draws_the_same_circle_as_its_offset():
         start = loop.controller.x_start.copy()
         by_offset = await loop.run(ticks=3000)
         centre = loop.controller.center.copy()
-    np.testing.assert_allclose(centre, [*start, 0.0, -0.1, 0.0])  # the default offset: -radius along y
+    np.testing.assert_allclose(centre, start + np.array([0.0, -0.1, 0.0]))  # the default offset: -radius along y
     loop = lockstep(parse_config(kuka_raw(center=centre.tolist()), base_dir=CONFIGS))
     async with loop:
         by_center = await loop.run(ticks=3000)
