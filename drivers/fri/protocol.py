@@ -17,6 +17,11 @@ USER_SIZE = 16  # FRI_USER_SIZE: KRL values per type
 MSR_SIZE, CMD_SIZE = 916, 376
 MSR_ID, CMD_ID = 0x2006, 0x1005
 DEFAULT_PORT = 49938
+#: The largest move of the joint set point (rad) one command may ask for, per KRC cycle. A
+#: larger step is an "interpolation error": the KRC brakes and falls back to monitor mode.
+#: KUKA publishes no figure; this is the simulator's limit and the driver's default
+#: (docs/fri.md, "Disturbances").
+MAX_STEP = 0.004
 
 
 #: One field of a datagram: name, numpy format (a scalar, or ``(scalar, count)`` for an

@@ -16,7 +16,16 @@ torque as torque feed-forward); when the quality falls to ``drop_quality`` the K
 drives off and the joints stop (brakes). These thresholds are this simulator's choices: KUKA
 does not publish its own.
 
-Fault injection: ``drop_answers`` (the probability that an answer is lost on the way).
+In command mode with the drives powered, a command that moves the set point by more than
+``max_step`` in one cycle is an interpolation error: it is counted, the KRC brakes and drops
+to monitor mode, as a real KRC does.
+
+Fault injection: ``drop_answers`` (the probability that an answer is lost on the way), and
+for a time: the drives powered off (``power_off``), the quality forced down
+(``degrade_quality``), the KRL program restarting (``restart_krl``). With ``--control-stdin``
+the process takes them as JSON lines on stdin (``{"do": "power_off", "for": 1.0}``,
+``{"do": "quality", "for": 0.5, "quality": "UNACCEPTABLE"}``, ``{"do": "restart_krl", "for":
+0.1}``) and answers ``{"do": "report"}`` with a ``{"report": ...}`` line on stdout.
 The first line on stdout is ``{"port": N}`` once bound.
 """
 
@@ -48,6 +57,7 @@ from .protocol import (
     CMD_SIZE,
     CONTROL_OF_STRATEGY,
     JOINTS,
+    MAX_STEP,
     Control,
     Flags,
     FriError,
@@ -62,6 +72,8 @@ if TYPE_CHECKING:
     from aiohal.servo import ServoParams
 
 WINDOW = 100  # packets in FRI's statistics
+#: a step above ``max_step`` by less than this is float32 rounding of the set point's two halves
+STEP_ROUNDING = 1e-6
 
 
 @dataclass
@@ -78,6 +90,7 @@ class KrcOptions:
     dynamics: str = "first_order"  # or "servo" (aiohal.fieldbus.servo.joint_model)
     servo: ServoParams | None = None  # dynamics "servo": the drives (None: aiohal.servo's defaults)
     drop_answers: float = 0.0
+    max_step: float = MAX_STEP  # rad per cycle in command mode: a larger step is an interpolation error
     seed: int = 0
 
 
@@ -98,6 +111,7 @@ class KrcSimulator:
         start = np.zeros(JOINTS) if initial is None else initial
         self.model = joint_model(opts.dynamics, JOINTS, start, opts.time_constant, opts.servo)
         self.msr = new_msr()
+        self.msr["send_seq"] = 0xFFFF  # the first measurement carries sequence number 0
         self.msr["desired_msr_sample_time"] = self.msr["desired_cmd_sample_time"] = opts.cycle_s
         self.msr["safety_limits"] = 1.0
         self.msr["temperature"] = 35.0
@@ -125,9 +139,20 @@ class KrcSimulator:
                 "drops_to_monitor",
                 "starts",
                 "stops",
+                "power_offs",
+                "quality_drops",
+                "krl_restarts",
             ),
             0,
         )
+        self.largest_step = 0.0  # the largest set point step taken in command mode (rad)
+        # fault injections: until when (time.monotonic()), set from any thread
+        self._power_off_until = 0.0
+        self._quality_until = 0.0
+        self._forced_quality = Quality.UNACCEPTABLE
+        self._krl_restart: float | None = None  # a requested restart's pause (s)
+        self._krl_paused_until = 0.0
+        self._now = 0.0
         self.events: list[str] = []
         self._rx = bytearray(2048)
         self._stop = threading.Event()
@@ -166,8 +191,54 @@ class KrcSimulator:
             self._thread.join(timeout=2.0)
         self.sock.close()
 
+    # ------------------------------------------------------------ fault injection (any thread)
+
+    def power_off(self, duration: float) -> None:
+        """The drives off (brakes) for ``duration`` s; in command mode they come back powered."""
+        self._power_off_until = time.monotonic() + duration
+
+    def degrade_quality(self, duration: float, quality: Quality = Quality.UNACCEPTABLE) -> None:
+        """The quality held at or below ``quality`` for ``duration`` s, whatever the answers."""
+        self._forced_quality = quality
+        self._quality_until = time.monotonic() + duration
+
+    def restart_krl(self, pause: float) -> None:
+        """The KRL program restarts: monitor mode, drives off, its handshake silent for ``pause`` s."""
+        self._krl_restart = pause
+
+    def report(self) -> dict:
+        return {
+            "counters": dict(self.counters),
+            "state": self.state.name,
+            "power": self.power,
+            "quality": self.quality.name,
+            "largest_step": self.largest_step,
+            "setpoint": [float(x) for x in self.setpoint],
+            "events": self.events[-20:],
+        }
+
+    def _inject(self, now: float) -> None:
+        if self._krl_restart is not None:
+            self._krl_paused_until = now + self._krl_restart
+            self._krl_restart = None
+            self._to_monitor("KRL program restarted")
+            self.counters["krl_restarts"] += 1
+        if now < self._power_off_until:
+            if self.power:
+                self.power = 0
+                self._brake()
+                self.counters["power_offs"] += 1
+                self.events.append("power off")
+        elif self._power_off_until:
+            self._power_off_until = 0.0
+            if self.state == State.CMD:
+                self.power = 0x7F
+                self.events.append("power on")
+
     def _cycle(self, now: float) -> None:
         """End the last cycle (was it answered?), run the KRL program, move, send a measurement."""
+        self._now = now
+        self._inject(now)
         if self.packets:
             if not self.answered:
                 self.window.append(None)
@@ -228,6 +299,11 @@ class KrcSimulator:
             quality = Quality.UNACCEPTABLE
         if self.packets < opts.ramp_packets:
             quality = min(quality, Quality.BAD if self.packets < opts.ramp_packets // 2 else Quality.OK)
+        if self._now < self._quality_until:
+            if quality > self._forced_quality:
+                quality = self._forced_quality
+            if self.quality > quality:
+                self.counters["quality_drops"] += 1
         self.quality = quality
         msr = self.msr
         msr["answer_rate"] = rate
@@ -242,14 +318,20 @@ class KrcSimulator:
     def _to_monitor(self, why: str) -> None:
         self.state = State.MON
         self.power = 0
-        self.model.stop()  # brakes
+        self._brake()
+        self.events.append(f"MON: {why}")
+
+    def _brake(self) -> None:
+        """The brakes hold the joints where they stand: that is the set point from now on."""
+        self.model.stop()
         self.setpoint = self.model.position.copy()
         self.krl_setpoint = self.setpoint.copy()
-        self.events.append(f"MON: {why}")
 
     def _krl(self) -> None:
         """The KRL program: strategy in MON, start on request at PERFECT, stop on request."""
         opts = self.options
+        if self._now < self._krl_paused_until:
+            return  # the program is not at its handshake yet
         frm = self.cmd["krl_int"]
         request = int(frm[opts.command_int - 1])
         if self.state == State.MON:
@@ -273,6 +355,13 @@ class KrcSimulator:
                 self.counters["stops"] += 1
             elif self.power and int(self.cmd["cmd_flags"]) & Flags.JNTPOS:
                 target = self.cmd["jnt_pos"].astype(np.float64)
+                step = float(np.max(np.abs(target - self.setpoint)))
+                if step > opts.max_step + STEP_ROUNDING:
+                    self.counters["interpolation_errors"] += 1
+                    self.counters["drops_to_monitor"] += 1
+                    self._to_monitor(f"interpolation error: a step of {step:.4f} rad (limit {opts.max_step})")
+                    return
+                self.largest_step = max(self.largest_step, step)
                 velocity = (target - self.setpoint) / opts.cycle_s
                 stiffness = self.cmd["jnt_stiffness"] if self.control == Control.JNT_IMP else 0.0
                 self.model.command(
@@ -300,7 +389,28 @@ class KrcSimulator:
         # the set point: the KRL interpolator's, plus FRI's share as the offset (0 in MON)
         msr["cmd_jnt_pos"] = self.krl_setpoint
         msr["cmd_jnt_pos_fri_offset"] = self.setpoint - self.krl_setpoint
-        msr["krl_int"][self.options.status_int - 1] = 20 if self.state == State.CMD else 10
+        status = 20 if self.state == State.CMD else 10
+        msr["krl_int"][self.options.status_int - 1] = 0 if self._now < self._krl_paused_until else status
+
+
+def take_commands(sim: KrcSimulator, lines, out) -> None:
+    """Fault injections as JSON lines (``--control-stdin``); a bad line is answered with an error."""
+    actions = {
+        "power_off": lambda c: sim.power_off(float(c["for"])),
+        "quality": lambda c: sim.degrade_quality(float(c["for"]), Quality[c.get("quality", "UNACCEPTABLE")]),
+        "restart_krl": lambda c: sim.restart_krl(float(c["for"])),
+    }
+    for line in lines:
+        try:
+            command = json.loads(line)
+            if command["do"] == "report":
+                reply: dict = {"report": sim.report()}
+            else:
+                actions[command["do"]](command)
+                reply = {"done": command["do"]}
+        except (ValueError, KeyError, TypeError) as exc:
+            reply = {"error": f"{type(exc).__name__}: {exc} in {line.strip()!r}"}
+        print(json.dumps(reply), file=out, flush=True)
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -319,6 +429,10 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--command-int", type=int, default=16)
     p.add_argument("--status-int", type=int, default=16)
     p.add_argument("--drop-answers", type=float, default=0.0)
+    p.add_argument(
+        "--max-step", type=float, default=MAX_STEP, help="rad per cycle: a larger step is an interpolation error"
+    )
+    p.add_argument("--control-stdin", action="store_true", help="take fault injections as JSON lines on stdin")
     add_dynamics_arguments(p, time_constant=0.004)
     p.add_argument("--priority", type=int, default=None, help="SCHED_FIFO priority, when allowed")
     p.add_argument("--duration", type=float, default=None)
@@ -332,6 +446,7 @@ def main(argv: list[str] | None = None) -> None:
         command_int=args.command_int,
         status_int=args.status_int,
         drop_answers=args.drop_answers,
+        max_step=args.max_step,
         time_constant=args.time_constant,
         dynamics=args.dynamics,
         servo=servo,
@@ -346,6 +461,8 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGTERM, lambda *_: sim._stop.set())
     signal.signal(signal.SIGINT, lambda *_: sim._stop.set())
     print(json.dumps({"port": sim.port}), flush=True)
+    if args.control_stdin:
+        threading.Thread(target=take_commands, args=(sim, sys.stdin, sys.stdout), daemon=True).start()
     try:
         sim.serve(args.duration)
     finally:
