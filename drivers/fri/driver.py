@@ -8,6 +8,13 @@ monitor mode, powered off, below ``min_quality`` or e-stopped, the KRC's own set
 (R-HAL ran it at 200 Hz, not real time) and never waits for the network: ``read()`` takes the
 newest measurement, ``write()`` stores the command.
 
+The KRC brakes on a set point step above its interpolation limit, so every answer moves the
+KRC's set point by at most ``max_step``: each entry into command mode starts where the KRC
+holds the arm, and a loop slower than the KRC has its targets interpolated over the KRC
+cycles of one loop period. A backlog of measurements (the process stalled) is answered once,
+the newest; a KRC that restarts (a new port on its host, or its sequence from the start,
+after a silence, in monitor mode) is taken again.
+
 Bring-up plays the KRL handshake through the user ints: the strategy (position 10, joint
 impedance 30) in ``$FRI_FRM_INT[strategy_int]`` with its command flags while in monitor mode,
 then the start request (10) in ``$FRI_FRM_INT[command_int]``, until the KRC reports command
@@ -22,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import select
 import socket
 import sys
 import time
@@ -34,12 +42,14 @@ from aiohal.errors import AiohalError
 from aiohal.fieldbus import simprocess
 from aiohal.fieldbus.sim_joints import SimulatedJoints
 from aiohal.hal import AnyOptions, Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
+from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault, Mode
 
 from .protocol import (
     DEFAULT_PORT,
     FLAGS,
     JOINTS,
+    MAX_STEP,
     MSR,
     MSR_ID,
     MSR_SIZE,
@@ -55,6 +65,9 @@ from .protocol import (
 
 log = logging.getLogger(__name__)
 STATE_CMD = int(State.CMD)
+#: A measurement the ordinary rules refuse (another port, an older sequence number) is a
+#: restarted KRC when the KRC was silent for this many of its cycles and it is in monitor mode.
+RESTART_SILENCE_CYCLES = 3
 
 
 class FriDriverError(AiohalError, OSError):
@@ -76,6 +89,7 @@ class KrcSimulation(SimulatedJoints):
     drop_answers: FiniteFloat = Field(
         0.0, ge=0, le=1, description="Probability that an answer is lost (fault injection)."
     )
+    max_step: FiniteFloat = Field(MAX_STEP, gt=0, description="The simulated KRC's interpolation limit (rad/cycle).")
     priority: int | None = Field(70, ge=1, le=99, description="SCHED_FIFO priority of the KRC's process, when allowed.")
 
 
@@ -88,6 +102,9 @@ class FriOptions(Options):
     control: Literal["position", "joint_impedance"] = Field("position", description="The KRC's control strategy.")
     stiffness: JointValues = Field(1000.0, ge=0, description="Joint impedance: N·m/rad where the command gives none.")
     damping: JointValues = Field(0.7, ge=0, description="Joint impedance: damping ratio where the command gives none.")
+    max_step: FiniteFloat = Field(
+        MAX_STEP, gt=0, description="Rad per KRC cycle: no answer moves the KRC's set point further (its limit)."
+    )
     min_quality: Literal["bad", "ok", "perfect"] = Field(
         "bad",
         description="Below it, commands are refused and the robot holds (FRI: commanding is allowed from BAD up).",
@@ -156,49 +173,116 @@ class FriDriver(Driver):
         self.running = False  # command mode was reached at open
         self.krc: tuple[str, int] | None = None  # the KRC's address, once known: the only one taken
         self._krc_host: str | None = None  # options.krc_address, resolved
+        self.sock: socket.socket | None = None
         self.transport: asyncio.DatagramTransport | None = None
         self.sim_process: asyncio.subprocess.Process | None = None
         self.sim_report: dict | None = None
+        self._rx = bytearray(2048)
+        self._readable = select.poll()  # the socket, once open: more datagrams waiting?
         self._new = False  # a measurement arrived since the last read
         self._last_seq: int | None = None
         self._last_msr_ns = 0
         self._previous_position = np.zeros(JOINTS)
         self._previous_stamp = 0.0
         self._fault = ""  # the KRC-side fault being held, "" when none
+        # the answer path: the KRC's set point, one loop period's segment of targets in KRC
+        # cycles (from the last answer to the latest target), scratch
+        self.max_step = np.float32(options.max_step)
+        self._setpoint = np.zeros(JOINTS, dtype=np.float32)
+        self._segment_from = np.zeros(JOINTS, dtype=np.float32)
+        self._segment_cycles = 1
+        self._segment_done = 0
+        self._step = np.zeros(JOINTS, dtype=np.float32)
+        # the KRC was not commandable since the last read: answers hold its set point until
+        # read() has re-synchronised the loop's commands where the arm stands
+        self._entering = True
+        self._all_joints = np.ones(JOINTS, dtype=bool)
         self._answer_ns = np.zeros(1 << 12, dtype=np.int64)
+        self._warn = RateLimitedLogger(log)
         self.counters = dict.fromkeys(
-            ("received", "sent", "lost", "duplicated", "reordered", "malformed", "unauthenticated", "refused"), 0
+            (
+                "received",
+                "sent",
+                "stale",
+                "lost",
+                "duplicated",
+                "reordered",
+                "malformed",
+                "unauthenticated",
+                "refused",
+                "rate_limited",
+                "krc_restarts",
+            ),
+            0,
         )
 
     # ------------------------------------------------------------ the answer, at once
 
     def _on_datagram(self, data: bytes, addr) -> None:
         t0 = time.perf_counter_ns()
-        counters = self.counters
-        if (addr != self.krc) if self.krc is not None else (self._krc_host is not None and addr[0] != self._krc_host):
-            counters["unauthenticated"] += 1
+        if not self._take(data, addr):
             return
+        # more queued behind it (this process stalled): they are newer, this one is stale;
+        # answer only the newest. The event loop delivers a backlog one datagram per call
+        # (asyncio: one per iteration, uvloop: up to 32), so the socket is drained here.
+        if self._readable.poll(0):
+            self._drain()
+        self._answer(cast(int, self._last_seq))
+        self._answer_ns[self.counters["received"] & (len(self._answer_ns) - 1)] = time.perf_counter_ns() - t0
+
+    def _drain(self) -> None:
+        sock, rx = cast(socket.socket, self.sock), self._rx
+        while True:
+            try:
+                size, addr = sock.recvfrom_into(rx)
+            except OSError:  # BlockingIOError: nothing more
+                return
+            if self._take(memoryview(rx)[:size], addr):
+                self.counters["stale"] += 1  # the one taken before it is not answered
+
+    def _take(self, data, addr) -> bool:
+        """Check one datagram and take it as the newest measurement; False: counted, dropped."""
+        counters = self.counters
+        krc = self.krc
+        if krc is None:
+            known_host = self._krc_host is None or addr[0] == self._krc_host
+        else:
+            known_host = addr == krc or addr[0] == krc[0]
+        if not known_host:
+            counters["unauthenticated"] += 1
+            return False
         try:
             check(data, len(data), MSR_SIZE, MSR_ID)
         except FriError:
             counters["malformed"] += 1
-            return
+            return False
         seq = int.from_bytes(data[0:2], "little")
-        if self._last_seq is not None:
-            newer = seq16_newer(seq, self._last_seq)
-            if newer <= 0:
-                counters["duplicated" if newer == 0 else "reordered"] += 1
-                return
+        if krc is None:
+            self.krc = addr  # the KRC's address: from now on the only one taken (or its restart)
+        newer = 1 if self._last_seq is None or addr != self.krc else seq16_newer(seq, self._last_seq)
+        if addr != self.krc or newer <= 0:
+            if not self._restarted(data):
+                counters["unauthenticated" if addr != self.krc else "duplicated" if newer == 0 else "reordered"] += 1
+                return False
+            counters["krc_restarts"] += 1
+            self._warn.warning("restart", "fri: the KRC restarted (%s:%d, sequence %d)", addr[0], addr[1], seq)
+            self.krc = addr
+            self._previous_stamp = 0.0  # its clock restarted too
+        else:
             counters["lost"] += newer - 1
-        if self.krc is None:
-            self.krc = addr  # the KRC's address: from now on the only one taken
         self._last_seq = seq
         self._msr_bytes[:] = data
         self._new = True
         self._last_msr_ns = time.monotonic_ns()
         counters["received"] += 1
-        self._answer(seq)
-        self._answer_ns[counters["received"] & (len(self._answer_ns) - 1)] = time.perf_counter_ns() - t0
+        return True
+
+    def _restarted(self, data) -> bool:
+        """A restarted KRC: silent for some of its cycles, then in monitor mode (as any KRC starts)."""
+        state = int.from_bytes(data[144:146], "little")
+        cycle_ns = max(float(self.msr["desired_msr_sample_time"]), 1e-3) * 1e9
+        silent_ns = time.monotonic_ns() - self._last_msr_ns
+        return state == State.MON and silent_ns >= RESTART_SILENCE_CYCLES * cycle_ns
 
     def _answer(self, seq: int) -> None:
         # the fields as views made once: a structured array's field lookup costs more than its copy
@@ -206,20 +290,23 @@ class FriDriver(Driver):
         head = self._cmd_head
         head[0] = (int(head[0]) + 1) & 0xFFFF  # send_seq
         head[1] = seq  # refl_seq
-        ok = (
-            self.commanding
-            and not self.estopped
-            and msr["state"] == STATE_CMD
-            and msr["power"] != 0
-            and msr["quality"] >= self.min_quality
+        position, setpoint = cmd["jnt_pos"], self._setpoint
+        np.add(msr["cmd_jnt_pos"], msr["cmd_jnt_pos_fri_offset"], out=setpoint)  # where the KRC holds the arm
+        commandable = (
+            msr["state"] == STATE_CMD and msr["power"] != 0 and msr["error"] == 0 and msr["quality"] >= self.min_quality
         )
-        if ok:
-            cmd["jnt_pos"][:] = self.target
+        if not commandable:
+            self._entering = True
+        if commandable and self.commanding and not self.estopped:
+            if self._entering:  # back in command mode: stay where the KRC holds until the loop resyncs
+                position[:] = setpoint
+            else:
+                self._toward_target(position, setpoint)
             cmd["add_jnt_trq"][:] = self.torque
             cmd["jnt_stiffness"][:] = self.stiffness
             cmd["jnt_damping"][:] = self.damping
         else:  # mirror the KRC's set point: nothing moves, nothing jumps when commanding starts
-            np.add(msr["cmd_jnt_pos"], msr["cmd_jnt_pos_fri_offset"], out=cmd["jnt_pos"])
+            position[:] = setpoint
             cmd["add_jnt_trq"][:] = 0.0
             if self.commanding:
                 self.counters["refused"] += 1
@@ -230,6 +317,24 @@ class FriDriver(Driver):
         except OSError:
             pass
 
+    def _toward_target(self, position: np.ndarray, setpoint: np.ndarray) -> None:
+        """This KRC cycle's point of the segment to the target, at most ``max_step`` from the
+        KRC's set point (so also from wherever it holds the arm when command mode returns)."""
+        step = self._step
+        done = self._segment_done = min(self._segment_done + 1, self._segment_cycles)
+        if done == self._segment_cycles:
+            np.subtract(self.target, setpoint, out=step)
+        else:  # from + (target - from)·done/cycles, relative to the set point
+            np.subtract(self.target, self._segment_from, out=step)
+            step *= np.float32(done / self._segment_cycles)
+            step += self._segment_from
+            step -= setpoint
+        limit = self.max_step
+        if step.max() > limit or step.min() < -limit:
+            np.clip(step, -limit, limit, out=step)
+            self.counters["rate_limited"] += 1
+        np.add(setpoint, step, out=position)
+
     # ------------------------------------------------------------ bring-up
 
     async def open(self) -> None:
@@ -237,6 +342,8 @@ class FriDriver(Driver):
         loop = asyncio.get_running_loop()
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.bind(("127.0.0.1" if opts.simulate else opts.bind_address, 0 if opts.simulate else opts.port))
+        self.sock = sock  # the answer path drains a backlog from it
+        self._readable.register(sock, select.POLLIN)
         self.transport, _ = await loop.create_datagram_endpoint(lambda: _Endpoint(self), sock=sock)
         if opts.simulate:
             port = await self._start_simulation(sock.getsockname())
@@ -294,6 +401,8 @@ class FriDriver(Driver):
             str(krl.status_int),
             "--drop-answers",
             repr(sim.drop_answers),
+            "--max-step",
+            repr(sim.max_step),
             *sim.joint_arguments(),
         ]
         if sim.priority is not None:
@@ -333,9 +442,23 @@ class FriDriver(Driver):
             msr = self.msr
             if msr["state"] != State.CMD or msr["power"] == 0 or msr["error"] != 0 or msr["quality"] < self.min_quality:
                 self._krc_fault()
-            elif self._fault:
-                self._fault = ""
-                view.state.fault &= np.uint32(~Fault.HARDWARE & 0xFFFFFFFF)
+            elif self._entering or self._fault:
+                self._back_in_command_mode()
+
+    def _back_in_command_mode(self) -> None:
+        """The KRC is commandable again: the loop's commands continue from where the arm
+        stands (``view.resync``), and the answers leave the KRC's set point toward them."""
+        view = self.view
+        if self._fault:
+            log.warning(
+                "fri %s: the KRC is back in command mode; commands continue from where the arm stands", self.name
+            )
+            self._fault = ""
+            view.state.fault &= np.uint32(~Fault.HARDWARE & 0xFFFFFFFF)
+        view.resync(self._all_joints)
+        self._entering = False
+        np.copyto(self.target, self._setpoint)  # until write(): the answers stay at the set point
+        self._segment_cycles = self._segment_done = 1
 
     def _krc_fault(self) -> None:
         msr = self.msr
@@ -351,7 +474,13 @@ class FriDriver(Driver):
 
     async def write(self) -> None:
         command = self.view.command
+        # a segment from the last answer to this target, over the KRC cycles of one loop period
+        np.copyto(self._segment_from, self._cmd_fields["jnt_pos"])
         np.copyto(self.target, command.position, casting="same_kind")
+        cycle = float(self._msr_fields["desired_cmd_sample_time"])
+        period = self.view.clock.period_ns * self.view.every * 1e-9
+        self._segment_cycles = max(1, round(period / cycle)) if cycle > 0.0 else 1
+        self._segment_done = 0
         if self.control == Control.JNT_IMP:
             impedance = command.mode == Mode.IMPEDANCE
             np.add(command.effort, command.feedforward, out=self.torque, casting="same_kind")
@@ -360,6 +489,11 @@ class FriDriver(Driver):
             )
             np.copyto(self.damping, np.where(impedance, command.damping, self._default_damping), casting="same_kind")
         self.commanding = self.running
+
+    @property
+    def following(self) -> bool:
+        """The KRC is in command mode and the loop's commands were resynchronised to it."""
+        return self.running and not self._fault and not self._entering
 
     # ------------------------------------------------------------ stop
 
