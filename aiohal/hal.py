@@ -151,7 +151,7 @@ class Driver(abc.ABC):
 
     def safe_actions(self) -> list:
         """What the watchdog process does for this driver when the tick stops
-        (:mod:`aiohal.watchdog` actions: plain data, run outside this process)."""
+        (:mod:`aiohal.safety.watchdog` actions: plain data, run outside this process)."""
         return []
 
     def health(self) -> dict[str, Any]:

@@ -41,7 +41,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from .hal import Options
+from ..hal import Options
 
 
 class SafetyLevel(IntEnum):
