@@ -7,7 +7,7 @@ Plain synchronous Python (no asyncio, no event loop)::
 
     with RobotClient("mock_arm", joints=["a1", "a2"], command=True) as robot:
         state = robot.read()                     # a consistent snapshot
-        robot.send(state.position + 0.1, t_ns=state.now_ns + 500_000_000)
+        robot.send(state.position + 0.1, t_ns=state.now_ns + 500_000_000, final=True)
         ...                                      # after an underrun or an emergency stop:
         robot.reset_faults()                     # RequestRefused says why when it cannot
         robot.rearm()
@@ -196,11 +196,14 @@ class RobotClient:
         t_ns: int = 0,
         velocity: Sequence[float] | Mapping[str, float] | np.ndarray | None = None,
         timeout_s: float = 0.0,
+        final: bool = False,
     ) -> None:
         """Queue one setpoint for time ``t_ns`` (0: as soon as possible). Every joint is given,
-        as an array in the robot's order or a {name: value} map. Raises ValueError for a value
-        that is not finite or out of range (nothing is queued), :class:`NotStreaming` when no
-        stream controller consumes, :class:`BufferFull` when the ring stays full."""
+        as an array in the robot's order or a {name: value} map. ``final``: the stream ends at
+        this point; the controller holds it at rest, without the underrun fault, until a new
+        point comes. Raises ValueError for a value that is not finite or out of range (nothing
+        is queued), :class:`NotStreaming` when no stream controller consumes,
+        :class:`BufferFull` when the ring stays full."""
         self._require_command("send setpoints")
         self._check_open()
         q = self._vector(position, self._q, "position")
@@ -218,6 +221,8 @@ class RobotClient:
             if not ok.all():
                 raise ValueError(f"velocity is not finite for {self._names(~ok)}")
             flags = shm.FLAG_VELOCITY
+        if final:
+            flags |= shm.FLAG_FINAL
         seg = self._seg
         if not seg.consumer[shm.C_STREAMING] or self.level < SafetyLevel.RUN:
             raise NotStreaming(
@@ -247,11 +252,18 @@ class RobotClient:
         positions: np.ndarray,
         velocities: np.ndarray | None = None,
         timeout_s: float = 1.0,
+        final: bool = False,
     ) -> None:
-        """Queue a trajectory, one point per row, waiting for room up to ``timeout_s`` per point."""
+        """Queue a trajectory, one point per row, waiting for room up to ``timeout_s`` per point;
+        ``final``: the stream ends at the last row (see :meth:`send`)."""
+        last = len(times_ns) - 1
         for k, t in enumerate(times_ns):
             self.send(
-                positions[k], t_ns=int(t), velocity=None if velocities is None else velocities[k], timeout_s=timeout_s
+                positions[k],
+                t_ns=int(t),
+                velocity=None if velocities is None else velocities[k],
+                timeout_s=timeout_s,
+                final=final and k == last,
             )
 
     @property
@@ -266,6 +278,11 @@ class RobotClient:
     @property
     def refused(self) -> int:
         return int(self._seg.consumer[shm.C_REFUSED])
+
+    @property
+    def finished(self) -> bool:
+        """The stream reached a final point and holds it; no newer point was taken since."""
+        return bool(self._seg.consumer[shm.C_FINISHED])
 
     # ------------------------------------------------------------ safety requests
 

@@ -59,11 +59,12 @@ ANSWER_SIZE = 256
 ANSWER_TEXT = ANSWER_SIZE - 3 * 8
 # the ring's two lines: the producer's and the consumer's
 P_HEAD = 0
-C_TAIL, C_APPLIED, C_REFUSED, C_STREAMING = range(4)
+C_TAIL, C_APPLIED, C_REFUSED, C_STREAMING, C_FINISHED = range(5)
 # one ring slot: four int64 then position[n] and velocity[n]
 SLOT_T_NS, SLOT_SENT_NS, SLOT_FLAGS = 0, 1, 2
 SLOT_WORDS_HEAD = 4
 FLAG_VELOCITY = 1  # the point carries velocities (cubic Hermite between two such points)
+FLAG_FINAL = 2  # the stream ends here: hold this point at rest, no underrun
 
 _NAME_OK = re.compile(r"^[A-Za-z0-9_.-]{1,200}$")
 

@@ -302,9 +302,11 @@ async def test_client_resets_faults_and_rearms_after_an_underrun():
             await ticking(loop, client.rearm, 10.0)
             assert loop.level == SafetyLevel.RUN and client.read().level == SafetyLevel.RUN
             # the stream runs again from where the robot stands
-            client.send([0.03, 0.01, -0.01])
+            client.send([0.03, 0.01, -0.01], final=True)
             await loop.run(ticks=3)
             np.testing.assert_allclose(client.read().command_position, [0.03, 0.01, -0.01])
+            await loop.run(ticks=200)
+            assert loop.level == SafetyLevel.RUN
         sources = [(t["event"], t["source"]) for t in loop.report()["safety"]]
         assert ("reset_faults", "client") in sources and ("rearm", "client") in sources
 
@@ -330,7 +332,7 @@ async def test_client_resets_faults_and_rearms_after_an_estop():
             assert loop.level == SafetyLevel.DISABLED and client.read().level == SafetyLevel.DISABLED
             await ticking(loop, client.rearm, 10.0)
             assert loop.level == SafetyLevel.RUN
-            client.send([0.01, 0.02, 0.03])
+            client.send([0.01, 0.02, 0.03], final=True)
             await loop.run(ticks=3)
             np.testing.assert_allclose(client.read().command_position, [0.01, 0.02, 0.03])
         assert loop.level == SafetyLevel.RUN and loop.faults == []
@@ -366,6 +368,49 @@ async def test_a_request_the_loop_does_not_answer_times_out():
             with pytest.raises(RequestTimeout, match="did not act") as timed_out:
                 client.reset_faults(wait_s=0.2)
             assert isinstance(timed_out.value, TimeoutError) and not isinstance(timed_out.value, RequestRefused)
+
+
+# ---------------------------------------------------------------- the end of a stream
+
+
+@pytest.mark.asyncio
+async def test_a_finished_trajectory_holds_its_last_point_and_a_new_one_follows():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=0.05))
+    async with loop:
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            t0 = client.read().now_ns + 5_000_000
+            last = np.array([0.1, -0.05, 0.02])
+            positions = np.array([[0.0, 0.0, 0.0], [0.05, -0.02, 0.01], last])
+            velocities = np.array([[0.0, 0.0, 0.0], [1.0, -0.5, 0.2], [0.0, 0.0, 0.0]])
+            client.send_trajectory([t0, t0 + 20_000_000, t0 + 40_000_000], positions, velocities, final=True)
+            await loop.run(ticks=50)  # past the last point (45 ms)
+            assert client.finished and client.applied == 3
+            await loop.run(ticks=500)  # ten times dry_after_s: no underrun
+            s = client.read()
+            assert s.level == SafetyLevel.RUN and loop.faults == []
+            np.testing.assert_allclose(s.command_position, last, atol=1e-12)
+            np.testing.assert_allclose(s.command_velocity, 0.0)
+            report = loop.report()
+            assert report["faults"] == [] and report["safety_level"] == "run"
+            metrics = report["controller"]
+            assert metrics["type"] == "stream" and metrics["finished"] is True
+            assert metrics["streams_finished"] == 1 and metrics["underruns"] == 0
+
+            # a new stream, without a re-arm: it starts from the held point, not mid-segment
+            target = np.array([0.2, -0.05, 0.02])
+            client.send(target, t_ns=client.read().now_ns + 100_000_000)
+            await loop.run(ticks=2)
+            assert not client.finished
+            first = client.read().command_position.copy()
+            assert 0.1 < first[0] < 0.1 + 0.1 * 0.05  # a few ticks into a 100 ms segment
+            # this stream has no final point: it runs dry, a fault as before
+            await ticks_until(loop, SafetyLevel.HOLD, 400)
+            assert [f.source for f in loop.faults] == ["controller:stream"]
+            assert "StreamUnderrun" in loop.faults[0].error
+            np.testing.assert_allclose(client.read().command_position, target, atol=1e-12)
+            assert loop.report()["controller"]["type"] == "hold"
 
 
 # ---------------------------------------------------------------- errors
