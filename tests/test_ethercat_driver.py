@@ -68,6 +68,7 @@ def raw_config(ifname: str, **options) -> dict:
     driver["interface"] = ifname
     driver["receive_timeout_us"] = 2000  # a loaded 2-core test machine; the benchmark uses the default
     driver["frame_timeout_us"] = 50_000  # bring-up frames (SII, mailbox) on a host that stalls for tens of ms
+    driver["sm_watchdog_ms"] = WATCHDOG_MS  # a stall of this process alone must not trip the slaves
     driver.update(options)
     return raw
 
