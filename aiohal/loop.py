@@ -49,12 +49,12 @@ from .robot import Fault, Mode
 from .safety import FaultRecord, SafetyEvent, SafetyLevel, SafetyMachine, SafetyRequestRefused
 from .stats import TickStats
 from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
-from .watchdog import STAMP, TICK, WORDS, WatchdogProcess
+from .watchdog import FIRED, STAMP, TICK, WORDS, WatchdogProcess
 
 if TYPE_CHECKING:
     from .workspace import WorkspaceMonitor
 
-assert (TICK, STAMP) == (0, 1)  # the tick stores them as heartbeat[0] and heartbeat[1]
+assert (TICK, STAMP, FIRED) == (0, 1, 3)  # the tick stores heartbeat[0], [1] and reads [3]
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +159,11 @@ class ControlLoop:
         self.faults: list[FaultRecord] = []
         self._faults_reset_at = 0  # faults recorded before this index were cleared by reset_faults()
         self.watchdog: WatchdogProcess | None = None
+        #: a tick that starts longer than this after the one before is a stall (hold, a fault)
+        gap_ms = config.safety.max_tick_gap_ms
+        if gap_ms is None:
+            gap_ms = max(config.safety.watchdog_ms, 3 * self.period_ns / 1e6)
+        self.max_tick_gap_ns = round(gap_ms * 1e6)
         # the tick's heartbeat: two int64 stores per tick; shared with the watchdog process
         # when one runs, else a private page nobody reads
         self._heartbeat = memoryview(bytearray(WORDS * 8)).cast("q")
@@ -363,7 +368,11 @@ class ControlLoop:
         actions = [(f"driver:{slot.name}", action) for slot in self.slots for action in slot.driver.safe_actions()]
         if not (safety.watchdog and actions) or self.source.kind == "virtual":
             return
-        watchdog = WatchdogProcess(actions, safety.watchdog_ms, safety.watchdog_priority)
+        priority = safety.watchdog_priority
+        if priority is None:  # above the loop's own, so that it runs when the loop does not
+            loop_priority = self.config.realtime.priority
+            priority = min(99, loop_priority + 1) if loop_priority else 0
+        watchdog = WatchdogProcess(actions, safety.watchdog_ms, priority)
         watchdog.start()
         self.watchdog = watchdog
         self._heartbeat = cast(memoryview, watchdog.heartbeat)  # mapped by start()
@@ -479,11 +488,15 @@ class ControlLoop:
                 )
         for slot in self._active:
             self.robot.state.fault[slot.driver.view.rows] = 0
+        watchdog = self.watchdog
+        if watchdog is not None and self.state == LoopState.RUNNING and not watchdog.trouble():
+            watchdog.arm()  # after it fired (it disarms itself then): watching again
         self._stale_drivers.clear()
         self._refusing = False
         cleared = len(self.faults) - self._faults_reset_at
         self._faults_reset_at = len(self.faults)
         self._event(SafetyEvent.RESET_FAULTS, source, f"{cleared} fault(s) cleared")
+        log.info("robot %s: %d fault(s) cleared, level %s", self.robot.name, cleared, self.level.name.lower())
         return reset
 
     def active_faults(self) -> list[str]:
@@ -502,6 +515,9 @@ class ControlLoop:
         if faulted.size:
             names = [self.robot.joint_names[i] for i in faulted[:5]]
             reasons.append(f"joint(s) {', '.join(names)}{' ...' if faulted.size > 5 else ''} report a fault")
+        trouble = self.watchdog_trouble()
+        if trouble:
+            reasons.append(trouble)
         if self.workspace is not None and not self.workspace.check():
             reasons.append(f"site {self.workspace.entries[self.workspace.outside].site} is outside its workspace")
         if self.level == SafetyLevel.HOLD:
@@ -536,6 +552,7 @@ class ControlLoop:
         controller, controller_type = self._configured
         self.controller, self.controller_type = controller, controller_type
         self._event(SafetyEvent.REARM, source, f"{controller_type} restarted from the measured state")
+        log.info("robot %s re-armed: %s restarted from the measured state", self.robot.name, controller_type)
         k = self.robot.clock.tick
         self._last_update_k = k
         if self.multirate is not None:
@@ -759,6 +776,25 @@ class ControlLoop:
             self._run_finished.set()
         return self.report()
 
+    def watchdog_trouble(self) -> str:
+        """Why the watchdog process could not stop the robot now ("" when it could, or where
+        none runs): dead, stopped, or not armed while the loop runs. Reads /proc: off the tick."""
+        watchdog = self.watchdog
+        if watchdog is None:
+            return ""
+        trouble = watchdog.trouble()
+        # once it acted it disarms itself: that is the fault of the stall, reset_faults() re-arms
+        if not trouble and self.state == LoopState.RUNNING and not (watchdog.armed or watchdog.fired_ns):
+            trouble = "the watchdog process is not armed"
+        return trouble
+
+    def _watchdog_checked(self, trouble: str) -> None:
+        """Off the tick, the watchdog process was seen unable to act (or able again): a watchdog
+        that could not stop the robot is a fault that holds it; rearm() waits for it."""
+        if trouble:
+            self.record_fault("watchdog", "check", f"{trouble}: nothing would stop the robot in a stall")
+            self.enter_hold(trouble, source="watchdog")
+
     def _check_watchdog_process(self) -> None:
         """The watchdog process acted on the hardware (the tick had stopped): estop here too."""
         watchdog = self.watchdog
@@ -770,6 +806,23 @@ class ControlLoop:
                 "the watchdog process ran the drivers' safe actions",
             )
             self.estop("the watchdog process acted", source="watchdog", event=SafetyEvent.WATCHDOG)
+
+    def _after_gap(self, gap_ns: int) -> None:
+        """This tick started ``gap_ns`` after the one before (the drivers have just been read):
+        more than ``max_tick_gap_ns`` is a stall. Nothing computed across it is written: the
+        robot holds where it is measured, at rest, with a fault naming the stall; the
+        controller, replaced by ``hold``, never sees its time jump. Where the watchdog
+        process acted meanwhile, the robot is e-stopped instead."""
+        self._check_watchdog_process()
+        if gap_ns <= self.max_tick_gap_ns:
+            return
+        cause = f"the tick stalled for {gap_ns / 1e6:.1f} ms (more than {self.max_tick_gap_ns / 1e6:g} ms)"
+        self.record_fault("loop", "stall", cause)
+        if self.level < SafetyLevel.HOLD:
+            return  # nothing is commanded; rearm() starts from the measured position
+        self.resync_joints(slice(None), np.ones(self.robot.dof, dtype=bool))
+        self._last_update_k = self.robot.clock.tick - 1
+        self.enter_hold(cause, source="loop")
 
     async def _tick_loop(self, ticks: int | None) -> None:
         self.stats.reset()
@@ -790,6 +843,8 @@ class ControlLoop:
 
         ticker.start(lead_ns=period_ns)
         self._missed_before = ticker.missed
+        max_gap = self.max_tick_gap_ns
+        last_woke = now_ns()  # the first tick comes one period from here
         stats.begin()
         k_start = self._k_start
         stop_k = None if ticks is None else ticker.k + ticks
@@ -808,6 +863,8 @@ class ControlLoop:
             clock.now_ns = woke
             heartbeat[0] = k  # for the watchdog process: two stores, no system call
             heartbeat[1] = t0
+            gap = woke - last_woke
+            last_woke = woke
 
             # read and write are spelled out, not factored: a helper call per driver per
             # phase costs more than the lines it would save on this path
@@ -823,6 +880,8 @@ class ControlLoop:
                 slot.read_ns += d
                 if d > slot.max_read_ns:
                     slot.max_read_ns = d
+            if gap > max_gap or heartbeat[3]:  # a stall, or the watchdog process acted: see why
+                self._after_gap(gap)
             t1 = mono()
 
             for slot in self._active:
@@ -1007,9 +1066,11 @@ class StallWatchdog:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task | None = None
         self.fired = False
+        #: how often it looks (the tick counter, the watchdog process): a few times a timeout
+        self.check_s = min(timeout_s / 4, 0.05) if timeout_s > 0 else 0.05
 
     def __enter__(self) -> StallWatchdog:
-        if self.timeout_s > 0:
+        if self.timeout_s > 0 or self.control.watchdog is not None:
             self._loop = asyncio.get_running_loop()
             self._task = asyncio.current_task()
             self._thread = threading.Thread(target=self._watch, name="aiohal-watchdog", daemon=True)
@@ -1025,17 +1086,18 @@ class StallWatchdog:
         loop = cast(asyncio.AbstractEventLoop, self._loop)  # set by __enter__, before this thread starts
         stats = self.control.stats
         last, since = -1, time.monotonic()
-        notified = False
-        while not self._stop.wait(self.timeout_s / 4):
+        trouble = ""
+        while not self._stop.wait(self.check_s):
             count = stats.count
             now = time.monotonic()
-            process = self.control.watchdog
-            if process is not None and process.fired_ns and not notified:
-                notified = True
-                loop.call_soon_threadsafe(self.control._check_watchdog_process)
+            if self.control.watchdog is not None:  # watched in turn: dead or stopped holds the robot
+                seen = self.control.watchdog_trouble()
+                if seen != trouble:
+                    trouble = seen
+                    loop.call_soon_threadsafe(self.control._watchdog_checked, trouble)
             if count != last:
                 last, since = count, now
-            elif now - since > self.timeout_s:
+            elif self.timeout_s > 0 and now - since > self.timeout_s:
                 self.fired = True
                 # synchronous, from this thread: the loop may be stuck
                 self.control.estop(
