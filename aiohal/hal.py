@@ -4,6 +4,15 @@ A driver moves data between hardware and its rows of the robot arrays (R-HAL's
 ``init/recvFromSlave/sendToSlave``); a controller turns state into commands inside the tick.
 Both declare typed options (a pydantic model) that the configuration is validated against
 before anything starts.
+
+Concurrency: the loop calls every method of a driver and a controller on its own thread, one
+at a time, except ``Driver.estop``, which the stall watchdog thread may call while the loop's
+thread is stuck. ``read`` and ``write`` are coroutines awaited in turn inside the tick: they
+must not block, nor await anything slow (a coroutine that never awaits is the normal case).
+Blocking bring-up runs in a thread (``asyncio.to_thread`` or an executor); a library's own
+thread (python-can's notifier, a keep-alive thread) hands data to ``read`` through a buffer
+made once and a counter, or a ``deque`` for events, and never touches the robot's arrays.
+docs/architecture.md ("The concurrency model") says what each shipped driver does.
 """
 
 from __future__ import annotations
