@@ -95,11 +95,11 @@ class Driver(abc.ABC):
     """
 
     Options: ClassVar[type[Options]] = NoOptions
-    #: Device kinds ("imu", "force_torque", "hand") this driver can serve.
     device_kinds: ClassVar[frozenset[str]] = frozenset()
-    #: The command modes this driver applies to its joints (ros2_control's command
-    #: interfaces): a controller that commands another mode is refused before anything starts.
+    """Device kinds ("imu", "force_torque", "hand") this driver can serve."""
     command_modes: ClassVar[frozenset[Mode]] = ALL_MODES
+    """The command modes this driver applies to its joints (ros2_control's command
+    interfaces): a controller that commands another mode is refused before anything starts."""
 
     def __init__(self, name: str, view: DriverView, options: AnyOptions) -> None:
         self.name = name
@@ -172,8 +172,8 @@ class Controller(abc.ABC):
     """Turns state into commands. ``update`` is synchronous, runs in the tick, must not block."""
 
     Params: ClassVar[type[Options]] = NoOptions
-    #: The command modes this controller writes to ``command.mode``.
     command_modes: ClassVar[frozenset[Mode]] = frozenset({Mode.POSITION})
+    """The command modes this controller writes to ``command.mode``."""
 
     robot: RobotView
 
