@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import signal
 import time
+from pathlib import Path
 
 import pytest
 from conftest import CONFIGS, require_root
@@ -31,6 +32,16 @@ FREEZES = {
 }
 
 
+def frozen_config(name: str, tmp_path) -> Path:
+    """A shipped config, copied, whose stalls are those of a frozen process: the bound (and
+    the watchdog process's time) at 200 ms, above a loaded host's own stalls of the robot's
+    process, far below the freeze."""
+    text = (CONFIGS / name).read_text().replace('model = "models/', f'model = "{CONFIGS}/models/')
+    path = tmp_path / name
+    path.write_text(text + "\n[safety]\nmax_tick_gap_ms = 200\nwatchdog_ms = 200\n")
+    return path
+
+
 def running(robot: RobotProcess, seconds: float = 1.0) -> None:
     """Until it runs, then ``seconds`` of motion."""
     robot.wait_for("running")
@@ -47,8 +58,9 @@ def board():
 @pytest.mark.parametrize("driver", FREEZES)
 def test_a_frozen_robot_process_holds_where_it_stands_and_rearms_without_a_step(tmp_path, driver):
     name, level = FREEZES[driver]
-    config = load_config(CONFIGS / name)
-    robot = RobotProcess(CONFIGS / name, tmp_path)
+    path = frozen_config(name, tmp_path)
+    config = load_config(path)
+    robot = RobotProcess(path, tmp_path)
     try:
         running(robot)
         robot.ensure_running()
