@@ -6,9 +6,9 @@ STAMP := $(VENV)/.installed-dev
 CONFIG ?= configs/kuka_lwr_sim.toml
 ARGS ?= --duration 10
 # the extras `make test` installs (.ci/run installs the same in its other Pythons' venvs)
-EXTRAS := dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh
+EXTRAS := dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh,docs
 
-.PHONY: run lint test check figures bench bench-quick clean
+.PHONY: run lint test check docs figures bench bench-quick clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -64,9 +64,14 @@ bench-quick: $(STAMP)
 	$(PY) -m benchmarks.robots --seconds 2 --json bench-results/quick/robots.json
 	$(PY) -m benchmarks.kernel_call --rounds 5 --json bench-results/quick/kernel_call.json
 
+# the site (docs/ and the API reference from the docstrings) into site/; any warning fails it
+docs: $(STAMP)
+	$(PY) -c 'import mkdocs, mkdocstrings_handlers.python' 2>/dev/null || $(PY) -m pip install -q -e '.[docs]'
+	$(VENV)/bin/mkdocs build --strict
+
 figures: $(STAMP)
 	$(PY) -m pip install -q -e '.[plot]'
 	$(PY) examples/plot_circles.py docs/img/circles.png
 
 clean:
-	rm -rf $(VENV) .venv3?? build *.egg-info
+	rm -rf $(VENV) .venv3?? build site *.egg-info

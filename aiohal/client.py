@@ -1,5 +1,5 @@
 """Attach to a running robot from another process on the same machine: read its state, stream
-setpoints to its ``stream`` controller, ask for hold or emergency stop.
+setpoints to its ``stream`` controller, ask for hold or emergency stop, reset faults and re-arm.
 
 Plain synchronous Python (no asyncio, no event loop)::
 
@@ -7,8 +7,10 @@ Plain synchronous Python (no asyncio, no event loop)::
 
     with RobotClient("mock_arm", joints=["a1", "a2"], command=True) as robot:
         state = robot.read()                     # a consistent snapshot
-        robot.send(state.position + 0.1, t_ns=state.now_ns + 500_000_000)
-        robot.hold()
+        robot.send(state.position + 0.1, t_ns=state.now_ns + 500_000_000, final=True)
+        ...                                      # after an underrun or an emergency stop:
+        robot.reset_faults()                     # RequestRefused says why when it cannot
+        robot.rearm()
 
 Time stamps are the loop's clock (``State.now_ns``; CLOCK_MONOTONIC on a real clock, the same
 as ``time.monotonic_ns()`` here); ``t_ns=0`` means "as soon as possible". Layout and
@@ -33,8 +35,11 @@ from .shm import RobotNotRunning, ShmError
 __all__ = [
     "BufferFull",
     "CommandBusy",
+    "CommandRequired",
     "JointMismatch",
     "NotStreaming",
+    "RequestRefused",
+    "RequestTimeout",
     "RobotClient",
     "RobotNotRunning",
     "ShmError",
@@ -56,6 +61,23 @@ class NotStreaming(ShmError):
 
 class BufferFull(ShmError):
     """The setpoint ring stayed full for the whole timeout."""
+
+
+class CommandRequired(ShmError, PermissionError):
+    """Setpoints, resetting faults and re-arming need a client opened with ``command=True``."""
+
+
+class RequestRefused(ShmError):
+    """The loop refused a safety request; ``reason`` is the loop's own (e.g. a fault not reset)."""
+
+    def __init__(self, robot: str, request: str, reason: str) -> None:
+        self.request = request
+        self.reason = reason
+        super().__init__(f"robot {robot!r} refused {request}: {reason}")
+
+
+class RequestTimeout(ShmError, TimeoutError):
+    """The loop did not answer a safety request in time (it may still act on it later)."""
 
 
 class State:
@@ -174,13 +196,15 @@ class RobotClient:
         t_ns: int = 0,
         velocity: Sequence[float] | Mapping[str, float] | np.ndarray | None = None,
         timeout_s: float = 0.0,
+        final: bool = False,
     ) -> None:
         """Queue one setpoint for time ``t_ns`` (0: as soon as possible). Every joint is given,
-        as an array in the robot's order or a {name: value} map. Raises ValueError for a value
-        that is not finite or out of range (nothing is queued), :class:`NotStreaming` when no
-        stream controller consumes, :class:`BufferFull` when the ring stays full."""
-        if self._lock_fd is None:
-            raise ShmError("this client did not take the setpoint ring: RobotClient(..., command=True)")
+        as an array in the robot's order or a {name: value} map. ``final``: the stream ends at
+        this point; the controller holds it at rest, without the underrun fault, until a new
+        point comes. Raises ValueError for a value that is not finite or out of range (nothing
+        is queued), :class:`NotStreaming` when no stream controller consumes,
+        :class:`BufferFull` when the ring stays full."""
+        self._require_command("send setpoints")
         self._check_open()
         q = self._vector(position, self._q, "position")
         ok = self._ok
@@ -197,6 +221,8 @@ class RobotClient:
             if not ok.all():
                 raise ValueError(f"velocity is not finite for {self._names(~ok)}")
             flags = shm.FLAG_VELOCITY
+        if final:
+            flags |= shm.FLAG_FINAL
         seg = self._seg
         if not seg.consumer[shm.C_STREAMING] or self.level < SafetyLevel.RUN:
             raise NotStreaming(
@@ -212,8 +238,8 @@ class RobotClient:
                 time.sleep(self.period_ns / 4e9)
         i = head % self._capacity
         np.copyto(seg.slot_position[i], q)
-        if flags:
-            np.copyto(seg.slot_velocity[i], v)
+        if velocity is not None:
+            np.copyto(seg.slot_velocity[i], self._v)
         words = seg.slot_words[i]
         words[shm.SLOT_T_NS] = t_ns
         words[shm.SLOT_FLAGS] = flags
@@ -226,11 +252,18 @@ class RobotClient:
         positions: np.ndarray,
         velocities: np.ndarray | None = None,
         timeout_s: float = 1.0,
+        final: bool = False,
     ) -> None:
-        """Queue a trajectory, one point per row, waiting for room up to ``timeout_s`` per point."""
+        """Queue a trajectory, one point per row, waiting for room up to ``timeout_s`` per point;
+        ``final``: the stream ends at the last row (see :meth:`send`)."""
+        last = len(times_ns) - 1
         for k, t in enumerate(times_ns):
             self.send(
-                positions[k], t_ns=int(t), velocity=None if velocities is None else velocities[k], timeout_s=timeout_s
+                positions[k],
+                t_ns=int(t),
+                velocity=None if velocities is None else velocities[k],
+                timeout_s=timeout_s,
+                final=final and k == last,
             )
 
     @property
@@ -246,36 +279,89 @@ class RobotClient:
     def refused(self) -> int:
         return int(self._seg.consumer[shm.C_REFUSED])
 
+    @property
+    def finished(self) -> bool:
+        """The stream reached a final point and holds it; no newer point was taken since."""
+        return bool(self._seg.consumer[shm.C_FINISHED])
+
     # ------------------------------------------------------------ safety requests
 
     def hold(self, wait_s: float = 1.0) -> None:
-        """Ask the loop to replace its controller by ``hold``; waits until it has."""
-        self._request(shm.R_HOLD, shm.R_HOLD_DONE, wait_s)
+        """Ask the loop to replace its controller by ``hold``; waits until it has. Any client
+        may ask; a robot already below ``run`` stays where it is (the level says so)."""
+        self._request(shm.R_HOLD, shm.R_HOLD_DONE, shm.A_HOLD, wait_s)
 
     def estop(self, wait_s: float = 1.0) -> None:
-        """Ask the loop to trigger every driver's emergency stop; waits until it has."""
-        self._request(shm.R_ESTOP, shm.R_ESTOP_DONE, wait_s)
+        """Ask the loop to trigger every driver's emergency stop; waits until it has. Any
+        client may ask."""
+        self._request(shm.R_ESTOP, shm.R_ESTOP_DONE, shm.A_ESTOP, wait_s)
+
+    def reset_faults(self, wait_s: float = 1.0) -> None:
+        """Ask the loop to clear its latched faults (after an emergency stop: to release it,
+        leaving the robot ``disabled``); :meth:`rearm` then lets it move. Needs
+        ``command=True``; :class:`RequestRefused` carries the loop's reason when it cannot."""
+        self._require_command("reset faults")
+        self._check_rearm("reset faults")
+        self._refused_raises("reset_faults", self._request(shm.R_RESET, shm.R_RESET_DONE, shm.A_RESET, wait_s))
 
     def rearm(self, wait_s: float = 1.0) -> None:
-        """Ask the loop to re-arm after hold or emergency stop, where the loop can."""
-        if not self._seg.header[shm.H_CAN_REARM]:
-            raise ShmError(f"robot {self.robot!r}: this loop has no re-arm")
-        self._request(shm.R_REARM, shm.R_REARM_DONE, wait_s)
+        """Ask the loop to return to ``run`` from hold or disabled (the controller restarts
+        from where the robot stands). Needs ``command=True``; :class:`RequestRefused`
+        carries the loop's reason when it cannot (a fault not reset, hold still braking)."""
+        self._require_command("re-arm")
+        self._check_rearm("re-arm")
+        self._refused_raises("rearm", self._request(shm.R_REARM, shm.R_REARM_DONE, shm.A_REARM, wait_s))
 
-    def _request(self, ask: int, done: int, wait_s: float) -> None:
+    def _require_command(self, what: str) -> None:
+        if self._lock_fd is None:
+            raise CommandRequired(
+                f"robot {self.robot!r}: to {what} a client takes the setpoint ring: RobotClient(..., command=True)"
+            )
+
+    def _check_rearm(self, what: str) -> None:
         self._check_open()
-        req = self._seg.requests
+        if not self._seg.header[shm.H_CAN_REARM]:
+            raise ShmError(f"robot {self.robot!r}: this loop cannot {what} on request")
+
+    def _refused_raises(self, request: str, answer: tuple[bool, str]) -> None:
+        refused, reason = answer
+        if refused:
+            raise RequestRefused(self.robot, request, reason or "no reason given")
+
+    def _request(self, ask: int, done: int, kind: int, wait_s: float) -> tuple[bool, str]:
+        """Increment the request's counter, wait for the loop to act and return its answer
+        (refused, reason); :class:`RequestTimeout` when it does not act within ``wait_s``."""
+        self._check_open()
+        seg = self._seg  # no view of it in a local: an error's traceback would keep it mapped
         # several clients may ask at once: the loop acts on any change of the counter
-        target = int(req[ask]) + 1
-        req[ask] = target
+        target = int(seg.requests[ask]) + 1
+        seg.requests[ask] = target
         deadline = time.monotonic() + wait_s
-        while int(req[done]) < target:
-            if time.monotonic() > deadline:
-                self._check_alive()
-                raise ShmError(f"robot {self.robot!r} did not act on the request within {wait_s:g} s")
-            time.sleep(self.period_ns / 4e9)
+        while int(seg.requests[done]) < target:
+            self._wait_a_little(deadline, wait_s)
+        answer = self._read_answer(kind, target, deadline, wait_s)
         # the tick acted after it published: the next tick's snapshot shows the new level
         self.wait_tick(int(self._seg.seqlock[shm.S_TICK]), max(0.0, deadline - time.monotonic()) + 0.1)
+        return answer
+
+    def _read_answer(self, kind: int, target: int, deadline: float, wait_s: float) -> tuple[bool, str]:
+        """The answer to our request or a later one of the same kind (they merge). The loop
+        writes it under its count (0 while writing): a copy between two equal counts is whole."""
+        seg = self._seg
+        while True:
+            count = int(seg.answer_words[kind][shm.A_COUNT])
+            refused = bool(seg.answer_words[kind][shm.A_REFUSED])
+            n = min(max(int(seg.answer_words[kind][shm.A_LEN]), 0), shm.ANSWER_TEXT)  # bounded: from outside
+            reason = bytes(seg.answer_text[kind][:n]).decode(errors="replace")
+            if count >= target and int(seg.answer_words[kind][shm.A_COUNT]) == count:
+                return refused, reason
+            self._wait_a_little(deadline, wait_s)
+
+    def _wait_a_little(self, deadline: float, wait_s: float) -> None:
+        if time.monotonic() > deadline:
+            self._check_alive()
+            raise RequestTimeout(f"robot {self.robot!r} did not act on the request within {wait_s:g} s")
+        time.sleep(self.period_ns / 4e9)
 
     # ------------------------------------------------------------ plumbing
 

@@ -514,7 +514,7 @@ def _workspace_issues(robot: RobotSection, safety: Any) -> list[ConfigIssue]:
     if robot.model is None:
         return [ConfigIssue("safety.workspace", "workspace limits need the robot's model ([robot] model)")]
     try:
-        from .workspace import WorkspaceMonitor
+        from .safety.workspace import WorkspaceMonitor
 
         return [ConfigIssue(k, m) for k, m in WorkspaceMonitor.name_issues(robot.model, safety.workspace)]
     except ImportError as exc:

@@ -4,6 +4,15 @@ A driver moves data between hardware and its rows of the robot arrays (R-HAL's
 ``init/recvFromSlave/sendToSlave``); a controller turns state into commands inside the tick.
 Both declare typed options (a pydantic model) that the configuration is validated against
 before anything starts.
+
+Concurrency: the loop calls every method of a driver and a controller on its own thread, one
+at a time, except ``Driver.estop``, which the stall watchdog thread may call while the loop's
+thread is stuck. ``read`` and ``write`` are coroutines awaited in turn inside the tick: they
+must not block, nor await anything slow (a coroutine that never awaits is the normal case).
+Blocking bring-up runs in a thread (``asyncio.to_thread`` or an executor); a library's own
+thread (python-can's notifier, a keep-alive thread) hands data to ``read`` through a buffer
+made once and a counter, or a ``deque`` for events, and never touches the robot's arrays.
+docs/architecture.md ("The concurrency model") says what each shipped driver does.
 """
 
 from __future__ import annotations
@@ -86,11 +95,11 @@ class Driver(abc.ABC):
     """
 
     Options: ClassVar[type[Options]] = NoOptions
-    #: Device kinds ("imu", "force_torque", "hand") this driver can serve.
     device_kinds: ClassVar[frozenset[str]] = frozenset()
-    #: The command modes this driver applies to its joints (ros2_control's command
-    #: interfaces): a controller that commands another mode is refused before anything starts.
+    """Device kinds ("imu", "force_torque", "hand") this driver can serve."""
     command_modes: ClassVar[frozenset[Mode]] = ALL_MODES
+    """The command modes this driver applies to its joints (ros2_control's command
+    interfaces): a controller that commands another mode is refused before anything starts."""
 
     def __init__(self, name: str, view: DriverView, options: AnyOptions) -> None:
         self.name = name
@@ -151,7 +160,7 @@ class Driver(abc.ABC):
 
     def safe_actions(self) -> list:
         """What the watchdog process does for this driver when the tick stops
-        (:mod:`aiohal.watchdog` actions: plain data, run outside this process)."""
+        (:mod:`aiohal.safety.watchdog` actions: plain data, run outside this process)."""
         return []
 
     def health(self) -> dict[str, Any]:
@@ -163,8 +172,8 @@ class Controller(abc.ABC):
     """Turns state into commands. ``update`` is synchronous, runs in the tick, must not block."""
 
     Params: ClassVar[type[Options]] = NoOptions
-    #: The command modes this controller writes to ``command.mode``.
     command_modes: ClassVar[frozenset[Mode]] = frozenset({Mode.POSITION})
+    """The command modes this controller writes to ``command.mode``."""
 
     robot: RobotView
 

@@ -458,18 +458,19 @@ class DriverView:
         self.effort_limit = robot.effort_limit[rows]
         self.devices = {name: robot.device(name) for name in devices}
         self.device_kinds = {name: robot.device_kind(name) for name in devices}
-        self.fresh_tick = -1  # the last tick this driver's joints were all measured
-        #: the driver is read and written on every ``every``-th tick only ([[driver]] every)
+        self.fresh_tick = -1
+        """The last tick this driver's joints were all measured (``mark_fresh`` sets it)."""
         self.every = 1
-        #: ``report_fault(phase, reason)``: a fault the driver survives (e.g. one device lost);
-        #: the loop installs its recorder so it reaches the run report.
+        """The driver is read and written on every ``every``-th tick only (``[[driver]] every``)."""
         self.report_fault: Callable[[str, str], object] = _log_fault
-        #: ``request_hold(reason)``: a fault of this driver's hardware that the rest of the robot
-        #: must not move through (e.g. one drive faulted); the loop installs its hold.
+        """``report_fault(phase, reason)``: a fault the driver survives (e.g. one device lost);
+        the loop installs its recorder so it reaches the run report."""
         self.request_hold: Callable[[str], object] = _log_hold
-        #: ``resync(rows)``: these of the driver's joints (a bool mask) were re-enabled where they
-        #: stand; the loop makes their command continue from the measured position (bumpless).
+        """``request_hold(reason)``: a fault of this driver's hardware that the rest of the robot
+        must not move through (e.g. one drive faulted); the loop installs its hold."""
         self.resync: Callable[[np.ndarray], object] = _ignore_resync
+        """``resync(rows)``: these of the driver's joints (a bool mask) were re-enabled where they
+        stand; the loop makes their command continue from the measured position (bumpless)."""
 
     def per_joint(self, values: float | dict[str, float] | Sequence[float], default: float = 0.0) -> np.ndarray:
         """An array over this driver's joints (options given as a scalar or a {joint: value} map)."""

@@ -11,8 +11,9 @@ One ``multiprocessing.shared_memory`` segment per robot, named ``aiohal.<robot>`
   consumer (the ``stream`` controller in the tick). Each side owns its index, on its own cache
   line; the producer fills a slot, then moves ``head``; the consumer reads, then moves
   ``tail``. Neither takes a lock;
-- **safety requests** (hold, estop, rearm): counters a client increments; the tick compares
-  them with the last values it acted on (one read of each per tick).
+- **safety requests** (hold, estop, reset faults, rearm): counters a client increments; the
+  tick compares them with the last values it acted on (one read of each per tick), acts, and
+  leaves an **answer** per kind (granted or refused, and the loop's reason) for the client.
 
 The ordering the seqlock and the ring rely on (stores seen in program order by another core)
 is the x86-64 memory model's; docs/client.md gives the byte layout and this caveat.
@@ -38,7 +39,7 @@ from .robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
 log = logging.getLogger(__name__)
 
 MAGIC = 0x314C4148_4F494100  # b"\x00AIOHAL1" read as a little-endian int64
-VERSION = 1
+VERSION = 2
 LINE = 64  # bytes: each side's counters on a cache line of their own
 
 # header line 0: identity and shape (written once, before STATUS becomes ACTIVE)
@@ -49,14 +50,21 @@ STATUS_STARTING, STATUS_ACTIVE, STATUS_CLOSED = 0, 1, 2
 # the seqlock line: SEQ, then the scalars it guards
 S_SEQ, S_TICK, S_NOW_NS, S_LEVEL = range(4)
 # the request line: counters clients increment, and the counts the loop has acted on
-R_HOLD, R_ESTOP, R_REARM, R_HOLD_DONE, R_ESTOP_DONE, R_REARM_DONE = range(6)
+R_HOLD, R_ESTOP, R_REARM, R_HOLD_DONE, R_ESTOP_DONE, R_REARM_DONE, R_RESET, R_RESET_DONE = range(8)
+# one answer block per request kind: the count it answers (0 while the loop writes it),
+# refused (0 or 1), the reason's length in bytes, then the reason (UTF-8, cut to fit)
+A_HOLD, A_ESTOP, A_REARM, A_RESET = range(4)
+A_COUNT, A_REFUSED, A_LEN = range(3)
+ANSWER_SIZE = 256
+ANSWER_TEXT = ANSWER_SIZE - 3 * 8
 # the ring's two lines: the producer's and the consumer's
 P_HEAD = 0
-C_TAIL, C_APPLIED, C_REFUSED, C_STREAMING = range(4)
+C_TAIL, C_APPLIED, C_REFUSED, C_STREAMING, C_FINISHED = range(5)
 # one ring slot: four int64 then position[n] and velocity[n]
 SLOT_T_NS, SLOT_SENT_NS, SLOT_FLAGS = 0, 1, 2
 SLOT_WORDS_HEAD = 4
 FLAG_VELOCITY = 1  # the point carries velocities (cubic Hermite between two such points)
+FLAG_FINAL = 2  # the stream ends here: hold this point at rest, no underrun
 
 _NAME_OK = re.compile(r"^[A-Za-z0-9_.-]{1,200}$")
 
@@ -130,6 +138,8 @@ class Layout:
         at += LINE
         self.consumer = at
         at += LINE
+        self.answers = at
+        at += 4 * ANSWER_SIZE
         self.meta = at
         at += _round(meta_len)
         # the state payload the seqlock guards: each array on a line of its own
@@ -168,6 +178,10 @@ class Segment:
         self.requests = words(L.requests, 8)
         self.producer = words(L.producer, 8)
         self.consumer = words(L.consumer, 8)
+        answers = np.frombuffer(buf, np.uint8, 4 * ANSWER_SIZE, L.answers).reshape(4, ANSWER_SIZE)
+        #: per request kind: the answer's words and its reason's bytes
+        self.answer_words = [answers[i, : 3 * 8].view(np.int64) for i in range(4)]
+        self.answer_text = [answers[i, 3 * 8 :] for i in range(4)]
         self.state = np.frombuffer(buf, np.float64, len(JOINT_STATE_FIELDS) * n, L.state).reshape(-1, n)
         self.command = np.frombuffer(buf, np.float64, len(JOINT_COMMAND_FIELDS) * n, L.command).reshape(-1, n)
         self.fault = np.frombuffer(buf, np.uint32, n, L.fault)
@@ -201,6 +215,8 @@ class Segment:
             "requests",
             "producer",
             "consumer",
+            "answer_words",
+            "answer_text",
             "state",
             "command",
             "fault",
@@ -365,7 +381,7 @@ class ShmDoor:
         self._views = [seq, req, *(v for pair in pairs for v in pair)]
         clock = robot.clock
         counter = [0]  # the sequence, kept here: the tick never reads it back from the segment
-        seen = [0, 0, 0]
+        seen = [0, 0, 0, 0]  # per answer kind (A_HOLD, A_ESTOP, A_REARM, A_RESET)
 
         def publish(_loop: Any) -> None:
             s = counter[0] + 1
@@ -381,37 +397,61 @@ class ShmDoor:
                 d[:] = src
             seq[S_SEQ] = s + 1  # even: consistent
             counter[0] = s + 1
-            if req[R_HOLD] != seen[0] or req[R_ESTOP] != seen[1] or req[R_REARM] != seen[2]:
+            if (
+                req[R_HOLD] != seen[A_HOLD]
+                or req[R_ESTOP] != seen[A_ESTOP]
+                or req[R_REARM] != seen[A_REARM]
+                or req[R_RESET] != seen[A_RESET]
+            ):
                 self._act(req, seen)
 
         return publish
 
     def _act(self, req: memoryview, seen: list[int]) -> None:
-        """A client asked for a safety change (rare: off the per-tick path). The snapshot of
-        the next tick shows its effect; a client waits for that tick (see the client)."""
+        """A client asked for a safety change (rare: off the per-tick path). Each request gets
+        an answer (granted, or refused with the loop's reason) before its acted-on count moves,
+        so a client that sees the count reads the answer; the next tick's snapshot shows the
+        new level. The most protective request goes first."""
         from .safety import SafetyRequestRefused
 
-        control = self.control
-        if req[R_ESTOP] != seen[1]:
-            seen[1] = req[R_ESTOP]
-            log.warning("robot %s: emergency stop requested by a shared-memory client", self.robot_name)
-            control.estop("requested by a shared-memory client", source="client")
-            req[R_ESTOP_DONE] = seen[1]
-        if req[R_HOLD] != seen[0]:
-            seen[0] = req[R_HOLD]
+        control, cause = self.control, "requested by a shared-memory client"
+        actions = (
+            (A_ESTOP, R_ESTOP, R_ESTOP_DONE, "estop", lambda: control.estop(cause, source="client")),
+            (A_HOLD, R_HOLD, R_HOLD_DONE, "hold", lambda: control.hold(cause)),
+            (A_RESET, R_RESET, R_RESET_DONE, "reset_faults", lambda: control.reset_faults(source="client")),
+            (A_REARM, R_REARM, R_REARM_DONE, "rearm", lambda: control.rearm(source="client")),
+        )
+        for kind, ask, done, what, action in actions:
+            count = req[ask]
+            if count == seen[kind]:
+                continue
+            seen[kind] = count
+            (log.warning if kind == A_ESTOP else log.info)(
+                "robot %s: %s requested by a shared-memory client", self.robot_name, what
+            )
+            refused, reason = False, ""
             try:
-                control.hold("requested by a shared-memory client")
-            except SafetyRequestRefused as exc:  # not running: the level the client reads says so
-                log.warning("robot %s: a shared-memory client's hold refused: %s", self.robot_name, exc)
-            req[R_HOLD_DONE] = seen[0]
-        if req[R_REARM] != seen[2]:
-            seen[2] = req[R_REARM]
-            try:
-                control.rearm(source="client")
+                action()
             except SafetyRequestRefused as exc:
-                log.warning("robot %s: a shared-memory client's rearm refused: %s", self.robot_name, exc)
-            req[R_REARM_DONE] = seen[2]
+                refused, reason = True, str(exc)
+            except Exception as exc:  # whatever goes wrong with a request must not end the tick
+                refused, reason = True, f"{type(exc).__name__}: {exc}"
+                log.exception("robot %s: a shared-memory client's %s failed", self.robot_name, what)
+            if refused:
+                log.warning("robot %s: a shared-memory client's %s refused: %s", self.robot_name, what, reason)
+            self._answer(kind, count, refused, reason)
+            req[done] = count
         self.requests_acted += 1
+
+    def _answer(self, kind: int, count: int, refused: bool, reason: str) -> None:
+        """Write one answer under its count: 0 while writing, so a reader never keeps a torn one."""
+        words, text = self.segment.answer_words[kind], self.segment.answer_text[kind]
+        data = reason.encode()[:ANSWER_TEXT]
+        words[A_COUNT] = 0
+        words[A_REFUSED] = int(refused)
+        words[A_LEN] = len(data)
+        text[: len(data)] = np.frombuffer(data, np.uint8)
+        words[A_COUNT] = count
 
     def close(self) -> None:
         """Mark the segment closed (attached clients see it at once) and remove it."""

@@ -4,8 +4,10 @@ robot's shared-memory ring (``aiohal.client``; LOLA's planner-to-hardware FIFO).
 Between two points the command is interpolated at the tick's time: linearly, or by a cubic
 Hermite curve when both points carry velocities. A point stamped 0 is due at once. Past the
 last point the command holds it; when no newer point arrives within ``dry_after_s`` the
-controller raises, and the loop replaces it by ``hold`` and records the fault. Before the
-first point the robot holds where it started, for as long as it takes.
+controller raises, and the loop replaces it by ``hold`` and records the fault. A point flagged
+final ends the stream instead: it is held at rest for as long as it takes, without a fault,
+and the next point starts a new stream from there (no re-arm). Before the first point the
+robot holds where it started, for as long as it takes.
 
 A point that is not finite or lies outside a joint's range is refused and counted, never
 applied. Needs ``[client] shm = true`` (the config check says so).
@@ -40,13 +42,14 @@ class StreamParams(Options):
 class _Point:
     """A point in the controller's hands: time, positions, velocities (preallocated)."""
 
-    __slots__ = ("t", "q", "v", "has_v")
+    __slots__ = ("t", "q", "v", "has_v", "final")
 
     def __init__(self, n: int) -> None:
         self.t = 0
         self.q = np.zeros(n)
         self.v = np.zeros(n)
         self.has_v = False
+        self.final = False
 
 
 class StreamController(Controller):
@@ -86,6 +89,9 @@ class StreamController(Controller):
         self.applied = 0
         self.refused = 0
         self.underruns = 0
+        self.finished = False  # the last stream ended with a final point and nothing followed
+        self.streams_finished = 0
+        self._cons[shm.C_FINISHED] = 0
         # stale points from before this start are skipped: the consumer starts at the head
         self._cons[shm.C_TAIL] = self._head[shm.P_HEAD]
         self._cons[shm.C_STREAMING] = 1
@@ -100,7 +106,9 @@ class StreamController(Controller):
         b = self._b
         q = b.q
         np.copyto(q, self._pos[i])
-        b.has_v = bool(words[shm.SLOT_FLAGS] & shm.FLAG_VELOCITY)
+        flags = int(words[shm.SLOT_FLAGS])
+        b.has_v = bool(flags & shm.FLAG_VELOCITY)
+        b.final = bool(flags & shm.FLAG_FINAL)
         if b.has_v:
             np.copyto(b.v, self._vel[i])
         t = int(words[shm.SLOT_T_NS])
@@ -139,9 +147,12 @@ class StreamController(Controller):
                         break
                 if not self._has_b:
                     break
-                if not self._streaming:  # the first point: the path starts where the command is
+                if not self._streaming:  # a stream's first point: the path starts where the command is
                     self._streaming = True
                     a.t = now
+                    if self.finished:
+                        self.finished = False
+                        self._cons[shm.C_FINISHED] = 0
             b = self._b
             if b.t > now:
                 break
@@ -150,6 +161,8 @@ class StreamController(Controller):
             self._has_b = False
             self.applied += 1
             self._cons[shm.C_APPLIED] = self.applied
+            if a.final:
+                self._finish(a)
         cmd = self.robot.command
         if self._has_b:
             self._interpolate(a, self._b, now, cmd)
@@ -163,6 +176,15 @@ class StreamController(Controller):
                 f"no setpoint for {(now - a.t) / 1e9:.3f} s after the last one "
                 f"(dry_after_s = {self.params.dry_after_s:g})"
             )
+
+    def _finish(self, a: _Point) -> None:
+        """The stream ended at ``a``: hold it at rest with no deadline; a new point restarts
+        from here, starting at rest (a zero velocity for a Hermite segment)."""
+        self._streaming = False
+        self.finished = True
+        self.streams_finished += 1
+        self._cons[shm.C_FINISHED] = 1
+        a.v.fill(0.0)
 
     def _interpolate(self, a: _Point, b: _Point, now: int, cmd) -> None:
         span = (b.t - a.t) * 1e-9
@@ -217,6 +239,8 @@ class StreamController(Controller):
             "points_applied": getattr(self, "applied", 0),
             "points_refused": getattr(self, "refused", 0),
             "underruns": getattr(self, "underruns", 0),
+            "finished": getattr(self, "finished", False),
+            "streams_finished": getattr(self, "streams_finished", 0),
         }
         n = min(getattr(self, "applied", 0), LATENCY_WINDOW)
         if n and self.robot.clock.kind != "virtual":

@@ -23,8 +23,8 @@ from pydantic import Field
 from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
 from aiohal.robot import HandGroup, StateRow
+from aiohal.safety.watchdog import SendDatagram
 from aiohal.servo import ServoParams
-from aiohal.watchdog import SendDatagram
 
 ESTOP_PAYLOAD = b"ESTOP"
 

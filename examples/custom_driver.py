@@ -1,9 +1,9 @@
-"""A custom driver: joints that answer over a (simulated) non-blocking link.
+"""A driver of your own: joints on a link that answers one cycle late (docs/writing-a-driver.md).
 
-A driver owns a contiguous run of joints and gets views of their rows: ``read()`` fills
-``self.view.state`` in place and calls ``self.view.mark_fresh()``; ``write()`` sends
-``self.view.command``. Neither may block: bring-up that blocks belongs in ``open()``
-(``asyncio.to_thread``). ``estop()`` is synchronous and idempotent.
+``EchoLink`` stands in for the library of a real bus: connecting blocks, sending and
+receiving do not. ``EchoDriver`` puts it behind the HAL: ``open()`` brings the link up off
+the loop's thread, ``read()`` fills the driver's state rows in place, ``write()`` sends its
+command rows, ``estop()`` disables the joints at once.
 
 Register it in your package's pyproject:
 
@@ -11,7 +11,7 @@ Register it in your package's pyproject:
     echo = "mypackage.driver:EchoDriver"
 
 Here it is registered in this process (``aiohal.plugins.register``) so that a config can
-name it; ``ControlLoop.from_parts`` also takes the class itself (examples/from_code.py).
+name it; ``ControlLoop.from_parts`` also takes the class itself.
 
     python examples/custom_driver.py
 """
@@ -19,34 +19,86 @@ name it; ``ControlLoop.from_parts`` also takes the class itself (examples/from_c
 from __future__ import annotations
 
 import asyncio
+import time
 
 import numpy as np
 from pydantic import Field
 
-from aiohal import ControlLoop, Driver, Options, parse_config, plugins
+from aiohal import ControlLoop, Driver, JointValues, Mode, Options, parse_config, plugins
+from aiohal.hal import unknown_joint_issues
+
+
+class EchoLink:
+    """The hardware: each enabled joint moves a fraction ``gain`` of the way to its target per
+    cycle; a disabled joint stays where it is."""
+
+    def __init__(self, gain: np.ndarray) -> None:
+        self.gain = gain
+        self.position = np.zeros(len(gain))
+        self.target = np.zeros(len(gain))
+        self.enabled = False
+
+    def connect(self) -> None:
+        time.sleep(0.05)  # bring-up blocks, as a real bus's does
+        self.enabled = True
+
+    def send(self, target: np.ndarray) -> None:
+        np.copyto(self.target, target)
+
+    def receive(self) -> np.ndarray:
+        if self.enabled:
+            self.position += self.gain * (self.target - self.position)
+        return self.position
 
 
 class EchoOptions(Options):
-    gain: float = Field(1.0, gt=0, le=1.0, description="Fraction of the command the joint reaches.")
+    gain: JointValues = Field(1.0, description="Fraction of the way to its target a joint moves per cycle, in (0, 1].")
 
 
 class EchoDriver(Driver):
-    """Reports each command back, scaled: stands in for a bus whose frames come back next tick."""
+    """Position-controlled joints on an :class:`EchoLink`."""
 
     Options = EchoOptions
+    options: EchoOptions  # what __init__ receives, typed as this driver's
+    command_modes = frozenset({Mode.POSITION})
+
+    @classmethod
+    def check_config(cls, options, joints, devices, robot):
+        issues = unknown_joint_issues("options.gain", options.gain, joints)
+        gains = options.gain.values() if isinstance(options.gain, dict) else [options.gain]
+        if not all(0.0 < gain <= 1.0 for gain in gains):
+            issues.append(("options.gain", "every gain must be in (0, 1]"))
+        return issues
+
+    def __init__(self, name, view, options) -> None:
+        super().__init__(name, view, options)
+        self.link = EchoLink(view.per_joint(options.gain, default=1.0))
+        self.cycles = 0
 
     async def open(self) -> None:
-        self._last = np.zeros(self.view.dof)  # what the "bus" returns on the next read
+        await asyncio.to_thread(self.link.connect)  # blocking: never on the loop's thread
 
     async def read(self) -> None:
-        np.multiply(self._last, self.options.gain, out=self.view.state.position)
+        np.copyto(self.view.state.position, self.link.receive())
         self.view.mark_fresh()
 
     async def write(self) -> None:
-        np.copyto(self._last, self.view.command.position)
+        self.link.send(self.view.command.position)
+        self.cycles += 1
 
     def estop(self) -> None:
-        pass  # a real driver would disable the drives here
+        self.link.enabled = False
+
+    def release_estop(self) -> bool:
+        self.link.send(self.link.position)  # enabled again where the joints stand
+        self.link.enabled = True
+        return True
+
+    async def close(self) -> None:
+        self.link.enabled = False
+
+    def health(self) -> dict:
+        return {"cycles": self.cycles}
 
 
 CONFIG = {

@@ -265,7 +265,7 @@ def _configured_driver(**options):
 
 
 def test_the_watchdog_frame_is_an_nmt_stop_to_every_node_or_the_configured_frame():
-    from aiohal.watchdog import SendCanFrame
+    from aiohal.safety.watchdog import SendCanFrame
 
     # struct can_frame: id (host order), length, 3 bytes pad/reserved/len8_dlc, 8 data bytes
     driver = _configured_driver(interface="socketcan", simulate=False)

@@ -64,10 +64,12 @@ def raw_config(ifname: str, **options) -> dict:
     # stall watchdogs (tested elsewhere) must not end these runs
     raw["loop"]["max_feedback_age"] = 5000  # (a CI run saw 1.3 s without a frame back)
     raw["loop"]["stall_timeout_ms"] = 5000
+    raw.setdefault("safety", {})["max_tick_gap_ms"] = 5000
     driver = raw["driver"][0]["options"]
     driver["interface"] = ifname
     driver["receive_timeout_us"] = 2000  # a loaded 2-core test machine; the benchmark uses the default
     driver["frame_timeout_us"] = 50_000  # bring-up frames (SII, mailbox) on a host that stalls for tens of ms
+    driver["sm_watchdog_ms"] = WATCHDOG_MS  # a stall of this process alone must not trip the slaves
     driver.update(options)
     return raw
 
@@ -577,6 +579,7 @@ def test_the_shipped_config_runs_from_the_command_line(segment, tmp_path):
     # the loop holds the robot on feedback older than 50 ms (tested elsewhere); this shared
     # host stalls for longer at times
     text = text.replace("rate_hz = 1000\n", "rate_hz = 1000\nmax_feedback_age = 5000\nstall_timeout_ms = 5000\n", 1)
+    text = text.replace("[[driver]]", "[safety]\nmax_tick_gap_ms = 5000\n\n[[driver]]", 1)
     assert segment.ifname in text and "max_feedback_age = 5000" in text
     config = tmp_path / "ethercat_sim.toml"
     config.write_text(text)

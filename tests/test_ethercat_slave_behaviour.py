@@ -90,6 +90,7 @@ def _config_file(segment, tmp_path) -> str:
     text = CONFIG.read_text().replace('interface = "ecm0"', f'interface = "{segment.ifname}"')
     # this shared host stalls for longer than the loop's own feedback watchdogs at times
     text = text.replace("rate_hz = 1000\n", "rate_hz = 1000\nmax_feedback_age = 5000\nstall_timeout_ms = 5000\n", 1)
+    text = text.replace("[[driver]]", "[safety]\nmax_tick_gap_ms = 5000\n\n[[driver]]", 1)
     # the frame timeouts of raw_config: on this loaded host frames come back late at times
     text = text.replace("sync0 = true", "sync0 = true\nreceive_timeout_us = 2000\nframe_timeout_us = 50000", 1)
     assert "max_feedback_age" in text and "frame_timeout_us" in text

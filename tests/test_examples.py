@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import sys
 
 import numpy as np
 import pytest
@@ -14,6 +15,9 @@ from aiohal import plugins
 def load(name):
     spec = importlib.util.spec_from_file_location(f"example_{name}", ROOT / "examples" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    # in sys.modules as an imported module is: pydantic resolves the string annotations of an
+    # example's option models (``from __future__ import annotations``) in its namespace
+    sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
 

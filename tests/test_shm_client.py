@@ -18,11 +18,21 @@ from conftest import ROOT
 from helpers import arm_raw, virtual_loop
 
 from aiohal import shm
-from aiohal.client import BufferFull, CommandBusy, JointMismatch, NotStreaming, RobotClient, RobotNotRunning
+from aiohal.client import (
+    BufferFull,
+    CommandBusy,
+    CommandRequired,
+    JointMismatch,
+    NotStreaming,
+    RequestRefused,
+    RequestTimeout,
+    RobotClient,
+    RobotNotRunning,
+)
 from aiohal.config import parse_config
-from aiohal.errors import ConfigError
+from aiohal.errors import AiohalError, ConfigError
 from aiohal.loop import ControlLoop
-from aiohal.safety import SafetyLevel
+from aiohal.safety import SafetyLevel, SafetyRequestRefused
 
 JOINTS = ["j0", "j1", "j2"]
 
@@ -208,32 +218,199 @@ async def test_a_point_the_tick_finds_invalid_is_refused_and_counted():
 # ---------------------------------------------------------------- safety requests
 
 
+async def ticking(loop, fn, *args, max_ticks: int = 20_000, timeout_s: float = 60.0):
+    """Run the client's blocking call ``fn(*args)`` in a thread while the virtual loop ticks,
+    one tick at a time, until the call returns; bounded in ticks and in time. Returns what the
+    call returned, or raises what it raised."""
+    call = asyncio.ensure_future(asyncio.to_thread(fn, *args))
+    deadline = time.monotonic() + timeout_s
+    for _ in range(max_ticks):
+        if call.done() or time.monotonic() > deadline:
+            break
+        await loop.run(ticks=1)
+        await asyncio.sleep(0)  # lets the thread's result reach the event loop
+    if not call.done():  # let the thread end (its own wait is bounded) before failing
+        await asyncio.wait_for(call, timeout_s)
+    return call.result()
+
+
+def ticks_until(loop, level: SafetyLevel, max_ticks: int):
+    async def go():
+        for _ in range(max_ticks):
+            if loop.level == level:
+                return
+            await loop.run(ticks=1)
+        assert loop.level == level, f"still {loop.level.name} after {max_ticks} ticks"
+
+    return go()
+
+
 @pytest.mark.asyncio
 @pytest.mark.parametrize("request_name, level", [("hold", SafetyLevel.HOLD), ("estop", SafetyLevel.ESTOP)])
 async def test_safety_request_from_a_client(request_name, level):
+    """On the real clock: any client may ask for hold or estop; re-arming takes the command lock."""
     name = unique()
     loop = ControlLoop(parse_config(stream_raw(name, dry=10.0, clock="sleep")))
     async with loop:
-        run = asyncio.create_task(loop.run(duration=5.0))
+        run = asyncio.create_task(loop.run(duration=30.0))
         try:
             client = RobotClient(name)
-            await asyncio.to_thread(client.wait_tick, 0, 5.0)
-            await asyncio.to_thread(getattr(client, request_name), 5.0)
+            await asyncio.to_thread(client.wait_tick, 0, 10.0)
+            await asyncio.to_thread(getattr(client, request_name), 10.0)
             assert loop.level == level
             tick = client.read().tick
-            await asyncio.to_thread(client.wait_tick, tick + 2, 5.0)
+            await asyncio.to_thread(client.wait_tick, tick + 2, 10.0)
             assert client.read().level == level
-            await asyncio.to_thread(client.rearm, 5.0)
-            tick = client.read().tick
-            await asyncio.to_thread(client.wait_tick, tick + 2, 5.0)
-            # from hold, nothing to reset: back to run; after an emergency stop the loop refuses a
-            # re-arm until the faults are reset, and the level the client reads says so
-            assert client.read().level == (SafetyLevel.RUN if level == SafetyLevel.HOLD else level)
+            with RobotClient(name, command=True) as commander:
+                if level == SafetyLevel.ESTOP:
+                    with pytest.raises(RequestRefused, match="reset_faults"):
+                        await asyncio.to_thread(commander.rearm, 10.0)
+                    await asyncio.to_thread(commander.reset_faults, 10.0)
+                    assert client.read().level == SafetyLevel.DISABLED
+                await asyncio.to_thread(commander.rearm, 10.0)
+                assert client.read().level == SafetyLevel.RUN
             client.close()
         finally:
             loop.request_stop()
             await run
     assert loop.faults == []
+
+
+@pytest.mark.asyncio
+async def test_client_resets_faults_and_rearms_after_an_underrun():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=0.05))
+    async with loop:
+        with RobotClient(name, joints=JOINTS, command=True) as client:
+            await loop.run(ticks=1)
+            client.send([0.02, 0.0, -0.02])
+            await ticks_until(loop, SafetyLevel.HOLD, 200)
+            assert "StreamUnderrun" in loop.faults[0].error
+            # the loop's own refusal, asked in this process, and the client's: the same reason
+            with pytest.raises(SafetyRequestRefused) as direct:
+                loop.rearm()
+            with pytest.raises(RequestRefused) as refused:
+                await ticking(loop, client.rearm, 10.0)
+            assert refused.value.request == "rearm" and refused.value.reason == str(direct.value)
+            assert "fault(s) since the last reset_faults()" in refused.value.reason
+            assert isinstance(refused.value, AiohalError) and isinstance(refused.value, RuntimeError)
+            assert not isinstance(refused.value, RequestTimeout)
+            assert loop.level == SafetyLevel.HOLD
+
+            await ticking(loop, client.reset_faults, 10.0)
+            assert loop.level == SafetyLevel.HOLD  # faults cleared; still holding until re-armed
+            await ticking(loop, client.rearm, 10.0)
+            assert loop.level == SafetyLevel.RUN and client.read().level == SafetyLevel.RUN
+            # the stream runs again from where the robot stands
+            client.send([0.03, 0.01, -0.01], final=True)
+            await loop.run(ticks=3)
+            np.testing.assert_allclose(client.read().command_position, [0.03, 0.01, -0.01])
+            await loop.run(ticks=200)
+            assert loop.level == SafetyLevel.RUN
+        sources = [(t["event"], t["source"]) for t in loop.report()["safety"]]
+        assert ("reset_faults", "client") in sources and ("rearm", "client") in sources
+
+
+@pytest.mark.asyncio
+async def test_client_resets_faults_and_rearms_after_an_estop():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=1.0))
+    async with loop:
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            with pytest.raises(RequestRefused, match=r"reset_faults\(\) from run") as refused:
+                await ticking(loop, client.reset_faults, 10.0)  # nothing to reset while running
+            assert refused.value.request == "reset_faults"
+            await ticking(loop, client.estop, 10.0)
+            assert loop.level == SafetyLevel.ESTOP
+            with pytest.raises(RequestRefused) as refused:
+                await ticking(loop, client.rearm, 10.0)
+            assert refused.value.reason == "rearm() from estop: reset_faults() first"
+            with pytest.raises(NotStreaming):
+                client.send([0.0] * 3)
+            await ticking(loop, client.reset_faults, 10.0)
+            assert loop.level == SafetyLevel.DISABLED and client.read().level == SafetyLevel.DISABLED
+            await ticking(loop, client.rearm, 10.0)
+            assert loop.level == SafetyLevel.RUN
+            client.send([0.01, 0.02, 0.03], final=True)
+            await loop.run(ticks=3)
+            np.testing.assert_allclose(client.read().command_position, [0.01, 0.02, 0.03])
+        assert loop.level == SafetyLevel.RUN and loop.faults == []
+
+
+@pytest.mark.asyncio
+async def test_a_client_without_command_permission_is_refused():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=1.0))
+    async with loop:
+        await loop.run(ticks=1)
+        loop.estop()
+        await loop.run(ticks=1)
+        with RobotClient(name) as reader:
+            for call in (reader.reset_faults, reader.rearm, lambda: reader.send([0.0] * 3)):
+                with pytest.raises(CommandRequired, match=r"command=True") as refused:
+                    call()
+                assert isinstance(refused.value, PermissionError)
+            # refused before anything was asked of the loop
+            assert reader._seg.requests[shm.R_RESET] == 0 and reader._seg.requests[shm.R_REARM] == 0
+            await loop.run(ticks=3)
+            assert loop.level == SafetyLevel.ESTOP
+
+
+@pytest.mark.asyncio
+async def test_a_request_the_loop_does_not_answer_times_out():
+    name = unique()
+    loop = virtual_loop(stream_raw(name))
+    async with loop:
+        await loop.run(ticks=1)
+        with RobotClient(name, command=True) as client:
+            # the virtual clock does not tick unless the test runs it: nobody answers
+            with pytest.raises(RequestTimeout, match="did not act") as timed_out:
+                client.reset_faults(wait_s=0.2)
+            assert isinstance(timed_out.value, TimeoutError) and not isinstance(timed_out.value, RequestRefused)
+
+
+# ---------------------------------------------------------------- the end of a stream
+
+
+@pytest.mark.asyncio
+async def test_a_finished_trajectory_holds_its_last_point_and_a_new_one_follows():
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=0.05))
+    async with loop:
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            t0 = client.read().now_ns + 5_000_000
+            last = np.array([0.1, -0.05, 0.02])
+            positions = np.array([[0.0, 0.0, 0.0], [0.05, -0.02, 0.01], last])
+            velocities = np.array([[0.0, 0.0, 0.0], [1.0, -0.5, 0.2], [0.0, 0.0, 0.0]])
+            client.send_trajectory([t0, t0 + 20_000_000, t0 + 40_000_000], positions, velocities, final=True)
+            await loop.run(ticks=50)  # past the last point (45 ms)
+            assert client.finished and client.applied == 3
+            await loop.run(ticks=500)  # ten times dry_after_s: no underrun
+            s = client.read()
+            assert s.level == SafetyLevel.RUN and loop.faults == []
+            np.testing.assert_allclose(s.command_position, last, atol=1e-12)
+            np.testing.assert_allclose(s.command_velocity, 0.0)
+            report = loop.report()
+            assert report["faults"] == [] and report["safety_level"] == "run"
+            metrics = report["controller"]
+            assert metrics["type"] == "stream" and metrics["finished"] is True
+            assert metrics["streams_finished"] == 1 and metrics["underruns"] == 0
+
+            # a new stream, without a re-arm: it starts from the held point, not mid-segment
+            target = np.array([0.2, -0.05, 0.02])
+            client.send(target, t_ns=client.read().now_ns + 100_000_000)
+            await loop.run(ticks=2)
+            assert not client.finished
+            first = client.read().command_position.copy()
+            assert 0.1 < first[0] < 0.1 + 0.1 * 0.05  # a few ticks into a 100 ms segment
+            # this stream has no final point: it runs dry, a fault as before
+            await ticks_until(loop, SafetyLevel.HOLD, 400)
+            assert [f.source for f in loop.faults] == ["controller:stream"]
+            assert "StreamUnderrun" in loop.faults[0].error
+            np.testing.assert_allclose(client.read().command_position, target, atol=1e-12)
+            assert loop.report()["controller"]["type"] == "hold"
 
 
 # ---------------------------------------------------------------- errors

@@ -44,8 +44,8 @@ from aiohal.fieldbus.pdo_options import DriveUnitOptions, parse_number, parse_pd
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
+from aiohal.safety.watchdog import SendCanFrame, can_frame
 from aiohal.servo import ServoParams
-from aiohal.watchdog import SendCanFrame, can_frame
 
 from . import busload
 from .sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc, sensor_issues

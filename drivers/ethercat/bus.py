@@ -32,6 +32,7 @@ from aiohal.errors import AiohalError
 from aiohal.fieldbus.busvar import LayoutError, PdoLayout, names_for
 
 from . import sii as sii_layout
+from . import sm_watchdog
 from .names import KNOWN_DEVICES
 
 log = logging.getLogger(__name__)
@@ -409,19 +410,50 @@ class Bus:
                 f"clock?); options.slaves[{position}].sync0 = false leaves it out"
             )
 
-    def set_pd_watchdog(self, position: int, ms: float) -> None:
-        """The slave's process-data watchdog time (register 0x0420, in units of its divider
-        0x0400), read back to check that the slave took it."""
+    def program_pd_watchdog(self, position: int, ms: float) -> sm_watchdog.Setting:
+        """Write the slave's process-data watchdog time (:func:`.sm_watchdog.program`): in
+        SAFEOP, before OP. What it holds afterwards, read back."""
         slave = self.slaves[position]
-        divider = struct.unpack("<H", slave._fprd(0x0400, 2))[0]
-        units = max(1, min(0xFFFF, round(ms * 1e6 / ((divider + 2) * 40))))
-        slave._fpwr(0x0420, struct.pack("<H", units))
-        back = struct.unpack("<H", slave._fprd(0x0420, 2))[0]
-        if back != units:
+        where = f"slave {position} ({slave.name})"
+        read, write = self._registers(slave, where)
+        try:
+            return sm_watchdog.program(read, write, ms, where)
+        except ValueError as exc:
+            raise BringUpError(f"{exc}; options.sm_watchdog_ms = 0 leaves every slave's own setting") from None
+
+    def check_pd_watchdog(self, position: int, written: sm_watchdog.Setting) -> sm_watchdog.Setting:
+        """After OP: the slave still holds the watchdog time written and watches its output
+        SyncManager, or a :class:`BringUpError` names it with what it holds."""
+        slave = self.slaves[position]
+        where = f"slave {position} ({slave.name})"
+        read, _ = self._registers(slave, where)
+        setting = sm_watchdog.read_setting(read)
+        why = sm_watchdog.check(setting, written, where)
+        if why is not None:
             raise BringUpError(
-                f"slave {position} ({slave.name}) kept its process-data watchdog at {back} units, "
-                f"not the {units} written ({ms:g} ms)"
+                f"{why}: it would keep driving when this process stops; options.sm_watchdog_ms = 0 "
+                "accepts that (no slave's watchdog is then set or checked)"
             )
+        return setting
+
+    def _registers(self, slave: Any, where: str) -> tuple[sm_watchdog.Read, sm_watchdog.Write]:
+        """Register reads and writes of one slave (FPRD/FPWR); a frame lost is a
+        :class:`TransientBringUpError`."""
+        timeout = self.pysoem.settings.timeouts.ret
+
+        def read(address: int, size: int) -> bytes:
+            try:
+                return bytes(slave._fprd(address, size, timeout_us=timeout))
+            except self.lost_frame as exc:
+                raise TransientBringUpError(f"{where}: reading register 0x{address:04X} failed ({exc})") from exc
+
+        def write(address: int, data: bytes) -> None:
+            try:
+                slave._fpwr(address, data, timeout_us=timeout)
+            except self.lost_frame as exc:
+                raise TransientBringUpError(f"{where}: writing register 0x{address:04X} failed ({exc})") from exc
+
+        return read, write
 
     def request_op(self, exchange: Any, timeout_s: float, period_s: float, again_s: float = 0.1) -> None:
         """SAFEOP → OP (:func:`reach_op`), or a :class:`BringUpError` naming the slaves short of it."""

@@ -1,9 +1,10 @@
 """``ethercat``: an EtherCAT master on pysoem, with CiA 402 drives, IMUs and F/T sensors.
 
 Bring-up runs off the tick, in the driver's own thread: find the slaves, read each one's PDO
-mapping over CoE, map the process data, set DC up, SAFEOP, a valid process-data cycle, OP,
-then enable the drives with target = actual (bumpless). Until the first tick a keep-alive
-thread cycles the bus so that no slave's watchdog trips.
+mapping over CoE, map the process data, set DC up, SAFEOP, every slave's SM watchdog time, a
+valid process-data cycle, OP (the watchdogs read back: a slave that would not stop by itself
+when this process stops is refused), then enable the drives with target = actual (bumpless).
+Until the first tick a keep-alive thread cycles the bus so that no slave's watchdog trips.
 
 Each tick, one frame carries every slave's process data. With ``exchange = "split"`` (the
 default) ``write`` sends the frame with this tick's outputs and the next tick's ``read``
@@ -61,6 +62,7 @@ from .bus import (
 )
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 from .options import FT_CONTROL, FT_VARIABLES, IMU_VARIABLES, EthercatOptions, option_issues
+from .sm_watchdog import Setting
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +158,7 @@ class EthercatDriver(Driver):
         self.al_checks_unanswered = 0  # of which some slave did not answer in time (a busy host): not judged
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
         self.infos: list[SlaveInfo] = []
+        self.sm_watchdogs: dict[str, float] = {}  # slave name -> its SM watchdog time (ms), read back after OP
         self.image: ProcessImage | None = None
         self.drives: DriveGroup | None = None
         self.sensors: list[tuple[int, ImuDevice | ForceTorqueDevice]] = []
@@ -210,10 +213,7 @@ class EthercatDriver(Driver):
             shift_ns=round(opts.sync0_shift_us * 1000),
             safeop_timeout_s=opts.safeop_timeout_s,
         )
-        if opts.sm_watchdog_ms is not None:
-            for i, slave in enumerate(bus.slaves):
-                if len(slave.output):
-                    bus.set_pd_watchdog(i, opts.sm_watchdog_ms)
+        written = self._program_watchdogs()
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
             self.infos.append(
                 SlaveInfo(
@@ -263,8 +263,26 @@ class EthercatDriver(Driver):
             len(image.inputs),
         )
         self._start_keepalive(period_s)
+        for i, setting in written.items():  # (the keep-alive feeds the watchdogs meanwhile)
+            self.sm_watchdogs[opts.slaves[i].name] = bus.check_pd_watchdog(i, setting).ms
         if self.drives is not None and opts.enable_on_open:
             self._wait_enabled(opts.enable_timeout_s)
+
+    def _program_watchdogs(self) -> dict[int, Setting]:
+        """Every slave with outputs gets ``sm_watchdog_ms`` (in SAFEOP); what each holds, by
+        position, to be checked after OP. With 0, none is set and a warning says so."""
+        bus, ms = self.bus, self.options.sm_watchdog_ms
+        with_outputs = [i for i, slave in enumerate(bus.slaves) if len(slave.output)]
+        if ms == 0:
+            if with_outputs:
+                log.warning(
+                    "ethercat %s: sm_watchdog_ms = 0: the SM watchdogs of slave(s) %s are left as they are "
+                    "and not checked; a slave whose own is off keeps its outputs when this process stops",
+                    self.name,
+                    ", ".join(f"{i} ({self.options.slaves[i].name})" for i in with_outputs),
+                )
+            return {}
+        return {i: bus.program_pd_watchdog(i, ms) for i in with_outputs}
 
     def _link_devices(self) -> None:
         opts, image, view = self.options, self.image, self.view
@@ -818,6 +836,8 @@ class EthercatDriver(Driver):
             "expected_wkc": self._expected,
             "exchange": self.options.exchange,
         }
+        if self.sm_watchdogs:
+            out["sm_watchdog_ms"] = sorted(set(self.sm_watchdogs.values()))
         if self.image is not None:
             out["process_data_bytes"] = len(self.image.outputs) + len(self.image.inputs)
         if n:

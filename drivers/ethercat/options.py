@@ -11,6 +11,8 @@ from aiohal.fieldbus.pdo_options import DriveUnitOptions, parse_pdo_entry, pdo_i
 from aiohal.fieldbus.pdo_options import parse_number as _number
 from aiohal.hal import FiniteFloat, Options
 
+from .sm_watchdog import max_ms
+
 IMU_VARIABLES = {
     "quaternion": "Orientation",
     "angular_velocity": "Angular velocity",
@@ -20,6 +22,10 @@ IMU_VARIABLES = {
 FT_VARIABLES = {"wrench": "Wrench", "status": "Status"}
 FT_CONTROL = "Control"  # the F/T output that tares, used when the slave maps one (variables.control)
 
+
+#: the SM watchdog's default: 50 bus cycles at 1 kHz, above what the keep-alive needs
+#: (1.5 x keepalive_after_ms + 2 = 32 ms at its default)
+SM_WATCHDOG_MS = 50.0
 
 RX_PDOS, TX_PDOS = (0x1600, 0x17FF), (0x1A00, 0x1BFF)  # where CiA 301 puts the PDO mapping objects
 
@@ -106,13 +112,14 @@ class EthercatOptions(Options):
         description="SAFEOP -> OP within this (a slave's ESI gives its SafeopOpTimeout; drives can take seconds).",
     )
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
-    sm_watchdog_ms: FiniteFloat | None = Field(
-        None,
-        ge=0.1,
-        le=6000,
-        description="The process-data (SM) watchdog time written to every slave with "
-        "outputs before OP: when no frame reaches it for this long (the whole process frozen), the slave leaves "
-        "OP and its drive goes to its safe state (0x6007) on its own. Default: the slaves' own setting.",
+    sm_watchdog_ms: FiniteFloat = Field(
+        SM_WATCHDOG_MS,
+        ge=0,
+        description="The process-data (SM) watchdog time written to every slave with outputs "
+        "before OP and read back after it: when no frame reaches a slave for this long (the whole "
+        "process frozen), it leaves OP and its drive goes to its safe state (0x6007) on its own. "
+        "A slave that does not arm it fails the bring-up. 0: every slave keeps its own setting, "
+        "unchecked (a warning). At most 6553.5 ms (0xFFFF units of 100 us).",
     )
 
     def sync0_slaves(self) -> list[int]:
@@ -130,15 +137,7 @@ def option_issues(options: EthercatOptions, joints: list[str], devices: dict[str
     issues: list[tuple[str, str]] = []
     seen: dict[str, int] = {}
     drives_for: dict[str, int] = {}
-    # the keep-alive cycles the bus within 1.5 x keepalive_after_ms of the last tick
-    if options.sm_watchdog_ms is not None and options.sm_watchdog_ms < 1.5 * options.keepalive_after_ms + 2:
-        issues.append(
-            (
-                "options.sm_watchdog_ms",
-                f"{options.sm_watchdog_ms:g} ms would trip between runs: make it "
-                f"at least 1.5 x keepalive_after_ms + 2 ms ({1.5 * options.keepalive_after_ms + 2:g})",
-            )
-        )
+    issues += _sm_watchdog_issues(options)
     for i, s in enumerate(options.slaves):
         where = f"options.slaves[{i}]"
         key = s.name.strip().lower().replace(" ", "_")
@@ -179,3 +178,31 @@ def option_issues(options: EthercatOptions, joints: list[str], devices: dict[str
         if name not in served:
             issues.append(("devices", f'device "{name}" has no slave in options.slaves'))
     return issues
+
+
+def _sm_watchdog_issues(options: EthercatOptions) -> list[tuple[str, str]]:
+    """``sm_watchdog_ms`` must fit the registers at the ESC's default divider (bring-up checks
+    each slave's own) and outlast the keep-alive's gaps."""
+    ms = options.sm_watchdog_ms
+    default = " (the default)" if "sm_watchdog_ms" not in options.model_fields_set else ""
+    if ms == 0:
+        return []
+    if ms > max_ms():
+        return [
+            (
+                "options.sm_watchdog_ms",
+                f"{ms:g} ms does not fit the watchdog registers: at most {max_ms():g} ms "
+                f"(0x0420 holds 0xFFFF units of 100 us at the ESC's default divider)",
+            )
+        ]
+    # the keep-alive cycles the bus within 1.5 x keepalive_after_ms of the last tick
+    least = 1.5 * options.keepalive_after_ms + 2
+    if ms < least:
+        return [
+            (
+                "options.sm_watchdog_ms",
+                f"{ms:g} ms{default} would trip between runs: make it at least "
+                f"1.5 x keepalive_after_ms + 2 ms ({least:g}), or lower keepalive_after_ms",
+            )
+        ]
+    return []

@@ -36,7 +36,7 @@ from aiohal.fieldbus.sim_joints import SimulatedJoints
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault, Mode
-from aiohal.watchdog import SendDatagram
+from aiohal.safety.watchdog import SendDatagram
 
 from .protocol import (
     COMMAND_RECORD,

@@ -25,12 +25,17 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
                    coulomb/csp_hz/csv_tau/max_speed/position/fault/power_on_fault)
 ``dc``             ``slave``, ``supported`` (bool): the slave's ESC has a distributed clock
                    or not (features register, DC registers); power-cycles that slave
+``watchdog``       ``slave`` (default: all); ``divider`` (0..65535: 0x0400 at power-on,
+                   default 2498 = 100 us units); ``implemented`` (false: the ESC has no SM
+                   watchdog, 0x0400-0x0443 read 0 and ignore writes); ``sm_trigger``
+                   (false: bit 6 of its SM control registers reads 0, the watchdog time is
+                   kept but never runs); power-cycles the slaves
 ``eeprom_busy``    ``slave``, ``ms`` (default 50): the slave's next EEPROM read leaves its
                    EEPROM busy that long and is never done (the master's read times out)
 ``power_cycle``    ``slave`` (default: all): back to the power-on state (registers, SII,
                    object dictionary values, device model)
 ``clear``          - (drop, delay, wkc faults off; cable repaired; no EEPROM busy; every
-                   slave has DC again, no op_delay, no drive faulted at power-on, no
+                   slave has DC and its default SM watchdog again, no op_delay, no drive faulted at power-on, no
                    hidden objects)
 ``reset_counters`` -
 =================  ==========================================================================
@@ -44,6 +49,7 @@ import json
 from typing import Any
 
 from .drive import Drive
+from .esc import WD_DIVIDER
 from .segment import Segment
 
 
@@ -139,6 +145,19 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
         seg.slave(k).has_dc = supported
         seg.power_cycle(k)
         return None
+    if cmd == "watchdog":
+        targets = [_int(c["slave"], "slave")] if "slave" in c else range(len(seg.slaves))
+        divider = _int(c.get("divider", WD_DIVIDER), "divider")
+        if not 0 <= divider <= 0xFFFF:
+            raise ValueError("divider must be within 0..65535")
+        implemented, sm_trigger = c.get("implemented", True), c.get("sm_trigger", True)
+        if not isinstance(implemented, bool) or not isinstance(sm_trigger, bool):
+            raise ValueError("implemented, sm_trigger: expected true or false")
+        for k in targets:
+            esc = seg.slave(k)
+            esc.wd_divider_power_on, esc.wd_implemented, esc.wd_sm_trigger = divider, implemented, sm_trigger
+            seg.power_cycle(k)
+        return None
     if cmd == "eeprom_busy":
         ms = float(c.get("ms", 50))
         if not 0 < ms <= 10_000:
@@ -162,8 +181,18 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
                 esc.device.od.hidden = set()
             if isinstance(esc.device, Drive) and esc.device.power_on_fault is not None:  # only drives have one
                 esc.device.power_on_fault = None
-            if not esc.has_dc:
-                esc.has_dc = True
+            default_watchdog = (esc.wd_implemented, esc.wd_sm_trigger, esc.wd_divider_power_on) == (
+                True,
+                True,
+                WD_DIVIDER,
+            )
+            if not esc.has_dc or not default_watchdog:
+                esc.has_dc, esc.wd_implemented, esc.wd_sm_trigger, esc.wd_divider_power_on = (
+                    True,
+                    True,
+                    True,
+                    WD_DIVIDER,
+                )
                 seg.power_cycle(k)
         return None
     if cmd == "reset_counters":

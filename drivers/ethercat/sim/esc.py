@@ -64,6 +64,9 @@ EEPROM_BUSY = 0x8000  # bit 15 of the EEPROM control/status register (0x0502)
 DC_START, DC_END = 0x0900, 0x0A00  # the distributed clock's registers (absent without DC)
 PORT_DESCRIPTOR = 0x0F  # ports 0 and 1: MII; ports 2 and 3: not implemented
 WD_DIVIDER = 2498  # 100 us watchdog units
+WD_START, WD_END = 0x0400, 0x0444  # the watchdog unit's registers (absent without one)
+SM_START, SM_END = 0x0800, 0x0880  # 16 SyncManagers of 8 bytes
+SM_WD_TRIGGER = 0x40  # bit 6 of an SM control register: its writes trigger the SM watchdog
 HOP_NS = 400  # simulated forwarding delay per slave and direction
 MASK64 = (1 << 64) - 1
 
@@ -139,6 +142,14 @@ class Esc:
         #: SAFEOP -> OP takes this long (a slave whose application starts slowly, e.g. a drive
         #: that checks its motor first); set through the control command ``op_delay``
         self.op_delay_ns = 0
+        #: the watchdog divider at power-on (0x0400; 2498: 100 us units); whether the ESC has
+        #: an SM watchdog at all (False: 0x0400-0x0443 read 0 and ignore writes, as in an ESC
+        #: configured without one); whether its SyncManagers take the watchdog trigger bit
+        #: (False: bit 6 of every SM control register reads 0, the time is kept but never
+        #: runs); set through the control command ``watchdog``
+        self.wd_divider_power_on = WD_DIVIDER
+        self.wd_implemented = True
+        self.wd_sm_trigger = True
         self.power_on()
 
     # ================================================================ power-on reset
@@ -156,10 +167,12 @@ class Esc:
         U16.pack_into(mem, 0x0012, self.alias)
         mem[0x0140:0x0142] = self.sii[0:2]
         mem[0x0150:0x0152] = self.sii[2:4]
-        U16.pack_into(mem, 0x0400, WD_DIVIDER)
-        U16.pack_into(mem, 0x0410, 1000)
-        U16.pack_into(mem, 0x0420, max(0, min(0xFFFF, round(self.watchdog_ms * 10))))
-        U16.pack_into(mem, 0x0440, 1)
+        if self.wd_implemented:
+            div = self.wd_divider_power_on
+            U16.pack_into(mem, 0x0400, div)
+            U16.pack_into(mem, 0x0410, 1000)
+            U16.pack_into(mem, 0x0420, max(0, min(0xFFFF, round(self.watchdog_ms * 1e6 / ((div + 2) * 40)))))
+            U16.pack_into(mem, 0x0440, 1)
         U16.pack_into(mem, 0x0502, 0x0040)  # 8-byte reads supported
         #: armed by the control command ``eeprom_busy``: the next read leaves the EEPROM busy
         #: this long (as a slow or stalled EEPROM would), and the master's wait times out
@@ -288,11 +301,15 @@ class Esc:
     def _write_regs(self, ado: int, data: bytes) -> None:
         mem = self.mem
         end = ado + len(data)
-        if not self.has_dc and ado < DC_END and end > DC_START:  # no DC unit: only the rest is written
-            for lo, hi in ((ado, min(end, DC_START)), (max(ado, DC_END), end)):
-                if lo < hi:
-                    self._write_regs(lo, data[lo - ado : hi - ado])
-            return
+        for absent, lo_reg, hi_reg in (
+            (not self.has_dc, DC_START, DC_END),
+            (not self.wd_implemented, WD_START, WD_END),
+        ):
+            if absent and ado < hi_reg and end > lo_reg:  # no such unit: only the rest is written
+                for lo, hi in ((ado, min(end, lo_reg)), (max(ado, hi_reg), end)):
+                    if lo < hi:
+                        self._write_regs(lo, data[lo - ado : hi - ado])
+                return
         mask = WMASK[ado:end]
         if mask.count(0xFF) == len(mask):
             mem[ado:end] = data
@@ -301,6 +318,9 @@ class Esc:
                 if m:
                     a = ado + i
                     mem[a] = (mem[a] & ~m) | (data[i] & m)
+        if not self.wd_sm_trigger and ado < SM_END and end > SM_START:
+            for n in range(16):
+                mem[SM_START + 4 + 8 * n] &= ~SM_WD_TRIGGER & 0xFF
         for lo, hi, hook in _HOOKS:
             if lo < end and hi > ado:
                 hook(self, ado, end)
@@ -542,7 +562,7 @@ class Esc:
         """The master completed a write of the output SM buffer."""
         self.last_output_ns = now
         self.outputs_fresh = True
-        if not self.mem[0x0440] & 1:
+        if not self.mem[0x0440] & 1 and self.wd_implemented:
             self.mem[0x0440] |= 1
         if self.op_pending and (self.op_due is None or now >= self.op_due):
             self._set_state(OP, now)
@@ -818,6 +838,9 @@ class Esc:
             "device": self.device.status(),
             "stats": dict(self.stats),
             "watchdog_ms": self.wd_ns / 1e6,
+            "watchdog_divider": U16.unpack_from(self.mem, 0x0400)[0],
+            "watchdog_units": U16.unpack_from(self.mem, 0x0420)[0],
+            "watchdog_armed": self._wd_enabled and self.wd_ns > 0,
             "watchdog_trip": self.last_trip,
             "coe": dict(self.coe.stats) if self.coe is not None else None,
             "dc": self.has_dc,

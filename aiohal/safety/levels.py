@@ -41,7 +41,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from .hal import Options
+from ..hal import Options
 
 
 class SafetyLevel(IntEnum):
@@ -185,12 +185,20 @@ class SafetySection(Options):
     workspace: list[WorkspaceSection] = Field(
         default_factory=list, description="Sites that must stay inside a box or sphere (needs [robot] model)."
     )
-    watchdog_priority: int = Field(
-        0,
+    watchdog_priority: int | None = Field(
+        None,
         ge=0,
         le=99,
-        description="SCHED_FIFO priority of the watchdog process (0: normal scheduling); it "
-        "should be above the loop's.",
+        description="SCHED_FIFO priority of the watchdog process (0: normal scheduling; default: one "
+        "above [realtime] priority when the loop has one, else normal scheduling).",
+    )
+    max_tick_gap_ms: float | None = Field(
+        None,
+        gt=0,
+        le=10_000,
+        description="A tick that starts longer than this after the one before it (a frozen process, a "
+        "stalled host) is a stall: the robot holds where it stands, with a fault, before anything is "
+        "written (default: watchdog_ms, at least three periods).",
     )
 
 

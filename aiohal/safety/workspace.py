@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .safety import SafetyLevel, WorkspaceSection
+from .levels import SafetyLevel, WorkspaceSection
 
 
 class WorkspaceMonitor:
@@ -25,7 +25,7 @@ class WorkspaceMonitor:
     ) -> None:
         import mujoco  # the `sim` extra: loaded only for a configured workspace
 
-        from . import mjcf
+        from .. import mjcf
 
         self._mujoco = mujoco
         self.model = model = mjcf.load_model(model_path)
@@ -54,7 +54,7 @@ class WorkspaceMonitor:
         """(key, message) for sites and frames the model does not have."""
         import mujoco
 
-        from . import mjcf
+        from .. import mjcf
 
         model = mjcf.load_model(model_path)
         issues = []

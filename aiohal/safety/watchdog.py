@@ -23,6 +23,11 @@ Its own oversleeping (a stall of the whole machine, which also stalls the contro
 is not held against the heartbeat: after waking more than half of ``watchdog_ms`` late it
 measures staleness from its own wake-up. The module imports only the standard library: the
 process runs it as a script (``python -I``), in tens of milliseconds.
+
+It is out of reach of the terminal: it runs in a session of its own (no Ctrl-C, Ctrl-\\ or
+Ctrl-Z of the loop's terminal reaches it) and ignores SIGINT, SIGQUIT, SIGTSTP and SIGHUP sent
+to it. The loop watches it in turn (:meth:`WatchdogProcess.trouble`): a dead, stopped or
+disarmed watchdog holds the robot.
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ from dataclasses import dataclass
 
 # the shared page: int64 words
 TICK, STAMP, ARMED, FIRED, COMMAND, ACTED = range(6)
+#: what the terminal sends a foreground process group; the watchdog process ignores them all
+TERMINAL_SIGNALS = ("SIGINT", "SIGQUIT", "SIGTSTP", "SIGHUP")
 WORDS = 8
 EXIT = 1
 
@@ -135,6 +142,7 @@ class WatchdogProcess:
                 stdout=subprocess.PIPE,
                 pass_fds=(fd, *shared),
                 text=True,
+                start_new_session=True,  # setsid: the loop's terminal and process group do not reach it
             )
         finally:
             os.close(fd)
@@ -159,6 +167,26 @@ class WatchdogProcess:
     def disarm(self) -> None:
         if self.heartbeat is not None:
             self.heartbeat[ARMED] = 0
+
+    @property
+    def armed(self) -> bool:
+        return self.heartbeat is not None and self.heartbeat[ARMED] == 1
+
+    def trouble(self) -> str:
+        """Why this watchdog cannot stop the robot now ("" when it can): the process is dead
+        or stopped (SIGSTOP, a debugger). Reads /proc: call it off the tick."""
+        proc = self.proc
+        if proc is None:
+            return "the watchdog process is not running"
+        code = proc.poll()
+        if code is not None:
+            return f"the watchdog process {proc.pid} is dead (exit status {code})"
+        state = process_state(proc.pid)
+        if state in ("T", "t"):
+            return f"the watchdog process {proc.pid} is stopped"
+        if state in ("Z", "X"):
+            return f"the watchdog process {proc.pid} is dead"
+        return ""
 
     @property
     def fired_ns(self) -> int:
@@ -188,6 +216,24 @@ class WatchdogProcess:
         if self._mm is not None:
             self._mm.close()
             self._mm = None
+
+
+def process_state(pid: int) -> str:
+    """The one-letter state of a process (R, S, D, T, t, Z, ...) from /proc; "" if unknown."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read(4096)
+    except OSError:
+        return ""
+    # "pid (comm) S ...": comm may hold spaces and parentheses, the state follows the last ")"
+    return stat[stat.rfind(b")") + 2 :][:1].decode("ascii", "replace")
+
+
+def _ignore_terminal_signals() -> None:
+    import signal
+
+    for name in TERMINAL_SIGNALS:
+        signal.signal(getattr(signal, name), signal.SIG_IGN)
 
 
 # ---------------------------------------------------------------- the process itself
@@ -234,6 +280,7 @@ def _act(run: list[tuple[str, Callable[[], object]]]) -> None:
 
 
 def main() -> int:
+    _ignore_terminal_signals()
     spec = json.loads(sys.stdin.readline())
     parent = spec["parent"]
     mm = mmap.mmap(spec["fd"], WORDS * 8)
