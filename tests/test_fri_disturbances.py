@@ -77,8 +77,9 @@ class SimKrc:
                 await self.process.wait()
 
 
-def raw_config(rate_hz: int, amplitude: float, frequency: float) -> dict:
+def raw_config(rate_hz: int, amplitude: float, frequency: float, **safety) -> dict:
     return {
+        "safety": safety,
         "robot": {"name": "lwr"}, "loop": {"rate_hz": rate_hz},
         "joints": {f"a{i}": {"position": [-2.9, 2.9], "velocity": 2.5, "acceleration": 20.0, "effort": 100.0}
                    for i in range(7)},
@@ -148,9 +149,9 @@ class Scene:
 
 
 @contextlib.asynccontextmanager
-async def krc_loop(cycle_ms: int, rate_hz: int = 200, amplitude: float = 0.2, frequency: float = 0.5):
+async def krc_loop(cycle_ms: int, rate_hz: int = 200, amplitude: float = 0.2, frequency: float = 0.5, **safety):
     """A running loop (a sine about START) on a KRC simulator process in command mode."""
-    loop = ControlLoop(parse_config(raw_config(rate_hz, amplitude, frequency)))
+    loop = ControlLoop(parse_config(raw_config(rate_hz, amplitude, frequency, **safety)))
     loop.configure()
     driver = loop.slots[0].driver
     opening = asyncio.ensure_future(loop.activate())
@@ -254,9 +255,10 @@ async def test_a_200_hz_loop_on_a_1_ms_krc_is_interpolated_over_its_cycles():
 @pytest.mark.asyncio
 async def test_a_stalled_process_answers_only_the_newest_of_its_queued_measurements():
     """Half a second without the event loop (as a SIGSTOP would): the socket queues every
-    measurement it has room for; the driver answers the newest only, and the KRC, which
+    measurement it has room for; the driver answers the newest only. The loop holds (a tick
+    after a gap above 250 ms is a stall, far above a loaded host's own), and the KRC, which
     dropped to monitor mode meanwhile, comes back without an interpolation error."""
-    async with krc_loop(2) as scene:
+    async with krc_loop(2, max_tick_gap_ms=250.0) as scene:
         await scene.ticks(200)
         driver = scene.driver
         late_before = (await scene.sim.report())["counters"]["late"]
@@ -272,5 +274,6 @@ async def test_a_stalled_process_answers_only_the_newest_of_its_queued_measureme
         assert sent == received - stale
         assert late < stale // 2  # not a backlog of answers to old measurements (late: host hiccups)
         await scene.held_and_back()
+        assert any(f.source == "loop" and f.phase == "stall" for f in scene.loop.faults), scene.loop.faults
         await scene.ticks(100)
         await scene.assert_following()
