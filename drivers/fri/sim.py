@@ -146,11 +146,14 @@ class KrcSimulator:
             0,
         )
         self.largest_step = 0.0  # the largest set point step taken in command mode (rad)
-        # fault injections: until when (time.monotonic()), set from any thread
+        # fault injections: requested from any thread (their durations, s), then taken by the
+        # cycle as until when (the cycle's clock)
+        self._power_off: float | None = None
         self._power_off_until = 0.0
+        self._degrade: tuple[float, Quality] | None = None
         self._quality_until = 0.0
         self._forced_quality = Quality.UNACCEPTABLE
-        self._krl_restart: float | None = None  # a requested restart's pause (s)
+        self._krl_restart: float | None = None
         self._krl_paused_until = 0.0
         self._now = 0.0
         self.events: list[str] = []
@@ -195,12 +198,11 @@ class KrcSimulator:
 
     def power_off(self, duration: float) -> None:
         """The drives off (brakes) for ``duration`` s; in command mode they come back powered."""
-        self._power_off_until = time.monotonic() + duration
+        self._power_off = duration
 
     def degrade_quality(self, duration: float, quality: Quality = Quality.UNACCEPTABLE) -> None:
         """The quality held at or below ``quality`` for ``duration`` s, whatever the answers."""
-        self._forced_quality = quality
-        self._quality_until = time.monotonic() + duration
+        self._degrade = (duration, quality)
 
     def restart_krl(self, pause: float) -> None:
         """The KRL program restarts: monitor mode, drives off, its handshake silent for ``pause`` s."""
@@ -218,6 +220,15 @@ class KrcSimulator:
         }
 
     def _inject(self, now: float) -> None:
+        if self._power_off is not None:
+            self._power_off_until = now + self._power_off
+            self._power_off = None
+            self.counters["power_offs"] += 1
+        if self._degrade is not None:
+            duration, self._forced_quality = self._degrade
+            self._quality_until = now + duration
+            self._degrade = None
+            self.counters["quality_drops"] += 1
         if self._krl_restart is not None:
             self._krl_paused_until = now + self._krl_restart
             self._krl_restart = None
@@ -227,7 +238,6 @@ class KrcSimulator:
             if self.power:
                 self.power = 0
                 self._brake()
-                self.counters["power_offs"] += 1
                 self.events.append("power off")
         elif self._power_off_until:
             self._power_off_until = 0.0
@@ -300,10 +310,7 @@ class KrcSimulator:
         if self.packets < opts.ramp_packets:
             quality = min(quality, Quality.BAD if self.packets < opts.ramp_packets // 2 else Quality.OK)
         if self._now < self._quality_until:
-            if quality > self._forced_quality:
-                quality = self._forced_quality
-            if self.quality > quality:
-                self.counters["quality_drops"] += 1
+            quality = min(quality, self._forced_quality)
         self.quality = quality
         msr = self.msr
         msr["answer_rate"] = rate
