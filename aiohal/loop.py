@@ -4,7 +4,7 @@ One tick, in order::
 
     wake (absolute deadline k) -> read every driver -> check feedback -> controller.update
     (or, with ``[controller] every = n``, on the ticks between two updates: the last command
-    with its position targets extrapolated, see :mod:`aiohal.multirate`)
+    with its position targets extrapolated, see :mod:`aiohal.target_extrapolation`)
     -> clamp commands to limits -> write every driver -> publish -> statistics
 
 Lifecycle: ``configure`` (build drivers and controller, nothing touches hardware) ->
@@ -37,7 +37,6 @@ from .feedforward import VelocityFeedforward, gains_of
 from .hal import Controller
 from .lifecycle import DriverSlot, DriverStatus, LoopState
 from .limits import CommandLimiter
-from .multirate import TargetExtrapolator
 from .realtime import RealtimeState, freeze_heap, freeze_young, thaw_heap
 from .realtime import apply as apply_realtime
 from .realtime import restore as restore_realtime
@@ -47,6 +46,7 @@ from .safety.stall import StallWatchdog
 from .safety.supervisor import Supervisor
 from .safety.watchdog import FIRED, STAMP, TICK, WatchdogProcess
 from .stats import TickStats
+from .target_extrapolation import TargetExtrapolator
 from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
 
 assert (TICK, STAMP, FIRED) == (0, 1, 3)  # the tick stores heartbeat[0], [1] and reads [3]
@@ -82,7 +82,7 @@ class ControlLoop:
         self.limiter = CommandLimiter(self.robot, self.period_s)
         every = config.controller.every
         #: a controller slower than the bus (None: it runs on every tick)
-        self.multirate = (
+        self.extrapolator = (
             TargetExtrapolator(self.robot.command, self.period_s, every, config.controller.extrapolate)
             if every > 1
             else None
@@ -238,8 +238,8 @@ class ControlLoop:
         self.state = LoopState.ACTIVE
         self.k_start = 0  # controller time counts from activation, across run() calls
         self.last_update_k = 0
-        if self.multirate is not None:
-            self.multirate.force()
+        if self.extrapolator is not None:
+            self.extrapolator.force()
         try:
             cast(Controller, self.controller).start(0.0)  # set by configure()
         except Exception as exc:
@@ -462,7 +462,7 @@ class ControlLoop:
         mono = time.monotonic_ns
         now_ns = self.source.now_ns
         publishers = self._publishers
-        multirate = self.multirate
+        extrapolator = self.extrapolator
         supervisor = self.supervisor
         heartbeat = supervisor.heartbeat
         workspace = supervisor.workspace
@@ -529,17 +529,17 @@ class ControlLoop:
                 t3 = t4 = t5 = mono()
             else:
                 # hold, the HAL's own safety controller, runs on every tick whatever ``every``
-                if multirate is None or multirate.due(k) or supervisor.controller is supervisor.hold_controller:
+                if extrapolator is None or extrapolator.due(k) or supervisor.controller is supervisor.hold_controller:
                     try:
                         # never None while ticking (configure() set it); no cast call in the tick
                         supervisor.controller.update((k - k_start) * period_s, (k - self.last_update_k) * period_s)  # type: ignore[union-attr]
                     except Exception as exc:
                         supervisor.controller_failed("update", exc)
                     self.last_update_k = k
-                    if multirate is not None:
-                        multirate.capture(k)
+                    if extrapolator is not None:
+                        extrapolator.capture(k)
                 else:
-                    multirate.fill(k)
+                    extrapolator.fill(k)
                 if feedforward is not None:
                     feedforward.apply()
                 t3 = mono()
@@ -614,9 +614,11 @@ class ControlLoop:
         metrics: dict[str, Any] = {"type": self.controller_type}
         if self._given_controller is None and self.config.controller.type != self.controller_type:
             metrics["configured"] = self.config.controller.type
-        if self.multirate is not None:
+        if self.extrapolator is not None:
             metrics.update(
-                every=self.multirate.every, extrapolate=self.multirate.extrapolate, updates=self.multirate.updates
+                every=self.extrapolator.every,
+                extrapolate=self.extrapolator.extrapolate,
+                updates=self.extrapolator.updates,
             )
         if controller is not None:
             try:

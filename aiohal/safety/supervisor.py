@@ -32,9 +32,9 @@ if TYPE_CHECKING:
     from ..config import Config
     from ..lifecycle import DriverSlot, LoopState
     from ..limits import CommandLimiter
-    from ..multirate import TargetExtrapolator
     from ..robot import Robot
     from ..stats import TickStats
+    from ..target_extrapolation import TargetExtrapolator
     from ..ticker import TickSource
     from .workspace import WorkspaceMonitor
 
@@ -47,7 +47,7 @@ class Owner(Protocol):
     config: Config
     robot: Robot
     limiter: CommandLimiter
-    multirate: TargetExtrapolator | None
+    extrapolator: TargetExtrapolator | None
     source: TickSource
     stats: TickStats
     period_ns: int
@@ -255,8 +255,8 @@ class Supervisor:
         log.info("robot %s re-armed: %s restarted from the measured state", self.robot.name, controller_type)
         k = self.robot.clock.tick
         loop.last_update_k = k
-        if loop.multirate is not None:
-            loop.multirate.force()
+        if loop.extrapolator is not None:
+            loop.extrapolator.force()
         try:
             controller.start((k - loop.k_start) * loop.period_s)
         except Exception as exc:
@@ -323,8 +323,8 @@ class Supervisor:
         np.copyto(cmd.position, measured, where=which)
         cmd.velocity[which] = 0.0
         self.limiter.follow_measured(which, np.zeros(n))
-        if loop.multirate is not None:  # the controller sees the change this tick, not its old command
-            loop.multirate.force()
+        if loop.extrapolator is not None:  # the controller sees the change this tick, not its old command
+            loop.extrapolator.force()
         if self.controller is self.hold_controller and loop.state in ("active", "running"):
             cast(Controller, self.hold_controller).start((self.robot.clock.tick - loop.k_start) * loop.period_s)
 

@@ -1,5 +1,5 @@
 """A controller slower than the bus: ``[controller] every = n`` and the targets extrapolated
-on the ticks in between (aiohal.multirate), in the loop and on their own."""
+on the ticks in between (aiohal.target_extrapolation), in the loop and on their own."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from helpers import arm_raw, virtual_loop
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError
 from aiohal.hal import Controller
-from aiohal.multirate import TargetExtrapolator
 from aiohal.robot import JointCommand, Mode
+from aiohal.target_extrapolation import TargetExtrapolator
 
 PERIOD = 1e-3
 
