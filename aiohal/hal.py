@@ -150,7 +150,9 @@ class Driver(abc.ABC):
         """Emergency stop: synchronous, idempotent, never raises on purpose."""
 
     def reset_faults(self) -> object:
-        """Clear the hardware's latched faults (e.g. a drive's), on the user's request."""
+        """Clear the hardware's latched faults (e.g. a drive's), on the user's request. The
+        loop has just cleared the joints' fault bits: a driver whose fault persists sets its
+        joints' bits again here, so that ``rearm()`` is refused until it is gone."""
         return None
 
     def release_estop(self) -> bool:

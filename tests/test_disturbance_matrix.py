@@ -29,6 +29,7 @@ FREEZES = {
     "mujoco": ("kuka_lwr_sim.toml", "hold"),
     "canopen": ("canopen_arm_sim.toml", "hold"),
     "udp": ("coman_udp_sim.toml", "estop"),
+    "fri": ("kuka_fri_sim.toml", "hold"),
 }
 
 

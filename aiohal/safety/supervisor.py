@@ -163,6 +163,10 @@ class Supervisor:
             raise SafetyRequestRefused(f"reset_faults() with the loop {loop.state}")
         if self.machine.target(SafetyEvent.RESET_FAULTS) is None:
             raise SafetyRequestRefused(f"reset_faults() from {self.level.name.lower()}")
+        # the joints' fault bits first: a driver whose cause persists sets them again in its
+        # reset_faults() (or on its next read), and rearm() is refused while one is set
+        for slot in loop.active:
+            self.robot.state.fault[slot.driver.view.rows] = 0
         reset: list[str] = []
         for slot in loop.active:
             try:
@@ -185,8 +189,6 @@ class Supervisor:
                 raise SafetyRequestRefused(
                     f"driver(s) {', '.join(kept)} cannot leave the emergency stop without a restart"
                 )
-        for slot in loop.active:
-            self.robot.state.fault[slot.driver.view.rows] = 0
         watchdog = self.watchdog
         if watchdog is not None and loop.state == "running" and not watchdog.trouble():
             watchdog.arm()  # after it acted (it disarms itself then): watching again

@@ -472,6 +472,12 @@ class FriDriver(Driver):
             self.view.report_fault("read", reason)
             self.view.request_hold(reason)
 
+    def reset_faults(self) -> None:
+        """The KRC's own faults are not ours to reset (KRL and the KRC decide): while it
+        cannot be commanded, its joints stay faulted and a re-arm waits for command mode."""
+        if self._fault:
+            self.view.state.fault |= np.uint32(Fault.HARDWARE)
+
     async def write(self) -> None:
         command = self.view.command
         # a segment from the last answer to this target, over the KRC cycles of one loop period
