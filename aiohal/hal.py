@@ -13,6 +13,13 @@ Blocking bring-up runs in a thread (``asyncio.to_thread`` or an executor); a lib
 thread (python-can's notifier, a keep-alive thread) hands data to ``read`` through a buffer
 made once and a counter, or a ``deque`` for events, and never touches the robot's arrays.
 docs/architecture.md ("The concurrency model") says what each shipped driver does.
+
+Trouble, one way per kind: a failure a driver cannot go on from is an exception raised from
+``read``/``write`` (the loop isolates the driver, e-stops it, holds the robot); a condition of
+its hardware is ``view.fault(reason)`` (recorded, and the robot held; ``hold=False`` for what
+the run survives), with the ``Fault`` bits of the joints or devices it concerns set while it
+lasts. A driver's configuration is checked in one place beyond its options' own fields:
+:meth:`Driver.check_config` (and :meth:`Driver.check_rate` for what depends on the rate).
 """
 
 from __future__ import annotations

@@ -19,7 +19,6 @@ the fault is recorded with its name.
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
 import math
 import time
@@ -161,10 +160,7 @@ class ControlLoop:
                 raise ConfigError(issues, str(self.config.path) if self.config.path else None)
         for dc in self.config.drivers:
             view = self.robot.driver_view(dc.joints, dc.devices)
-            supervisor = self.supervisor
-            view.report_fault = functools.partial(supervisor.record_fault, f"driver:{dc.name}")
-            view.request_hold = functools.partial(supervisor.hold_for_driver, dc.name)
-            view.resync = functools.partial(supervisor.resync_joints, view.rows)
+            view.attach(self.supervisor.events_of(dc.name, view.rows))
             view.every = dc.every
             try:
                 driver = dc.cls(dc.name, view, dc.options)

@@ -8,7 +8,7 @@ Nothing here allocates once the robot is built.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import TYPE_CHECKING, Any
@@ -429,16 +429,15 @@ class Robot:
         return RobotView(self)
 
 
-def _log_fault(phase: str, reason: str) -> None:
-    log.error("device fault in %s: %s", phase, reason)
+class DriverEvents:
+    """Where a driver's view sends what its driver reports: the loop attaches its safety
+    supervisor's (:meth:`DriverView.attach`). This one, a view's own until then, only logs."""
 
+    def fault(self, phase: str, reason: str, hold: bool) -> None:
+        log.error("driver fault in %s (no loop attached%s): %s", phase, ", hold asked" if hold else "", reason)
 
-def _log_hold(reason: str) -> None:
-    log.error("hold requested (no loop installed): %s", reason)
-
-
-def _ignore_resync(rows: np.ndarray) -> None:
-    pass
+    def resync(self, mask: np.ndarray) -> None:
+        pass
 
 
 class DriverView:
@@ -462,15 +461,29 @@ class DriverView:
         """The last tick this driver's joints were all measured (``mark_fresh`` sets it)."""
         self.every = 1
         """The driver is read and written on every ``every``-th tick only (``[[driver]] every``)."""
-        self.report_fault: Callable[[str, str], object] = _log_fault
-        """``report_fault(phase, reason)``: a fault the driver survives (e.g. one device lost);
-        the loop installs its recorder so it reaches the run report."""
-        self.request_hold: Callable[[str], object] = _log_hold
-        """``request_hold(reason)``: a fault of this driver's hardware that the rest of the robot
-        must not move through (e.g. one drive faulted); the loop installs its hold."""
-        self.resync: Callable[[np.ndarray], object] = _ignore_resync
-        """``resync(rows)``: these of the driver's joints (a bool mask) were re-enabled where they
-        stand; the loop makes their command continue from the measured position (bumpless)."""
+        self._events = DriverEvents()
+
+    def attach(self, events: DriverEvents) -> None:
+        """The loop's side of :meth:`fault` and :meth:`resync` (set when the loop is built)."""
+        self._events = events
+
+    def fault(self, reason: str, *, hold: bool = True, phase: str = "read") -> None:
+        """Report a condition of this driver's hardware, the one way a driver does: a drive
+        faulted, a device lost, the KRC out of command mode. It is recorded once per call
+        (logged, listed in the run report, the CLI exits 1, ``rearm()`` waits for
+        ``reset_faults()``) and, with ``hold`` (the default), the robot is held so that
+        nothing moves through it; ``hold=False`` for what the run survives (one sensor lost).
+        Set the joints' or devices' fault bits too, while the condition lasts.
+
+        A failure the driver cannot go on from is not reported: it raises from ``read()`` or
+        ``write()`` (a :class:`~aiohal.errors.DriverError` names it best), and the loop
+        isolates the driver, e-stops it and holds the robot."""
+        self._events.fault(phase, reason, hold)
+
+    def resync(self, mask: np.ndarray) -> None:
+        """These of the driver's joints (a bool mask) were re-enabled where they stand: the
+        loop makes their command continue from the measured position (bumpless)."""
+        self._events.resync(mask)
 
     def per_joint(self, values: float | dict[str, float] | Sequence[float], default: float = 0.0) -> np.ndarray:
         """An array over this driver's joints (options given as a scalar or a {joint: value} map)."""

@@ -136,8 +136,8 @@ class NrtHandDriver(Driver):
                 if code != FAULT_NONE:
                     if code not in self.faults_seen:
                         self.faults_seen.append(code)
-                    view.report_fault(
-                        "read", f"hand {hand.name} reports fault code {describe_fault(code, self.options.backend)}"
+                    view.fault(
+                        f"hand {hand.name} reports fault code {describe_fault(code, self.options.backend)}", hold=False
                     )
             bits = Fault.HARDWARE if code != FAULT_NONE else 0
         else:
@@ -157,7 +157,7 @@ class NrtHandDriver(Driver):
         if gone or age > self._dead_ns:
             if not self.lost_reason:
                 self.lost_reason = gone or f"no state from the hand for {age / 1e6:.0f} ms"
-                self.view.report_fault("read", f"hand {self.hand.name}: {self.lost_reason}")
+                self.view.fault(f"hand {self.hand.name}: {self.lost_reason}", hold=False)
             return Fault.HARDWARE | Fault.STALE
         return self.hand.fault | Fault.STALE if age > self._stale_ns else self.hand.fault
 

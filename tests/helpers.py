@@ -105,3 +105,28 @@ def assert_rearmed_from_disabled(loop, sent, measured, own, rearm_tick, held, he
     assert (np.abs(first - measured[i]) <= step + 1e-9).all(), (first, measured[i])
     assert_bumpless(loop, sent[i + 1 :], measured[i + 1 :], own, sent[i + 1][0])
     assert np.ptp(np.array([q for k, q in sent if k > rearm_tick + moving_after])[:, 0]) > 0.05
+
+
+class Reported:
+    """A driver view's events kept for a test (``view.attach(Reported(view))``): every fault
+    as (tick, reason, hold), and the masks of every resync."""
+
+    def __init__(self, view) -> None:
+        self.clock = view.clock
+        self.faults: list[tuple[int, str, bool]] = []
+        self.resyncs: list = []
+
+    def fault(self, phase: str, reason: str, hold: bool) -> None:
+        self.faults.append((self.clock.tick, reason, hold))
+
+    def resync(self, mask) -> None:
+        self.resyncs.append(mask.copy())
+
+    @property
+    def reasons(self) -> list[str]:
+        return [reason for _, reason, _ in self.faults]
+
+    @property
+    def holds(self) -> list[int]:
+        """The ticks of the faults that asked for a hold."""
+        return [tick for tick, _, hold in self.faults if hold]

@@ -37,5 +37,5 @@ def test_mkdocs_builds_the_site_strictly(tmp_path):
     driver_page = (site / "writing-a-driver" / "index.html").read_text()
     assert "EchoDriver" in driver_page
     reference = (site / "api" / "robot" / "index.html").read_text()
-    assert "mark_fresh" in reference and "request_hold" in reference
+    assert "mark_fresh" in reference and "hold=False" in reference
     assert ":meth:" not in (site / "api" / "hal" / "index.html").read_text()

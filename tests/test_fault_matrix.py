@@ -21,7 +21,7 @@ import time
 import numpy as np
 import pytest
 from conftest import CONFIGS, ROOT, require_root
-from helpers import arm_raw, register_driver, virtual_loop
+from helpers import Reported, arm_raw, register_driver, virtual_loop
 from test_canopen_driver import SINE, channel, driver_of
 from test_canopen_driver import raw_config as can_config
 from test_ethercat_driver import At, in_thread, raw_config, segment, sim  # noqa: F401  (fixtures)
@@ -422,9 +422,8 @@ async def test_fri_quality_drop_holds_the_robot_on_the_tick_it_is_measured():
     krc = Krc()
     await krc.open()
     d = krc.driver
-    holds: list[int] = []
-    d.view.report_fault = lambda phase, reason: None
-    d.view.request_hold = lambda reason: holds.append(d.view.clock.tick)
+    reported = Reported(d.view)
+    d.view.attach(reported)
     try:
         krc.robot.command.position[:] = 0.1
         await krc.ticks(3)
@@ -436,7 +435,7 @@ async def test_fri_quality_drop_holds_the_robot_on_the_tick_it_is_measured():
             if first_bad is None and (msr["quality"] < d.min_quality or msr["state"] != State.CMD):
                 first_bad = d.view.clock.tick
                 break
-        assert first_bad is not None and holds == [first_bad]  # the read that took it held the robot
+        assert first_bad is not None and reported.holds == [first_bad]  # the read that took it held the robot
         await wait_for(lambda: krc.sim.state == State.MON, timeout=5.0)  # the KRC's own drop to monitor mode
     finally:
         await krc.close()

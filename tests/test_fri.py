@@ -9,6 +9,7 @@ import socket
 
 import numpy as np
 import pytest
+from helpers import Reported
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from udp_helpers import wait_for
@@ -176,19 +177,18 @@ async def test_without_start_the_driver_stays_in_monitor_mode_and_mirrors():
 async def test_a_quality_drop_sends_the_krc_to_monitor_mode_and_the_robot_to_hold():
     krc = Krc()
     await krc.open()
-    reports, holds = [], []
     d = krc.driver
-    d.view.report_fault = lambda phase, reason: reports.append(reason)
-    d.view.request_hold = holds.append
+    reported = Reported(d.view)
+    d.view.attach(reported)
     try:
         krc.robot.command.position[:] = 0.1
         await krc.ticks(3)
         krc.sim.options.drop_answers = 0.6  # most answers lost on the way: the KRC's statistics fall
         for _ in range(200):
             await krc.ticks(1)
-            if holds:
+            if reported.holds:
                 break
-        assert holds and ("quality" in reports[0])
+        assert reported.holds and ("quality" in reported.reasons[0])
         assert (krc.robot.state.fault & Fault.HARDWARE).all()
         await wait_for(lambda: krc.sim.state == State.MON, timeout=5.0)
         assert krc.sim.power == 0 and krc.sim.counters["drops_to_monitor"] == 1

@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 import pytest_asyncio
+from helpers import Reported
 from udp_helpers import FakeBoard, driver_for, robot, tick, wait_for
 
 from aiohal.config import parse_config
@@ -171,14 +172,13 @@ async def test_every_class_of_bad_datagram_is_counted_and_dropped(fake):
 @pytest.mark.asyncio
 async def test_board_fault_bits_fault_the_joints_and_hold_the_robot(fake):
     board, rob, d = fake
-    reports, holds = [], []
-    d.view.report_fault = lambda phase, reason: reports.append(reason)
-    d.view.request_hold = holds.append
+    reported = Reported(d.view)
+    d.view.attach(reported)
     seq, addr = await _command(board, d, 1)
     board.reply(addr, seq, fault=BoardFault.DRIVE)
     await tick(d, 1)
     assert (rob.state.fault & Fault.HARDWARE).all()
-    assert len(reports) == len(holds) == 1 and "j0" in reports[0]
+    assert len(reported.faults) == len(reported.holds) == 1 and "j0" in reported.reasons[0]
     seq, addr = await _command(board, d, 2)
     board.reply(addr, seq)
     await tick(d, 2)

@@ -313,8 +313,7 @@ def respond_to_event(
     if kind is EventKind.FAULT_ENTERED:
         fault[row] |= Fault.HARDWARE
         reason = f"joint {spec.joint}: {event}{detail}"
-        view.report_fault("read", reason)
-        view.request_hold(reason)
+        view.fault(reason)
     elif (
         kind is EventKind.LOST_ENABLED
         and event.state not in (State.FAULT_REACTION_ACTIVE, State.FAULT)
@@ -327,12 +326,10 @@ def respond_to_event(
             f"joint {spec.joint}: drive {spec.slave!r} left Operation enabled ({event.state.label}); "
             "reset_faults() enables it again"
         )
-        view.report_fault("read", reason)
-        view.request_hold(reason)
+        view.fault(reason)
     elif kind is EventKind.STUCK:
         fault[row] |= Fault.HARDWARE
-        view.report_fault("read", f"joint {spec.joint}: {event}")
-        view.request_hold(str(event))
+        view.fault(f"joint {spec.joint}: {event}")
     elif kind is EventKind.BECAME_ENABLED:
         fault[row] &= ~np.uint32(Fault.HARDWARE)
         mask[:] = False

@@ -24,7 +24,7 @@ import numpy as np
 from ..hal import Controller
 from ..lifecycle import DriverStatus
 from ..logutil import RateLimitedLogger
-from ..robot import Fault, Mode
+from ..robot import DriverEvents, Fault, Mode
 from .levels import FaultRecord, SafetyEvent, SafetyLevel, SafetyMachine, SafetyRequestRefused
 from .watchdog import WORDS, WatchdogProcess
 
@@ -305,10 +305,9 @@ class Supervisor:
         # the last command was sent one period ago: hold's motion starts there
         hold.start((self.robot.clock.tick - self.loop.k_start - 1) * self.loop.period_s)
 
-    def hold_for_driver(self, name: str, reason: str) -> None:
-        """A driver's hardware asks for a hold (``DriverView.request_hold``)."""
-        if self.level > SafetyLevel.HOLD:
-            self.enter_hold(f"driver {name}: {reason}", source=f"driver:{name}")
+    def events_of(self, name: str, rows: slice) -> DriverEvents:
+        """What driver ``name``'s view sends here (:meth:`DriverView.fault`, ``resync``)."""
+        return _DriverEvents(self, name, rows)
 
     def resync_joints(self, rows: slice, mask: np.ndarray) -> None:
         """Joints ``mask`` of the driver rows ``rows`` were (re-)enabled where they stand: their
@@ -498,3 +497,22 @@ class Supervisor:
                 "the watchdog process ran the drivers' safe actions",
             )
             self.estop("the watchdog process acted", source="watchdog", event=SafetyEvent.WATCHDOG)
+
+
+class _DriverEvents(DriverEvents):
+    """One driver's reports, to the supervisor: a fault is recorded with the driver's name
+    and, when it asks, holds the robot; re-enabled joints continue where they stand."""
+
+    def __init__(self, supervisor: Supervisor, name: str, rows: slice) -> None:
+        self.supervisor = supervisor
+        self.source = f"driver:{name}"
+        self.rows = rows
+
+    def fault(self, phase: str, reason: str, hold: bool) -> None:
+        supervisor = self.supervisor
+        supervisor.record_fault(self.source, phase, reason)
+        if hold and supervisor.level > SafetyLevel.HOLD:
+            supervisor.enter_hold(f"{self.source[7:]}: {reason}", source=self.source)
+
+    def resync(self, mask: np.ndarray) -> None:
+        self.supervisor.resync_joints(self.rows, mask)

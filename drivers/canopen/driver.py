@@ -702,7 +702,7 @@ class CanopenDriver(Driver):
         if self.bus_off or self._failed_cycles >= self.options.tx_error_limit:
             self._bus_failed()
         if self.gateway is not None:
-            self.gateway.read(clock.tick, clock.now_ns, view.report_fault)
+            self.gateway.read(clock.tick, clock.now_ns, view)
         drives = self.drives
         if drives is None:  # a bus of sensors only
             view.fresh_tick = clock.tick
@@ -771,10 +771,10 @@ class CanopenDriver(Driver):
             machine = self.drives.machines[k] if self.drives is not None else None
             if machine is not None and machine.faulted and not machine.error_code:
                 machine.error_code = code  # the fault came first (its TPDO, or the EMCY a cycle late)
-            self.view.report_fault(
-                "read",
+            self.view.fault(
                 f"joint {node.joint}: EMCY from node {node.node_id} ({node.label}): "
                 f"error code 0x{code:04X}, register 0x{register:02X}",
+                hold=False,
             )
 
     def _on_drive_event(self, i: int, event: DriveEvent) -> None:

@@ -23,7 +23,7 @@ from pydantic import Field
 
 from aiohal.hal import FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
-from aiohal.robot import DeviceRecord, Fault
+from aiohal.robot import DeviceRecord, DriverView, Fault
 
 from .busload import frame_bits
 
@@ -192,7 +192,7 @@ class SensorGateway:
         for sensor in self.takers[can_id]:
             sensor.take(can_id, values)
 
-    def read(self, tick: int, now_ns: int, report_fault) -> None:
+    def read(self, tick: int, now_ns: int, view: DriverView) -> None:
         """Each sensor's new values into its record, or its staleness judged (the tick)."""
         now_s = time.monotonic()
         if now_s - self._last_read_s > self._watch_gap_s:
@@ -215,10 +215,10 @@ class SensorGateway:
                 sensor.stale = True
                 sensor.stale_events += 1
                 record.set_fault(Fault.STALE)
-                report_fault(
-                    "read",
+                view.fault(
                     f"sensor {record.name}: no frame for {sensor.stale_s * 1e3:g} ms "
                     f"({sensor.options.stale_periods:g} periods): stale",
+                    hold=False,
                 )
 
     def health(self) -> dict:

@@ -642,10 +642,10 @@ class EthercatDriver(Driver):
             raise EthercatError(f"{why}: drive(s) of joint(s) {joints} out of OP: " + "; ".join(describe.values()))
         new = lost - self._reported
         for i in sorted(new):
-            self.view.report_fault(
-                "read",
+            self.view.fault(
                 f"{describe[i]}: lost; the run goes on without it, "
                 f"recovery every {self.options.recover_interval_s:g} s",
+                hold=False,
             )
         self._reported = set(lost)
         if new:  # (a check finding it still lost does not put its recovery off)
@@ -671,11 +671,11 @@ class EthercatDriver(Driver):
         for i in sorted(lost - self._unrecoverable):
             if states[i] & 0x0F < SAFEOP:
                 self._unrecoverable.add(i)
-                self.view.report_fault(
-                    "read",
+                self.view.fault(
                     f"slave {i} ({self.infos[i].name}) is in {state_name(states[i])}: "
                     "bringing it back needs a reconfiguration, which would stop the bus "
                     "for too long; it stays lost until the driver is opened again",
+                    hold=False,
                 )
         self._update_lost(states, lost)
 

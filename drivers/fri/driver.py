@@ -469,8 +469,7 @@ class FriDriver(Driver):
         if reason != self._fault:
             self._fault = reason
             self.view.state.fault |= np.uint32(Fault.HARDWARE)
-            self.view.report_fault("read", reason)
-            self.view.request_hold(reason)
+            self.view.fault(reason)
 
     def reset_faults(self) -> None:
         """The KRC's own faults are not ours to reset (KRL and the KRC decide): while it

@@ -453,8 +453,7 @@ class UdpDriver(Driver):
         if bad.any() and not self._fault_latched:
             joints = [self.view.joint_names[i] for i in np.flatnonzero(bad)]
             reason = f"board fault bits on joint(s) {', '.join(joints)}"
-            self.view.report_fault("read", reason)
-            self.view.request_hold(reason)
+            self.view.fault(reason)
         self._fault_latched = bool(bad.any())
 
     def _board_silent(self, tick: int) -> None:
