@@ -27,10 +27,10 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from . import shm
+from .outside import shm
+from .outside.shm import RobotNotRunning, ShmError
 from .robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
 from .safety import SafetyLevel
-from .shm import RobotNotRunning, ShmError
 
 __all__ = [
     "BufferFull",

@@ -31,13 +31,13 @@ import numpy as np
 from . import plugins
 from .config import Config, mode_issues
 from .config import from_parts as config_from_parts
-from .doors import Doors
 from .errors import ConfigError, ControllerError, DriverError, LifecycleError
 from .feedforward import VelocityFeedforward, gains_of
 from .hal import Controller
 from .lifecycle import DriverSlot, DriverStatus, LoopState
 from .limits import CommandLimiter
 from .multirate import TargetExtrapolator
+from .outside.doorkeeper import Doors
 from .realtime import RealtimeState, freeze_heap, freeze_young, thaw_heap
 from .realtime import apply as apply_realtime
 from .realtime import restore as restore_realtime
@@ -46,7 +46,7 @@ from .safety import FaultRecord, SafetyEvent, SafetyLevel
 from .safety.stall import StallWatchdog
 from .safety.supervisor import Supervisor
 from .safety.watchdog import FIRED, STAMP, TICK, WatchdogProcess
-from .stats import TickStats
+from .tick_timing import TickStats
 from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
 
 assert (TICK, STAMP, FIRED) == (0, 1, 3)  # the tick stores heartbeat[0], [1] and reads [3]
@@ -189,7 +189,7 @@ class ControlLoop:
         except Exception as exc:
             raise ControllerError(controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
         self.supervisor.attach(controller, controller_type, hold)
-        self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.doors)
+        self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.outside.doorkeeper)
         self.state = LoopState.CONFIGURED
 
     async def activate(self) -> None:

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from aiohal import ControlLoop, load_config
+from aiohal.outside.recorder import Recorder
 from aiohal.record import load
-from aiohal.record.recorder import Recorder
 
 from .common import ROOT, table, write_json
 

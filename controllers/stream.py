@@ -18,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from aiohal import shm
 from aiohal.errors import AiohalError
 from aiohal.hal import Controller, Options
+from aiohal.outside import shm
 from aiohal.robot import Mode
 
 LATENCY_WINDOW = 1 << 16

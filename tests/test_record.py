@@ -23,8 +23,8 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
 from aiohal import ControlLoop, load_config
+from aiohal.outside.recorder import Recorder
 from aiohal.record import RecordSection, load
-from aiohal.record.recorder import Recorder
 from aiohal.ticker import VirtualTickSource
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -179,7 +179,7 @@ def test_sigkilled_recording_holds_its_flushed_ticks(tmp_path):
 def test_live_server_seen_by_a_websocket_client(tmp_path):
     websockets = pytest.importorskip("websockets")
     pytest.importorskip("foxglove")
-    from aiohal.record.live import LiveServer
+    from aiohal.outside.foxglove_server import LiveServer
 
     async def main():
         live = LiveServer(port=0)

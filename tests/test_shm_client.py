@@ -17,7 +17,6 @@ import pytest
 from conftest import ROOT
 from helpers import arm_raw, virtual_loop
 
-from aiohal import shm
 from aiohal.client import (
     BufferFull,
     CommandBusy,
@@ -32,6 +31,7 @@ from aiohal.client import (
 from aiohal.config import parse_config
 from aiohal.errors import AiohalError, ConfigError
 from aiohal.loop import ControlLoop
+from aiohal.outside import shm
 from aiohal.safety import SafetyLevel, SafetyRequestRefused
 
 JOINTS = ["j0", "j1", "j2"]
@@ -456,7 +456,7 @@ async def test_joint_mismatch_command_lock_and_closed_robot():
 _KILLED_OWNER = """
 import sys, os, signal
 from multiprocessing import resource_tracker
-from aiohal.shm import create_segment
+from aiohal.outside.shm import create_segment
 seg = create_segment(sys.argv[1], {"joints": []}, dof=1, n_imu=0, n_ft=0, capacity=2, period_ns=1, can_rearm=False)
 seg.header[1 + 2] = 1  # STATUS_ACTIVE
 resource_tracker.unregister(seg.shm._name, "shared_memory")  # as after a kill of the whole group
@@ -488,7 +488,7 @@ async def test_a_second_live_loop_with_the_same_name_is_refused():
     async with virtual_loop(stream_raw(name)):
         with pytest.raises(shm.SegmentBusy, match=f"already served by process {os.getpid()}"):
             virtual_loop(stream_raw(name)).configure()
-        code = ("import sys; from aiohal.shm import create_segment; create_segment(sys.argv[1], {}, dof=1, n_imu=0, "
+        code = ("import sys; from aiohal.outside.shm import create_segment; create_segment(sys.argv[1], {}, dof=1, n_imu=0, "
                 "n_ft=0, capacity=2, period_ns=1, can_rearm=False)")
         proc = subprocess.run([sys.executable, "-c", code, name], cwd=ROOT, capture_output=True, text=True, timeout=60)
         assert proc.returncode == 1 and f"SegmentBusy: robot '{name}' is already served by process" in proc.stderr

@@ -34,7 +34,7 @@ if TYPE_CHECKING:
     from ..limits import CommandLimiter
     from ..multirate import TargetExtrapolator
     from ..robot import Robot
-    from ..stats import TickStats
+    from ..tick_timing import TickStats
     from ..ticker import TickSource
     from .workspace import WorkspaceMonitor
 

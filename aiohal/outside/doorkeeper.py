@@ -23,7 +23,7 @@ class Doors:
             control.add_publisher(self.shm.publish)
         zenoh_section = config.bridge.zenoh
         if zenoh_section is not None and zenoh_section.enabled:
-            from .bridge.zenoh import ZenohBridge  # zenoh itself is imported when the bridge starts
+            from .zenoh import ZenohBridge  # zenoh itself is imported when the bridge starts
 
             self.zenoh = ZenohBridge(control, zenoh_section)
             control.add_publisher(self.zenoh.publish)

@@ -2,7 +2,7 @@
 (``--record``, ``[record]``), the live Foxglove server (``--foxglove``) and the terminal status.
 
 The CLI calls :func:`add_arguments`, :func:`check` before anything starts, and
-:class:`RunOutputs` around the run; the work is in :mod:`aiohal.record` and :mod:`aiohal.status`.
+:class:`RunOutputs` around the run; the work is in :mod:`aiohal.record` and :mod:`aiohal.outside.terminal_status`.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .errors import AiohalError, MissingDependencyError
-from .report import check_output_path
+from ..errors import AiohalError, MissingDependencyError
+from ..run_report import check_output_path
 
 log = logging.getLogger(__name__)
 
@@ -77,19 +77,19 @@ class RunOutputs:
 
     def start(self) -> None:
         if self.port is not None:
-            from .record.live import LiveServer
+            from .foxglove_server import LiveServer
 
             self.live = LiveServer(self.port)
             log.info("live view: Foxglove on ws://%s:%d", self.live.host, self.live.port)
         if self.path is not None or self.live is not None:
-            from .record.recorder import Recorder
+            from .recorder import Recorder
 
             self.recorder = Recorder(self.control, self.path, self.options, live=self.live)
             self.recorder.attach()
             if self.path is not None:
                 log.info("recording to %s", self.path)
         if self.show_status:
-            from .status import StatusPanel
+            from .terminal_status import StatusPanel
 
             self.status = StatusPanel(self.control)
             self.status.start()

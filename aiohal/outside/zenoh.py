@@ -39,7 +39,7 @@ import numpy as np
 
 from ..logutil import RateLimitedLogger
 from ..safety import SafetyLevel
-from . import ZenohBridgeSection
+from .options import ZenohBridgeSection
 
 if TYPE_CHECKING:
     from ..client import RobotClient

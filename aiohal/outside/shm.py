@@ -32,9 +32,9 @@ from typing import Any, cast
 import numpy as np
 from pydantic import Field
 
-from .errors import AiohalError
-from .hal import Options
-from .robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
+from ..errors import AiohalError
+from ..hal import Options
+from ..robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
 
 log = logging.getLogger(__name__)
 
@@ -412,7 +412,7 @@ class ShmDoor:
         an answer (granted, or refused with the loop's reason) before its acted-on count moves,
         so a client that sees the count reads the answer; the next tick's snapshot shows the
         new level. The most protective request goes first."""
-        from .safety import SafetyRequestRefused
+        from ..safety import SafetyRequestRefused
 
         control, cause = self.control, "requested by a shared-memory client"
         actions = (

@@ -13,12 +13,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from .loop import ControlLoop
+    from ..loop import ControlLoop
 
 
 def status(control: ControlLoop, window: int = 1000) -> dict[str, Any]:
     """The figures the panel shows, over the last ``window`` ticks."""
-    from .record.recorder import snapshot_health
+    from .recorder import snapshot_health
 
     stats = control.stats
     n = stats.count

@@ -28,10 +28,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..stats import PHASES
-from . import ring as R
-from .cdr import Layout
-from .options import Channel, RecordSection
+from ..record.cdr import Layout
+from ..record.options import Channel, RecordSection
+from ..tick_timing import PHASES
+from . import recorder_ring as R
 
 if TYPE_CHECKING:
     from ..loop import ControlLoop
@@ -121,7 +121,7 @@ class Recorder:
 
     ``attach()`` (before ``run``) adds the tick's publisher and starts the writer; ``close()``
     (after the run) drains the ring, writes the summary and closes the file. ``live`` is an
-    optional :class:`~aiohal.record.live.LiveServer` that gets the same messages, decimated.
+    optional :class:`~aiohal.outside.foxglove_server.LiveServer` that gets the same messages, decimated.
     """
 
     #: ticks encoded at once by the writer
