@@ -284,7 +284,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         except asyncio.CancelledError:  # a second signal while a driver was still opening
             print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
             return 1
-        outputs = cli_outputs.RunOutputs(control, config, args)
+        outputs = cli_outputs.RunOutputs(control.port, args)
         outputs.start()
         log.info(
             "running%s; Ctrl-C or SIGTERM stops safely",

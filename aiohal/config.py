@@ -25,8 +25,8 @@ from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyErro
 from .feedforward import FeedforwardSection
 from .feedforward import section_issues as feedforward_issues
 from .hal import Controller, Driver, Options, did_you_mean
-from .outside.options import BridgeSection
-from .outside.shm import ClientSection, segment_name
+from .outside.options import BridgeSection, ClientSection
+from .outside.shm_segment import segment_name
 from .realtime import RealtimeSection
 from .record.options import RecordSection
 from .robot import JointSpec, Mode, Robot

@@ -37,7 +37,8 @@ from .hal import Controller
 from .lifecycle import DriverSlot, DriverStatus, LoopState
 from .limits import CommandLimiter
 from .multirate import TargetExtrapolator
-from .outside.doorkeeper import Doors
+from .outside.doorkeeper import Doorkeeper
+from .outside.port import LoopPort
 from .realtime import RealtimeState, freeze_heap, freeze_young, thaw_heap
 from .realtime import apply as apply_realtime
 from .realtime import restore as restore_realtime
@@ -109,7 +110,9 @@ class ControlLoop:
         self._run_finished = asyncio.Event()
         self._missed_before = 0
         self._heap_frozen = False
-        self.doors: Doors | None = None
+        #: what everything outside the tick is given of this loop (aiohal.outside.port)
+        self.port = LoopPort(self)
+        self.doors: Doorkeeper | None = None
         self.event_loop = ""  # the event loop's implementation, set by run()
 
     @classmethod
@@ -189,7 +192,7 @@ class ControlLoop:
         except Exception as exc:
             raise ControllerError(controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
         self.supervisor.attach(controller, controller_type, hold)
-        self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.outside.doorkeeper)
+        self.doors = Doorkeeper(self.port)  # shared memory and bridges, as configured
         self.state = LoopState.CONFIGURED
 
     async def activate(self) -> None:
@@ -244,7 +247,7 @@ class ControlLoop:
             cast(Controller, self.controller).start(0.0)  # set by configure()
         except Exception as exc:
             self.supervisor.controller_failed("start", exc)
-        cast(Doors, self.doors).activate()
+        cast(Doorkeeper, self.doors).activate()
 
     async def _bring_up(self, slot: DriverSlot, phase: str, step: Callable) -> None:
         try:
@@ -383,10 +386,19 @@ class ControlLoop:
         """Call ``publish(loop)`` at the end of every tick; it must not block."""
         self._publishers.append(publish)
 
+    def remove_publisher(self, publish: Callable[[ControlLoop], None]) -> None:
+        """Stop calling ``publish`` (from the next tick)."""
+        self._publishers[:] = [p for p in self._publishers if p is not publish]
+
+    @property
+    def missed_ticks(self) -> int:
+        """Deadlines missed in this run (or the last one)."""
+        return self.ticker.missed - self._missed_before
+
     def _publisher_failed(self, publish: Callable, exc: BaseException) -> None:
         name = getattr(publish, "__qualname__", repr(publish))
         self.record_fault(f"publisher:{name}", "publish", exc)
-        self._publishers[:] = [p for p in self._publishers if p is not publish]
+        self.remove_publisher(publish)
 
     # ------------------------------------------------------------ the tick
 
@@ -650,7 +662,7 @@ class ControlLoop:
             "rate_hz_target": round(target, 3),
             "rate_hz_achieved": round(achieved, 3),
             "ticks": n,
-            "missed_ticks": self.ticker.missed - self._missed_before,
+            "missed_ticks": self.missed_ticks,
             "duration_s": round(span, 4),
             **summary,
             "safety_level": self.level.name.lower(),

@@ -13,7 +13,7 @@ import time
 import types
 
 from aiohal.config import parse_config
-from aiohal.outside.shm import ShmDoor
+from aiohal.outside.shm_door import ShmDoor
 from aiohal.safety import SafetyLevel
 
 

@@ -1,39 +1,46 @@
-"""The loop's doors to other processes: the shared-memory door (``[client] shm``) and the
-network bridges (``[bridge.*]``). Made with the loop's drivers, opened when it is active,
-closed with its drivers; each publishes from the end of the tick without blocking."""
+"""Opens and closes the loop's doors to other processes, as the config asks: the shared-memory
+door (``[client] shm``) and the network bridges (``[bridge.*]``). They are made with the loop's
+drivers, opened when it is active and closed with its drivers; each copies its state at the
+end of the tick without blocking."""
 
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import TYPE_CHECKING
+
+from .port import LoopPort
+
+if TYPE_CHECKING:
+    from .shm_door import ShmDoor
+    from .zenoh import ZenohBridge
 
 log = logging.getLogger(__name__)
 
 
-class Doors:
-    def __init__(self, control: Any) -> None:
-        config = control.config
-        self._control = control
-        self.shm = None
-        self.zenoh = None
+class Doorkeeper:
+    def __init__(self, port: LoopPort) -> None:
+        config = port.config
+        self._port = port
+        self.shm: ShmDoor | None = None
+        self.zenoh: ZenohBridge | None = None
         if config.client.shm:
-            from .shm import ShmDoor
+            from .shm_door import ShmDoor
 
-            self.shm = ShmDoor(control, config.client.capacity)
-            control.add_publisher(self.shm.publish)
+            self.shm = ShmDoor(port, config.client.capacity)
+            port.at_tick_end(self.shm.publish)
         zenoh_section = config.bridge.zenoh
         if zenoh_section is not None and zenoh_section.enabled:
             from .zenoh import ZenohBridge  # zenoh itself is imported when the bridge starts
 
-            self.zenoh = ZenohBridge(control, zenoh_section)
-            control.add_publisher(self.zenoh.publish)
+            self.zenoh = ZenohBridge(port, zenoh_section)
+            port.at_tick_end(self.zenoh.publish)
 
     def activate(self) -> None:
         if self.zenoh is not None:
             try:
                 self.zenoh.start()
             except Exception as exc:  # the network door failing must not keep the robot from its safe loop
-                self._control.record_fault("bridge:zenoh", "open", exc)
+                self._port.record_fault("bridge:zenoh", "open", exc)
                 self.zenoh.close()
                 self.zenoh = None
         if self.shm is not None:
