@@ -16,12 +16,12 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..config import Config
 from ..errors import AiohalError, MissingDependencyError
 from ..run_report import check_output_path
 from .port import LoopPort
 
 if TYPE_CHECKING:
+    from ..config import Config
     from .foxglove_server import FoxgloveServer
     from .recorder import Recorder
     from .terminal_status import StatusPanel
