@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
-from . import __version__, plugins, run_outputs
+from . import __version__, plugins
 from .config import Config, describe_validation_error, json_schema, load_config
 from .errors import AiohalError, ConfigError, ConfigIssue
-from .report import check_output_path, counted
+from .outside import cli_outputs
+from .run_report import check_output_path, counted
 from .safety import SafetyLevel
 
 if TYPE_CHECKING:
@@ -146,7 +147,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--quiet", action="store_true", help="print only warnings and errors: no report, no progress, no live status"
     )
-    run_outputs.add_arguments(p)
+    cli_outputs.add_arguments(p)
     p.add_argument("--version", action="version", version=f"aiohal {__version__}")
     return p
 
@@ -256,7 +257,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         signal.signal(sig, lambda signum, frame: early.append(signal.Signals(signum)))
     try:
         from .loop import ControlLoop, DriverStatus
-        from .report import format_report, write_json
+        from .run_report import format_report, write_json
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, on_signal, sig.name)
@@ -283,7 +284,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         except asyncio.CancelledError:  # a second signal while a driver was still opening
             print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
             return 1
-        outputs = run_outputs.RunOutputs(control, config, args)
+        outputs = cli_outputs.RunOutputs(control.port, args)
         outputs.start()
         log.info(
             "running%s; Ctrl-C or SIGTERM stops safely",
@@ -329,7 +330,7 @@ def cmd_run(argv: Sequence[str]) -> int:
     try:
         config = _apply_overrides(load_config(args.config), args)
         factory = _loop_factory(args.loop)
-        run_outputs.check(config, args)
+        cli_outputs.check(config, args)
     except ConfigError as exc:
         _print_config_error(exc)
         return 2
@@ -411,7 +412,7 @@ def cmd_replay(argv: Sequence[str]) -> int:
 
 
 def cmd_plot(argv: Sequence[str]) -> int:
-    from .plot import main as plot_main
+    from .record.plot import main as plot_main
 
     return plot_main(list(argv))
 

@@ -27,10 +27,10 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from . import shm
+from .outside import shm_segment
+from .outside.shm_segment import RobotNotRunning, ShmError
 from .robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
 from .safety import SafetyLevel
-from .shm import RobotNotRunning, ShmError
 
 __all__ = [
     "BufferFull",
@@ -113,7 +113,7 @@ class RobotClient:
         joints raises :class:`JointMismatch`. ``command``: take the setpoint ring (one process
         at a time; :class:`CommandBusy` otherwise)."""
         self.robot = robot
-        self._seg = shm.attach_segment(robot)
+        self._seg = shm_segment.attach_segment(robot)
         self._lock_fd: int | None = None
         try:
             meta = self._seg.meta()
@@ -132,7 +132,7 @@ class RobotClient:
             raise
         seg = self._seg
         self.dof = len(self.joint_names)
-        self.period_ns = int(seg.header[shm.H_PERIOD_NS])
+        self.period_ns = int(seg.header[shm_segment.H_PERIOD_NS])
         self._capacity = seg.layout.capacity
         self._index = {name: i for i, name in enumerate(self.joint_names)}
         self._q = np.zeros(self.dof)
@@ -149,16 +149,20 @@ class RobotClient:
         seq = seg.seqlock
         deadline = None
         while True:
-            s1 = int(seq[shm.S_SEQ])
+            s1 = int(seq[shm_segment.S_SEQ])
             if not s1 & 1:
-                tick, now, level = int(seq[shm.S_TICK]), int(seq[shm.S_NOW_NS]), int(seq[shm.S_LEVEL])
+                tick, now, level = (
+                    int(seq[shm_segment.S_TICK]),
+                    int(seq[shm_segment.S_NOW_NS]),
+                    int(seq[shm_segment.S_LEVEL]),
+                )
                 np.copyto(out.state, seg.state)
                 np.copyto(out.command, seg.command)
                 np.copyto(out.fault, seg.fault)
                 np.copyto(out.mode, seg.mode)
                 np.copyto(out.imu, seg.imu)
                 np.copyto(out.force_torque, seg.ft)
-                if int(seq[shm.S_SEQ]) == s1:
+                if int(seq[shm_segment.S_SEQ]) == s1:
                     out.tick, out.now_ns, out.level = tick, now, SafetyLevel(level)
                     return out
             # the tick is writing: it takes microseconds, so spin, within a bound
@@ -175,8 +179,8 @@ class RobotClient:
         seq = self._seg.seqlock
         while True:
             self._check_open()
-            tick = int(seq[shm.S_TICK])
-            if tick > after and int(seq[shm.S_SEQ]) > 0:
+            tick = int(seq[shm_segment.S_TICK])
+            if tick > after and int(seq[shm_segment.S_SEQ]) > 0:
                 return tick
             if time.monotonic() > deadline:
                 self._check_alive()
@@ -185,7 +189,7 @@ class RobotClient:
 
     @property
     def level(self) -> SafetyLevel:
-        return SafetyLevel(int(self._seg.seqlock[shm.S_LEVEL]))
+        return SafetyLevel(int(self._seg.seqlock[shm_segment.S_LEVEL]))
 
     # ------------------------------------------------------------ setpoints
 
@@ -220,19 +224,19 @@ class RobotClient:
             np.isfinite(v, out=ok)
             if not ok.all():
                 raise ValueError(f"velocity is not finite for {self._names(~ok)}")
-            flags = shm.FLAG_VELOCITY
+            flags = shm_segment.FLAG_VELOCITY
         if final:
-            flags |= shm.FLAG_FINAL
+            flags |= shm_segment.FLAG_FINAL
         seg = self._seg
-        if not seg.consumer[shm.C_STREAMING] or self.level < SafetyLevel.RUN:
+        if not seg.consumer[shm_segment.C_STREAMING] or self.level < SafetyLevel.RUN:
             raise NotStreaming(
                 f"robot {self.robot!r} takes no setpoints: no stream controller is running "
                 f"(safety level {self.level.name.lower()})"
             )
-        head = int(seg.producer[shm.P_HEAD])
-        if head - int(seg.consumer[shm.C_TAIL]) >= self._capacity:
+        head = int(seg.producer[shm_segment.P_HEAD])
+        if head - int(seg.consumer[shm_segment.C_TAIL]) >= self._capacity:
             deadline = time.monotonic() + timeout_s
-            while head - int(seg.consumer[shm.C_TAIL]) >= self._capacity:
+            while head - int(seg.consumer[shm_segment.C_TAIL]) >= self._capacity:
                 if time.monotonic() >= deadline:
                     raise BufferFull(f"robot {self.robot!r}: the setpoint ring ({self._capacity} points) is full")
                 time.sleep(self.period_ns / 4e9)
@@ -241,10 +245,10 @@ class RobotClient:
         if velocity is not None:
             np.copyto(seg.slot_velocity[i], self._v)
         words = seg.slot_words[i]
-        words[shm.SLOT_T_NS] = t_ns
-        words[shm.SLOT_FLAGS] = flags
-        words[shm.SLOT_SENT_NS] = time.monotonic_ns()
-        seg.producer[shm.P_HEAD] = head + 1  # last: the slot is complete before the tick can see it
+        words[shm_segment.SLOT_T_NS] = t_ns
+        words[shm_segment.SLOT_FLAGS] = flags
+        words[shm_segment.SLOT_SENT_NS] = time.monotonic_ns()
+        seg.producer[shm_segment.P_HEAD] = head + 1  # last: the slot is complete before the tick can see it
 
     def send_trajectory(
         self,
@@ -269,32 +273,32 @@ class RobotClient:
     @property
     def pending(self) -> int:
         """Points queued and not yet taken by the controller."""
-        return int(self._seg.producer[shm.P_HEAD]) - int(self._seg.consumer[shm.C_TAIL])
+        return int(self._seg.producer[shm_segment.P_HEAD]) - int(self._seg.consumer[shm_segment.C_TAIL])
 
     @property
     def applied(self) -> int:
-        return int(self._seg.consumer[shm.C_APPLIED])
+        return int(self._seg.consumer[shm_segment.C_APPLIED])
 
     @property
     def refused(self) -> int:
-        return int(self._seg.consumer[shm.C_REFUSED])
+        return int(self._seg.consumer[shm_segment.C_REFUSED])
 
     @property
     def finished(self) -> bool:
         """The stream reached a final point and holds it; no newer point was taken since."""
-        return bool(self._seg.consumer[shm.C_FINISHED])
+        return bool(self._seg.consumer[shm_segment.C_FINISHED])
 
     # ------------------------------------------------------------ safety requests
 
     def hold(self, wait_s: float = 1.0) -> None:
         """Ask the loop to replace its controller by ``hold``; waits until it has. Any client
         may ask; a robot already below ``run`` stays where it is (the level says so)."""
-        self._request(shm.R_HOLD, shm.R_HOLD_DONE, shm.A_HOLD, wait_s)
+        self._request(shm_segment.R_HOLD, shm_segment.R_HOLD_DONE, shm_segment.A_HOLD, wait_s)
 
     def estop(self, wait_s: float = 1.0) -> None:
         """Ask the loop to trigger every driver's emergency stop; waits until it has. Any
         client may ask."""
-        self._request(shm.R_ESTOP, shm.R_ESTOP_DONE, shm.A_ESTOP, wait_s)
+        self._request(shm_segment.R_ESTOP, shm_segment.R_ESTOP_DONE, shm_segment.A_ESTOP, wait_s)
 
     def reset_faults(self, wait_s: float = 1.0) -> None:
         """Ask the loop to clear its latched faults (after an emergency stop: to release it,
@@ -302,7 +306,9 @@ class RobotClient:
         ``command=True``; :class:`RequestRefused` carries the loop's reason when it cannot."""
         self._require_command("reset faults")
         self._check_rearm("reset faults")
-        self._refused_raises("reset_faults", self._request(shm.R_RESET, shm.R_RESET_DONE, shm.A_RESET, wait_s))
+        self._refused_raises(
+            "reset_faults", self._request(shm_segment.R_RESET, shm_segment.R_RESET_DONE, shm_segment.A_RESET, wait_s)
+        )
 
     def rearm(self, wait_s: float = 1.0) -> None:
         """Ask the loop to return to ``run`` from hold or disabled (the controller restarts
@@ -310,7 +316,9 @@ class RobotClient:
         carries the loop's reason when it cannot (a fault not reset, hold still braking)."""
         self._require_command("re-arm")
         self._check_rearm("re-arm")
-        self._refused_raises("rearm", self._request(shm.R_REARM, shm.R_REARM_DONE, shm.A_REARM, wait_s))
+        self._refused_raises(
+            "rearm", self._request(shm_segment.R_REARM, shm_segment.R_REARM_DONE, shm_segment.A_REARM, wait_s)
+        )
 
     def _require_command(self, what: str) -> None:
         if self._lock_fd is None:
@@ -320,7 +328,7 @@ class RobotClient:
 
     def _check_rearm(self, what: str) -> None:
         self._check_open()
-        if not self._seg.header[shm.H_CAN_REARM]:
+        if not self._seg.header[shm_segment.H_CAN_REARM]:
             raise ShmError(f"robot {self.robot!r}: this loop cannot {what} on request")
 
     def _refused_raises(self, request: str, answer: tuple[bool, str]) -> None:
@@ -341,7 +349,7 @@ class RobotClient:
             self._wait_a_little(deadline, wait_s)
         answer = self._read_answer(kind, target, deadline, wait_s)
         # the tick acted after it published: the next tick's snapshot shows the new level
-        self.wait_tick(int(self._seg.seqlock[shm.S_TICK]), max(0.0, deadline - time.monotonic()) + 0.1)
+        self.wait_tick(int(self._seg.seqlock[shm_segment.S_TICK]), max(0.0, deadline - time.monotonic()) + 0.1)
         return answer
 
     def _read_answer(self, kind: int, target: int, deadline: float, wait_s: float) -> tuple[bool, str]:
@@ -349,11 +357,13 @@ class RobotClient:
         writes it under its count (0 while writing): a copy between two equal counts is whole."""
         seg = self._seg
         while True:
-            count = int(seg.answer_words[kind][shm.A_COUNT])
-            refused = bool(seg.answer_words[kind][shm.A_REFUSED])
-            n = min(max(int(seg.answer_words[kind][shm.A_LEN]), 0), shm.ANSWER_TEXT)  # bounded: from outside
+            count = int(seg.answer_words[kind][shm_segment.A_COUNT])
+            refused = bool(seg.answer_words[kind][shm_segment.A_REFUSED])
+            n = min(
+                max(int(seg.answer_words[kind][shm_segment.A_LEN]), 0), shm_segment.ANSWER_TEXT
+            )  # bounded: from outside
             reason = bytes(seg.answer_text[kind][:n]).decode(errors="replace")
-            if count >= target and int(seg.answer_words[kind][shm.A_COUNT]) == count:
+            if count >= target and int(seg.answer_words[kind][shm_segment.A_COUNT]) == count:
                 return refused, reason
             self._wait_a_little(deadline, wait_s)
 
@@ -390,13 +400,13 @@ class RobotClient:
     def _check_open(self) -> None:
         if self._seg is None or self._seg.header is None:
             raise ShmError("the client is closed")
-        if self._seg.header[shm.H_STATUS] == shm.STATUS_CLOSED:
+        if self._seg.header[shm_segment.H_STATUS] == shm_segment.STATUS_CLOSED:
             raise RobotNotRunning(f"robot {self.robot!r} has stopped (its loop closed the shared memory)")
 
     def _check_alive(self) -> None:
         self._check_open()
-        pid = int(self._seg.header[shm.H_PID])
-        if not shm.pid_alive(pid):
+        pid = int(self._seg.header[shm_segment.H_PID])
+        if not shm_segment.pid_alive(pid):
             raise RobotNotRunning(f"robot {self.robot!r} is not running: its process {pid} is gone")
 
     def close(self) -> None:

@@ -30,12 +30,13 @@ import numpy as np
 from . import plugins
 from .config import Config, mode_issues
 from .config import from_parts as config_from_parts
-from .doors import Doors
 from .errors import ConfigError, ControllerError, DriverError, LifecycleError
 from .feedforward import VelocityFeedforward, gains_of
 from .hal import Controller
 from .lifecycle import DriverSlot, DriverStatus, LoopState
 from .limits import CommandLimiter
+from .outside.doorkeeper import Doorkeeper
+from .outside.port import LoopPort
 from .realtime import RealtimeState, freeze_heap, freeze_young, thaw_heap
 from .realtime import apply as apply_realtime
 from .realtime import restore as restore_realtime
@@ -44,8 +45,8 @@ from .safety import FaultRecord, SafetyEvent, SafetyLevel
 from .safety.stall import StallWatchdog
 from .safety.supervisor import Supervisor
 from .safety.watchdog import FIRED, STAMP, TICK, WatchdogProcess
-from .stats import TickStats
 from .target_extrapolation import TargetExtrapolator
+from .tick_timing import TickStats
 from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
 
 assert (TICK, STAMP, FIRED) == (0, 1, 3)  # the tick stores heartbeat[0], [1] and reads [3]
@@ -108,7 +109,9 @@ class ControlLoop:
         self._run_finished = asyncio.Event()
         self._missed_before = 0
         self._heap_frozen = False
-        self.doors: Doors | None = None
+        #: what everything outside the tick is given of this loop (aiohal.outside.port)
+        self.port = LoopPort(self)
+        self.doors: Doorkeeper | None = None
         self.event_loop = ""  # the event loop's implementation, set by run()
 
     @classmethod
@@ -185,7 +188,7 @@ class ControlLoop:
         except Exception as exc:
             raise ControllerError(controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
         self.supervisor.attach(controller, controller_type, hold)
-        self.doors = Doors(self)  # shared memory and bridges, as configured (aiohal.doors)
+        self.doors = Doorkeeper(self.port)  # shared memory and bridges, as configured
         self.state = LoopState.CONFIGURED
 
     async def activate(self) -> None:
@@ -240,7 +243,7 @@ class ControlLoop:
             cast(Controller, self.controller).start(0.0)  # set by configure()
         except Exception as exc:
             self.supervisor.controller_failed("start", exc)
-        cast(Doors, self.doors).activate()
+        cast(Doorkeeper, self.doors).activate()
 
     async def _bring_up(self, slot: DriverSlot, phase: str, step: Callable) -> None:
         try:
@@ -379,10 +382,19 @@ class ControlLoop:
         """Call ``publish(loop)`` at the end of every tick; it must not block."""
         self._publishers.append(publish)
 
+    def remove_publisher(self, publish: Callable[[ControlLoop], None]) -> None:
+        """Stop calling ``publish`` (from the next tick)."""
+        self._publishers[:] = [p for p in self._publishers if p is not publish]
+
+    @property
+    def missed_ticks(self) -> int:
+        """Deadlines missed in this run (or the last one)."""
+        return self.ticker.missed - self._missed_before
+
     def _publisher_failed(self, publish: Callable, exc: BaseException) -> None:
         name = getattr(publish, "__qualname__", repr(publish))
         self.record_fault(f"publisher:{name}", "publish", exc)
-        self._publishers[:] = [p for p in self._publishers if p is not publish]
+        self.remove_publisher(publish)
 
     # ------------------------------------------------------------ the tick
 
@@ -648,7 +660,7 @@ class ControlLoop:
             "rate_hz_target": round(target, 3),
             "rate_hz_achieved": round(achieved, 3),
             "ticks": n,
-            "missed_ticks": self.ticker.missed - self._missed_before,
+            "missed_ticks": self.missed_ticks,
             "duration_s": round(span, 4),
             **summary,
             "safety_level": self.level.name.lower(),

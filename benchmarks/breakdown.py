@@ -16,7 +16,7 @@ IMU, 4 F/T sensors, 2 hands) with its controller replaced by ``hold``, and with 
 
 Both are measured after a warm-up run of ``--warmup`` seconds in the same process (first-tick
 costs, and the sine's 1 s ramp-in, are left out). The per-phase times are what the loop itself
-records (``ControlLoop.stats.phases``, rows in ``aiohal.stats.PHASES`` order); "work" is the
+records (``ControlLoop.stats.phases``, rows in ``aiohal.tick_timing.PHASES`` order); "work" is the
 whole tick from wake-up to the end of publish, which also holds the loop's own bookkeeping
 between phases.
 
@@ -98,7 +98,7 @@ async def _run_loop(spec: dict) -> dict:
 
     from aiohal.config import parse_config
     from aiohal.loop import ControlLoop
-    from aiohal.stats import PHASES
+    from aiohal.tick_timing import PHASES
 
     config = parse_config(spec["raw"], base_dir=Path(spec["base_dir"]))
     control = ControlLoop(config)
@@ -197,7 +197,7 @@ def main() -> None:
         worker_main()
         return
 
-    from aiohal.stats import PHASES
+    from aiohal.tick_timing import PHASES
 
     base = load_raw(HUMANOID)
     started = time.monotonic()

@@ -80,7 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aiohal.stats import PHASES
+from aiohal.tick_timing import PHASES
 
 from .breakdown import load_raw, loop_spec, spawn, timeout_for, worker
 from .common import ROOT, table, write_json

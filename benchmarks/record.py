@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from aiohal import ControlLoop, load_config
+from aiohal.outside.recorder import Recorder
 from aiohal.record import load
-from aiohal.record.recorder import Recorder
 
 from .common import ROOT, table, write_json
 
@@ -33,10 +33,10 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path) 
     config = load_config(config_path)
     control = ControlLoop(config)
     await control.activate()
-    recorder = Recorder(control, out, config.record)
+    recorder = Recorder(control.port, out, config.record)
     recorder.attach()
     publish = recorder._publisher
-    control._publishers.remove(publish)  # the run starts with recording off
+    control.remove_publisher(publish)  # the run starts with recording off
     rate = 1e9 / control.period_ns
     blocks_per_side = round(seconds / block_s)
     ticks_per_block = round(block_s * rate)
@@ -53,9 +53,9 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path) 
                 await asyncio.sleep(0.0005)
             on = not on
             if on:
-                control._publishers.append(publish)
+                control.add_publisher(publish)
             else:
-                control._publishers.remove(publish)
+                control.remove_publisher(publish)
         control.request_stop("benchmark done")
 
     toggler = asyncio.get_running_loop().create_task(toggle())

@@ -18,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from aiohal import shm
 from aiohal.errors import AiohalError
 from aiohal.hal import Controller, Options
+from aiohal.outside import shm_door, shm_segment
 from aiohal.robot import Mode
 
 LATENCY_WINDOW = 1 << 16
@@ -57,9 +57,9 @@ class StreamController(Controller):
     params: StreamParams  # what configure() stores, typed as this controller's
 
     def start(self, t: float) -> None:
-        door = shm.door(self.robot.name)
+        door = shm_door.door(self.robot.name)
         if door is None:
-            raise shm.ShmError("the stream controller reads the shared-memory ring: set [client] shm = true")
+            raise shm_segment.ShmError("the stream controller reads the shared-memory ring: set [client] shm = true")
         seg = door.segment
         robot = self.robot
         n = robot.dof
@@ -91,29 +91,29 @@ class StreamController(Controller):
         self.underruns = 0
         self.finished = False  # the last stream ended with a final point and nothing followed
         self.streams_finished = 0
-        self._cons[shm.C_FINISHED] = 0
+        self._cons[shm_segment.C_FINISHED] = 0
         # stale points from before this start are skipped: the consumer starts at the head
-        self._cons[shm.C_TAIL] = self._head[shm.P_HEAD]
-        self._cons[shm.C_STREAMING] = 1
+        self._cons[shm_segment.C_TAIL] = self._head[shm_segment.P_HEAD]
+        self._cons[shm_segment.C_STREAMING] = 1
         cmd.velocity[:] = 0.0
 
     def _take(self, now: int) -> bool:
         """Move the oldest ring point (there is one) into ``_b``; False if it was refused."""
         cons = self._cons
-        tail = cons[shm.C_TAIL]
+        tail = cons[shm_segment.C_TAIL]
         i = tail % self._capacity
         words = self._words[i]
         b = self._b
         q = b.q
         np.copyto(q, self._pos[i])
-        flags = int(words[shm.SLOT_FLAGS])
-        b.has_v = bool(flags & shm.FLAG_VELOCITY)
-        b.final = bool(flags & shm.FLAG_FINAL)
+        flags = int(words[shm_segment.SLOT_FLAGS])
+        b.has_v = bool(flags & shm_segment.FLAG_VELOCITY)
+        b.final = bool(flags & shm_segment.FLAG_FINAL)
         if b.has_v:
             np.copyto(b.v, self._vel[i])
-        t = int(words[shm.SLOT_T_NS])
-        sent = int(words[shm.SLOT_SENT_NS])
-        cons[shm.C_TAIL] = tail + 1  # the slot is ours now: the producer may reuse it
+        t = int(words[shm_segment.SLOT_T_NS])
+        sent = int(words[shm_segment.SLOT_SENT_NS])
+        cons[shm_segment.C_TAIL] = tail + 1  # the slot is ours now: the producer may reuse it
         robot = self.robot
         ok = self._ok
         np.isfinite(q, out=ok)
@@ -128,7 +128,7 @@ class StreamController(Controller):
             good = ok.all()
         if not good:
             self.refused += 1
-            cons[shm.C_REFUSED] = self.refused
+            cons[shm_segment.C_REFUSED] = self.refused
             return False
         b.t = now if t <= 0 else t
         if sent > 0:
@@ -141,7 +141,7 @@ class StreamController(Controller):
         # consume every point that is due: the newest due one becomes ``a``
         while True:
             if not self._has_b:
-                while self._cons[shm.C_TAIL] != self._head[shm.P_HEAD]:
+                while self._cons[shm_segment.C_TAIL] != self._head[shm_segment.P_HEAD]:
                     if self._take(now):  # else refused: try the next
                         self._has_b = True
                         break
@@ -152,7 +152,7 @@ class StreamController(Controller):
                     a.t = now
                     if self.finished:
                         self.finished = False
-                        self._cons[shm.C_FINISHED] = 0
+                        self._cons[shm_segment.C_FINISHED] = 0
             b = self._b
             if b.t > now:
                 break
@@ -160,7 +160,7 @@ class StreamController(Controller):
             a = b
             self._has_b = False
             self.applied += 1
-            self._cons[shm.C_APPLIED] = self.applied
+            self._cons[shm_segment.C_APPLIED] = self.applied
             if a.final:
                 self._finish(a)
         cmd = self.robot.command
@@ -183,7 +183,7 @@ class StreamController(Controller):
         self._streaming = False
         self.finished = True
         self.streams_finished += 1
-        self._cons[shm.C_FINISHED] = 1
+        self._cons[shm_segment.C_FINISHED] = 1
         a.v.fill(0.0)
 
     def _interpolate(self, a: _Point, b: _Point, now: int, cmd) -> None:
@@ -220,7 +220,7 @@ class StreamController(Controller):
         cons = getattr(self, "_cons", None)
         if cons is not None:
             try:
-                cons[shm.C_STREAMING] = 0
+                cons[shm_segment.C_STREAMING] = 0
             except ValueError:  # the segment is already gone
                 pass
         # drop every view of the segment so that the door can unmap it

@@ -17,8 +17,8 @@ import sys
 import threading
 import time
 
-from aiohal.bridge import ZenohBridgeSection
-from aiohal.bridge.zenoh import decode_state, zenoh_config
+from aiohal.outside.options import ZenohBridgeSection
+from aiohal.outside.zenoh import decode_state, zenoh_config
 
 
 def monitor(section: ZenohBridgeSection, seconds: float, robots: int, wait_s: float) -> dict:

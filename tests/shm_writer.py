@@ -13,8 +13,8 @@ import time
 import types
 
 from aiohal.config import parse_config
+from aiohal.outside.shm_door import ShmDoor
 from aiohal.safety import SafetyLevel
-from aiohal.shm import ShmDoor
 
 
 def main(robot_name: str, dof: int, seconds: float) -> None:

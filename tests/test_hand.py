@@ -20,8 +20,8 @@ from aiohal.drivers.hands.sim import SimHand
 from aiohal.errors import ConfigError, DriverError
 from aiohal.loop import ControlLoop
 from aiohal.pipe import NrtPeer
-from aiohal.report import format_report
 from aiohal.robot import Fault
+from aiohal.run_report import format_report
 
 SERVICE = "aiohal.drivers.hands.service:serve"
 

@@ -97,3 +97,52 @@ def test_no_import_cycles():
     for node in sorted(graph):
         if node not in state:
             visit(node)
+
+
+CORE_FILES = (ROOT / "aiohal" / "loop.py", ROOT / "aiohal" / "safety")
+
+
+def private_names(path: Path, classes: set[str]) -> set[str]:
+    """The private attributes (``_name``, not dunder) a class of ``path`` sets or defines."""
+    names: set[str] = set()
+    for cls in ast.walk(ast.parse(path.read_text())):
+        if isinstance(cls, ast.ClassDef) and cls.name in classes:
+            for node in ast.walk(cls):
+                if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "self":
+                    name = node.attr
+                elif isinstance(node, ast.FunctionDef):
+                    name = node.name
+                else:
+                    continue
+                if name.startswith("_") and not name.endswith("__"):
+                    names.add(name)
+    return names
+
+
+def test_outside_the_core_no_private_attribute_of_the_loop_is_read():
+    """The loop and its supervisor keep their privates: the rest of aiohal reads their public
+    face (the doors and outputs, only the port's: aiohal.outside.port). Drivers and
+    controllers are never given the loop (they get views of the robot)."""
+    private = private_names(ROOT / "aiohal" / "loop.py", {"ControlLoop"})
+    private |= private_names(ROOT / "aiohal" / "safety" / "supervisor.py", {"Supervisor"})
+    assert {"_publishers", "_missed_before", "_faults_reset_at"} <= private  # the scan sees them
+    found = []
+    for name, path in module_files().items():
+        if not name.startswith("aiohal.") or name.startswith(("aiohal.drivers", "aiohal.controllers")):
+            continue
+        if any(path == core or core in path.parents for core in CORE_FILES):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Attribute) and node.attr in private
+                    and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))):
+                found.append(f"{path.relative_to(ROOT)}:{node.lineno} .{node.attr}")
+    assert not found, found
+
+
+def test_outside_the_tick_nothing_imports_the_loop():
+    """Everything in aiohal.outside is given a LoopPort, never the loop (not even as a type)."""
+    files = module_files()
+    known = set(files)
+    for name, path in files.items():
+        if name.startswith("aiohal.outside"):
+            assert "aiohal.loop" not in imports_of(name, path, known), f"{name} imports aiohal.loop"

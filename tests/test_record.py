@@ -23,8 +23,8 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
 from aiohal import ControlLoop, load_config
+from aiohal.outside.recorder import Recorder
 from aiohal.record import RecordSection, load
-from aiohal.record.recorder import Recorder
 from aiohal.ticker import VirtualTickSource
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,7 +51,7 @@ def run_recorded(tmp_path: Path, ticks: int, options: RecordSection, recorder_cl
         await control.activate()
         snapshots = Snapshots()
         control.add_publisher(snapshots)
-        recorder = recorder_cls(control, tmp_path / "run.mcap", options)
+        recorder = recorder_cls(control.port, tmp_path / "run.mcap", options)
         recorder.attach()
         report = await control.run(ticks=ticks)
         await control.deactivate()
@@ -128,7 +128,7 @@ def test_writer_behind_drops_and_counts_and_never_holds_the_tick(tmp_path):
         async def main():
             control = ControlLoop(load_config(HUMANOID), tick_source=VirtualTickSource())
             await control.activate()
-            recorder = StuckWriter(control, tmp_path / "run.mcap", RecordSection(buffer_ticks=64))
+            recorder = StuckWriter(control.port, tmp_path / "run.mcap", RecordSection(buffer_ticks=64))
             recorder.attach()
             report = await asyncio.wait_for(control.run(ticks=500), 60)
             assert recorder.ring.dropped == 500 - 64 and recorder.ticks_written == 0
@@ -179,13 +179,13 @@ def test_sigkilled_recording_holds_its_flushed_ticks(tmp_path):
 def test_live_server_seen_by_a_websocket_client(tmp_path):
     websockets = pytest.importorskip("websockets")
     pytest.importorskip("foxglove")
-    from aiohal.record.live import LiveServer
+    from aiohal.outside.foxglove_server import FoxgloveServer
 
     async def main():
-        live = LiveServer(port=0)
+        live = FoxgloveServer(port=0)
         control = ControlLoop(load_config(HUMANOID))  # the real clock: a client connects meanwhile
         await control.activate()
-        recorder = Recorder(control, None, RecordSection(live_decimate=10), live=live)
+        recorder = Recorder(control.port, None, RecordSection(live_decimate=10), live=live)
         recorder.attach()
         run = asyncio.get_running_loop().create_task(control.run(duration=5.0))
         got = {}

@@ -17,7 +17,6 @@ import pytest
 from conftest import ROOT
 from helpers import arm_raw, virtual_loop
 
-from aiohal import shm
 from aiohal.client import (
     BufferFull,
     CommandBusy,
@@ -32,6 +31,7 @@ from aiohal.client import (
 from aiohal.config import parse_config
 from aiohal.errors import AiohalError, ConfigError
 from aiohal.loop import ControlLoop
+from aiohal.outside import shm_segment
 from aiohal.safety import SafetyLevel, SafetyRequestRefused
 
 JOINTS = ["j0", "j1", "j2"]
@@ -204,10 +204,10 @@ async def test_a_point_the_tick_finds_invalid_is_refused_and_counted():
             assert client.pending == 0  # nothing was queued
             # a writer that skips the client's checks: the tick refuses the point
             seg = client._seg
-            head = int(seg.producer[shm.P_HEAD])
+            head = int(seg.producer[shm_segment.P_HEAD])
             seg.slot_position[head % 16][:] = [0.0, np.inf, 0.0]
             seg.slot_words[head % 16][:] = 0
-            seg.producer[shm.P_HEAD] = head + 1
+            seg.producer[shm_segment.P_HEAD] = head + 1
             client.send({"j0": 0.01, "j1": 0.02, "j2": 0.03})
             await loop.run(ticks=3)
             assert client.refused == 1 and client.applied == 1
@@ -352,7 +352,7 @@ async def test_a_client_without_command_permission_is_refused():
                     call()
                 assert isinstance(refused.value, PermissionError)
             # refused before anything was asked of the loop
-            assert reader._seg.requests[shm.R_RESET] == 0 and reader._seg.requests[shm.R_REARM] == 0
+            assert reader._seg.requests[shm_segment.R_RESET] == 0 and reader._seg.requests[shm_segment.R_REARM] == 0
             await loop.run(ticks=3)
             assert loop.level == SafetyLevel.ESTOP
 
@@ -419,7 +419,7 @@ async def test_a_finished_trajectory_holds_its_last_point_and_a_new_one_follows(
 def test_not_running_is_a_clear_error():
     with pytest.raises(RobotNotRunning, match=r"no shared memory /aiohal.nobody_here"):
         RobotClient("nobody_here")
-    with pytest.raises(shm.ShmError, match="cannot name a shared-memory segment"):
+    with pytest.raises(shm_segment.ShmError, match="cannot name a shared-memory segment"):
         RobotClient("a/b")
 
 
@@ -442,7 +442,7 @@ async def test_joint_mismatch_command_lock_and_closed_robot():
         with pytest.raises(CommandBusy):
             RobotClient(name, command=True)
         reader = RobotClient(name)  # reading needs no lock
-        with pytest.raises(shm.ShmError, match="command=True"):
+        with pytest.raises(shm_segment.ShmError, match="command=True"):
             reader.send([0.0] * 3)
         first.close()
         RobotClient(name, command=True).close()  # released with the first client
@@ -456,7 +456,7 @@ async def test_joint_mismatch_command_lock_and_closed_robot():
 _KILLED_OWNER = """
 import sys, os, signal
 from multiprocessing import resource_tracker
-from aiohal.shm import create_segment
+from aiohal.outside.shm_segment import create_segment
 seg = create_segment(sys.argv[1], {"joints": []}, dof=1, n_imu=0, n_ft=0, capacity=2, period_ns=1, can_rearm=False)
 seg.header[1 + 2] = 1  # STATUS_ACTIVE
 resource_tracker.unregister(seg.shm._name, "shared_memory")  # as after a kill of the whole group
@@ -486,9 +486,9 @@ async def test_a_segment_left_by_a_killed_process_is_replaced():
 async def test_a_second_live_loop_with_the_same_name_is_refused():
     name = unique()
     async with virtual_loop(stream_raw(name)):
-        with pytest.raises(shm.SegmentBusy, match=f"already served by process {os.getpid()}"):
+        with pytest.raises(shm_segment.SegmentBusy, match=f"already served by process {os.getpid()}"):
             virtual_loop(stream_raw(name)).configure()
-        code = ("import sys; from aiohal.shm import create_segment; create_segment(sys.argv[1], {}, dof=1, n_imu=0, "
+        code = ("import sys; from aiohal.outside.shm_segment import create_segment; create_segment(sys.argv[1], {}, dof=1, n_imu=0, "
                 "n_ft=0, capacity=2, period_ns=1, can_rearm=False)")
         proc = subprocess.run([sys.executable, "-c", code, name], cwd=ROOT, capture_output=True, text=True, timeout=60)
         assert proc.returncode == 1 and f"SegmentBusy: robot '{name}' is already served by process" in proc.stderr

@@ -21,10 +21,10 @@ from helpers import arm_raw
 
 zenoh = require_module("zenoh")
 
-from aiohal.bridge import ZenohBridgeSection
-from aiohal.bridge.zenoh import decode_state, zenoh_config
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError
+from aiohal.outside.options import ZenohBridgeSection
+from aiohal.outside.zenoh import decode_state, zenoh_config
 
 
 def free_ports(n: int) -> list[int]:

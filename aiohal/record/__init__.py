@@ -1,7 +1,9 @@
-"""Recording a run to MCAP, reading it back, and serving it live (extra ``record``).
+"""Recordings of runs: their MCAP messages (``cdr``), the ``[record]`` section, reading them
+back as numpy arrays (``reader``) and drawing them (``plot``, extra ``plot``).
 
-``import aiohal.record`` imports neither mcap nor numba's kernels: the recorder, the reader and
-the live server load them when used.
+The recorder that writes them runs outside the tick (:mod:`aiohal.outside.recorder`).
+``import aiohal.record`` imports neither mcap nor matplotlib: the reader and the figures load
+them when used.
 """
 
 from __future__ import annotations
@@ -12,9 +14,8 @@ from .options import TICK_CHANNELS, RecordSection
 
 if TYPE_CHECKING:
     from .reader import Recording, Series
-    from .recorder import Recorder
 
-__all__ = ["TICK_CHANNELS", "RecordSection", "Recorder", "Recording", "Series", "load"]
+__all__ = ["TICK_CHANNELS", "RecordSection", "Recording", "Series", "load"]
 
 
 def load(path: Any) -> Recording:
@@ -25,10 +26,6 @@ def load(path: Any) -> Recording:
 
 
 def __getattr__(name: str) -> Any:
-    if name == "Recorder":
-        from .recorder import Recorder
-
-        return Recorder
     if name in ("Recording", "Series"):
         from . import reader
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..safety import SafetyLevel
-from ..stats import PHASES, percentiles_us
+from ..tick_timing import PHASES, percentiles_us
 from .cdr import Layout
 
 LEVELS = tuple(level.name.lower() for level in sorted(SafetyLevel))  # by value: the recorded number

@@ -33,8 +33,8 @@ if TYPE_CHECKING:
     from ..lifecycle import DriverSlot, LoopState
     from ..limits import CommandLimiter
     from ..robot import Robot
-    from ..stats import TickStats
     from ..target_extrapolation import TargetExtrapolator
+    from ..tick_timing import TickStats
     from ..ticker import TickSource
     from .workspace import WorkspaceMonitor
 

@@ -1,4 +1,5 @@
-"""The robot's shared-memory door: a segment another process on the machine attaches to.
+"""The shared-memory segment of a robot: its byte layout, made by the loop's door
+(:mod:`.shm_door`) and mapped by another process's client (:mod:`aiohal.client`).
 
 One ``multiprocessing.shared_memory`` segment per robot, named ``aiohal.<robot>``, holds:
 
@@ -17,7 +18,6 @@ One ``multiprocessing.shared_memory`` segment per robot, named ``aiohal.<robot>`
 
 The ordering the seqlock and the ring rely on (stores seen in program order by another core)
 is the x86-64 memory model's; docs/client.md gives the byte layout and this caveat.
-:class:`ShmDoor` is the loop's side, :mod:`aiohal.client` the other process's.
 """
 
 from __future__ import annotations
@@ -30,11 +30,9 @@ from multiprocessing import resource_tracker, shared_memory
 from typing import Any, cast
 
 import numpy as np
-from pydantic import Field
 
-from .errors import AiohalError
-from .hal import Options
-from .robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
+from ..errors import AiohalError
+from ..robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
 
 log = logging.getLogger(__name__)
 
@@ -67,17 +65,6 @@ FLAG_VELOCITY = 1  # the point carries velocities (cubic Hermite between two suc
 FLAG_FINAL = 2  # the stream ends here: hold this point at rest, no underrun
 
 _NAME_OK = re.compile(r"^[A-Za-z0-9_.-]{1,200}$")
-
-
-class ClientSection(Options):
-    """``[client]``: the shared-memory door for processes on this machine (docs/client.md)."""
-
-    shm: bool = Field(
-        False,
-        description="Publish state and take setpoints through shared memory "
-        "(segment aiohal.<robot>); needed by the stream controller.",
-    )
-    capacity: int = Field(1024, ge=2, le=1 << 20, description="Setpoints the ring holds.")
 
 
 class ShmError(AiohalError, RuntimeError):
@@ -316,178 +303,3 @@ def _untrack(shm: shared_memory.SharedMemory) -> None:
         resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
     except Exception:
         pass
-
-
-# ---------------------------------------------------------------- the loop's side
-
-
-class ShmDoor:
-    """The loop's side: makes the segment, publishes state at the end of every tick, acts on
-    safety requests, and hands the setpoint ring to the ``stream`` controller."""
-
-    def __init__(self, control: Any, capacity: int) -> None:
-        robot = control.robot
-        self.control = control
-        self.robot_name = robot.name
-        meta = {
-            "robot": robot.name,
-            "joints": list(robot.joint_names),
-            "position_min": robot.position_min.tolist(),
-            "position_max": robot.position_max.tolist(),
-            "velocity": robot.velocity_limit.tolist(),
-            "state_rows": list(JOINT_STATE_FIELDS),
-            "command_rows": list(JOINT_COMMAND_FIELDS),
-            "imu": list(robot.imu.names),
-            "force_torque": list(robot.force_torque.names),
-        }
-        self.segment = create_segment(
-            robot.name,
-            _finite_json(meta),
-            dof=robot.dof,
-            n_imu=len(robot.imu),
-            n_ft=len(robot.force_torque),
-            capacity=capacity,
-            period_ns=control.period_ns,
-            can_rearm=True,
-        )
-        self.requests_acted = 0
-        self.publish = self._make_publisher()
-        _DOORS[robot.name] = self
-
-    def activate(self) -> None:
-        self.segment.header[H_STATUS] = STATUS_ACTIVE
-
-    def _make_publisher(self):
-        """The per-tick closure: byte copies between memoryviews (cheapest on cold caches),
-        sequence stores as single aligned int64 stores, no allocation of arrays, no syscall."""
-        seg, robot, control = self.segment, self.control.robot, self.control
-        seq = memoryview(seg.seqlock).cast("B").cast("q")
-        req = memoryview(seg.requests).cast("B").cast("q")
-        pairs = [
-            (memoryview(dst).cast("B"), memoryview(src).cast("B"))
-            for dst, src in (
-                (seg.state, robot.state.block),
-                (seg.command, robot.command.block),
-                (seg.fault, robot.state.fault),
-                (seg.mode, robot.command.mode),
-                (seg.imu, robot.imu.values),
-                (seg.ft, robot.force_torque.values),
-            )
-            if src is not None and src.size
-        ]
-        (d_state, s_state), (d_cmd, s_cmd), (d_fault, s_fault), (d_mode, s_mode) = pairs[:4]
-        devices = pairs[4:]
-        # released at close: a memoryview left over the segment would keep it mapped
-        self._views = [seq, req, *(v for pair in pairs for v in pair)]
-        clock = robot.clock
-        counter = [0]  # the sequence, kept here: the tick never reads it back from the segment
-        seen = [0, 0, 0, 0]  # per answer kind (A_HOLD, A_ESTOP, A_REARM, A_RESET)
-
-        def publish(_loop: Any) -> None:
-            s = counter[0] + 1
-            seq[S_SEQ] = s  # odd: writing
-            seq[S_TICK] = clock.tick
-            seq[S_NOW_NS] = clock.now_ns
-            seq[S_LEVEL] = control.level
-            d_state[:] = s_state
-            d_cmd[:] = s_cmd
-            d_fault[:] = s_fault
-            d_mode[:] = s_mode
-            for d, src in devices:
-                d[:] = src
-            seq[S_SEQ] = s + 1  # even: consistent
-            counter[0] = s + 1
-            if (
-                req[R_HOLD] != seen[A_HOLD]
-                or req[R_ESTOP] != seen[A_ESTOP]
-                or req[R_REARM] != seen[A_REARM]
-                or req[R_RESET] != seen[A_RESET]
-            ):
-                self._act(req, seen)
-
-        return publish
-
-    def _act(self, req: memoryview, seen: list[int]) -> None:
-        """A client asked for a safety change (rare: off the per-tick path). Each request gets
-        an answer (granted, or refused with the loop's reason) before its acted-on count moves,
-        so a client that sees the count reads the answer; the next tick's snapshot shows the
-        new level. The most protective request goes first."""
-        from .safety import SafetyRequestRefused
-
-        control, cause = self.control, "requested by a shared-memory client"
-        actions = (
-            (A_ESTOP, R_ESTOP, R_ESTOP_DONE, "estop", lambda: control.estop(cause, source="client")),
-            (A_HOLD, R_HOLD, R_HOLD_DONE, "hold", lambda: control.hold(cause)),
-            (A_RESET, R_RESET, R_RESET_DONE, "reset_faults", lambda: control.reset_faults(source="client")),
-            (A_REARM, R_REARM, R_REARM_DONE, "rearm", lambda: control.rearm(source="client")),
-        )
-        for kind, ask, done, what, action in actions:
-            count = req[ask]
-            if count == seen[kind]:
-                continue
-            seen[kind] = count
-            (log.warning if kind == A_ESTOP else log.info)(
-                "robot %s: %s requested by a shared-memory client", self.robot_name, what
-            )
-            refused, reason = False, ""
-            try:
-                action()
-            except SafetyRequestRefused as exc:
-                refused, reason = True, str(exc)
-            except Exception as exc:  # whatever goes wrong with a request must not end the tick
-                refused, reason = True, f"{type(exc).__name__}: {exc}"
-                log.exception("robot %s: a shared-memory client's %s failed", self.robot_name, what)
-            if refused:
-                log.warning("robot %s: a shared-memory client's %s refused: %s", self.robot_name, what, reason)
-            self._answer(kind, count, refused, reason)
-            req[done] = count
-        self.requests_acted += 1
-
-    def _answer(self, kind: int, count: int, refused: bool, reason: str) -> None:
-        """Write one answer under its count: 0 while writing, so a reader never keeps a torn one."""
-        words, text = self.segment.answer_words[kind], self.segment.answer_text[kind]
-        data = reason.encode()[:ANSWER_TEXT]
-        words[A_COUNT] = 0
-        words[A_REFUSED] = int(refused)
-        words[A_LEN] = len(data)
-        text[: len(data)] = np.frombuffer(data, np.uint8)
-        words[A_COUNT] = count
-
-    def close(self) -> None:
-        """Mark the segment closed (attached clients see it at once) and remove it."""
-        if _DOORS.get(self.robot_name) is self:
-            del _DOORS[self.robot_name]
-        seg = self.segment
-        if seg.header is None:
-            return
-        seg.header[H_STATUS] = STATUS_CLOSED
-        self.publish = None
-        for view in self._views:
-            view.release()
-        self._views = []
-        try:
-            seg.shm.unlink()
-        except FileNotFoundError:
-            pass
-        seg.release()
-
-
-_DOORS: dict[str, ShmDoor] = {}
-
-
-def door(robot: str) -> ShmDoor | None:
-    """The open door of a robot in this process (the ``stream`` controller finds its ring here)."""
-    return _DOORS.get(robot)
-
-
-def _finite_json(meta: dict[str, Any]) -> dict[str, Any]:
-    """JSON has no inf: an absent limit is written as null."""
-
-    def fix(v: Any) -> Any:
-        if isinstance(v, float) and not np.isfinite(v):
-            return None
-        if isinstance(v, list):
-            return [fix(x) for x in v]
-        return v
-
-    return {k: fix(v) for k, v in meta.items()}

@@ -28,13 +28,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..stats import PHASES
-from . import ring as R
-from .cdr import Layout
-from .options import Channel, RecordSection
+from ..record.cdr import Layout
+from ..record.options import Channel, RecordSection
+from ..tick_timing import PHASES
+from . import recorder_ring as R
+from .port import LoopPort, TickEnd
 
 if TYPE_CHECKING:
-    from ..loop import ControlLoop
+    from .foxglove_server import FoxgloveServer
 
 log = logging.getLogger(__name__)
 
@@ -83,27 +84,6 @@ class TickChannel:
     live: Any = None  # the live server's channel
 
 
-def snapshot_health(control: ControlLoop) -> dict[str, Any]:
-    """Drivers' status and health, the controller's metrics: what the report says, sampled."""
-    drivers = {}
-    for slot in control.slots:
-        try:
-            health = slot.driver.health()
-        except Exception as exc:
-            health = {"health_error": str(exc)}
-        drivers[slot.name] = {"status": slot.status, **health}
-    try:
-        metrics = control.controller.metrics() if control.controller is not None else {}
-    except Exception as exc:
-        metrics = {"metrics_error": str(exc)}
-    return {
-        "tick": control.robot.clock.tick,
-        "safety_level": control.level.name.lower(),
-        "drivers": drivers,
-        "controller": {"type": control.controller_type, **metrics},
-    }
-
-
 def _jsonable(value: Any) -> Any:
     if isinstance(value, float) and not np.isfinite(value):
         return None
@@ -117,11 +97,11 @@ def _jsonable(value: Any) -> Any:
 
 
 class Recorder:
-    """Records a :class:`~aiohal.loop.ControlLoop` to an MCAP file.
+    """Records a loop, through its :class:`~aiohal.outside.port.LoopPort`, to an MCAP file.
 
     ``attach()`` (before ``run``) adds the tick's publisher and starts the writer; ``close()``
     (after the run) drains the ring, writes the summary and closes the file. ``live`` is an
-    optional :class:`~aiohal.record.live.LiveServer` that gets the same messages, decimated.
+    optional :class:`~aiohal.outside.foxglove_server.FoxgloveServer` that gets the same messages, decimated.
     """
 
     #: ticks encoded at once by the writer
@@ -132,15 +112,20 @@ class Recorder:
     IDLE_S = 0.002
 
     def __init__(
-        self, control: ControlLoop, path: str | Path | None, options: RecordSection | None = None, *, live: Any = None
+        self,
+        port: LoopPort,
+        path: str | Path | None,
+        options: RecordSection | None = None,
+        *,
+        live: FoxgloveServer | None = None,
     ) -> None:
         from mcap.writer import CompressionType, Writer  # the extra 'record'
 
-        self.control = control
+        self.port = port
         self.options = options or RecordSection()
         self.path = None if path is None else Path(path)
         self.live = live
-        robot, stats = control.robot, control.stats
+        robot, stats = port.robot, port.timing
         self._arrays: list[np.ndarray] = []
         self.channels: list[TickChannel] = []
         self._build_channels(robot)
@@ -168,15 +153,15 @@ class Recorder:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._health_task: asyncio.Task | None = None
-        self._offset_ns = time.time_ns() - control.source.now_ns()  # tick clock -> Unix time
+        self._offset_ns = time.time_ns() - port.now_ns()  # tick clock -> Unix time
         self.messages = 0
         self.ticks_written = 0
         self.live_messages = 0
         self.error: str | None = None
         self._attached = False
         self._closed = False
-        self._publisher: Callable[[Any], None] | None = None
-        self._busy_ns = control.period_ns // 2  # the ticks' recent lateness + work: the writer waits them out
+        self._publisher: TickEnd | None = None
+        self._busy_ns = port.period_ns // 2  # the ticks' recent lateness + work: the writer waits them out
         self._last_flush = time.monotonic_ns()
 
     # ------------------------------------------------------------ channels
@@ -316,21 +301,21 @@ class Recorder:
         tick's publisher. Call before ``control.run()``."""
         if self._attached:
             return
-        control = self.control
-        robot = control.robot
+        port = self.port
+        robot = port.robot
         self._attached = True
         devices = {kind: list(group.names) for kind, group in robot.device_groups.items() if len(group)}
         info = {
             "robot": robot.name,
-            "rate_hz": 1e9 / control.period_ns,
+            "rate_hz": 1e9 / port.period_ns,
             "joint_names": list(robot.joint_names),
             "devices": devices,
-            "clock": control.source.kind,
+            "clock": port.clock_kind,
             "decimate": {k: self.options.decimate.get(k, 1) for k in sorted({c.key for c in self.channels})},
         }
         if self._writer is not None:
             self._writer.add_metadata("aiohal", {k: json.dumps(v) for k, v in info.items()})
-        self._events.append(("/robot", control.source.now_ns(), info))
+        self._events.append(("/robot", port.now_ns(), info))
         self._thread = threading.Thread(target=self._write_loop, name="aiohal-recorder", daemon=True)
         self._thread.start()
         try:
@@ -340,16 +325,16 @@ class Recorder:
         if loop is not None:
             self._health_task = loop.create_task(self._sample_health())
         self._publisher = self.publisher()
-        control.add_publisher(self._publisher)
+        port.at_tick_end(self._publisher)
 
-    def publisher(self) -> Callable[[Any], None]:
+    def publisher(self) -> TickEnd:
         """The tick's part: one kernel call into the next free slot, or a drop counted."""
-        kernel, stats, control = self._kernel, self.control.stats, self.control
-        clock = control.robot.clock
+        kernel, stats, port = self._kernel, self.port.timing, self.port
+        clock = port.robot.clock
         data, sources, state = self.ring.data, self.ring.sources, self.ring.state
 
-        def record_tick(_control: Any) -> None:
-            kernel(data, sources, state, stats.count, clock.tick, clock.now_ns, control.level)
+        def record_tick(_: object) -> None:
+            kernel(data, sources, state, stats.count, clock.tick, clock.now_ns, port.level)
 
         return record_tick
 
@@ -357,7 +342,7 @@ class Recorder:
         period = 1.0 / self.options.health_hz
         while True:
             await asyncio.sleep(period)
-            self._events.append(("/health", self.control.robot.clock.now_ns, snapshot_health(self.control)))
+            self._events.append(("/health", self.port.robot.clock.now_ns, self.port.health().as_dict()))
 
     def close(self) -> dict[str, Any]:
         """Drain what the tick left, write the last events and the summary; returns the figures."""
@@ -366,8 +351,8 @@ class Recorder:
         self._closed = True
         if self._health_task is not None:
             self._health_task.cancel()
-        publishers = self.control._publishers
-        publishers[:] = [p for p in publishers if p is not self._publisher]
+        if self._publisher is not None:
+            self.port.stop_calling(self._publisher)
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
@@ -388,7 +373,7 @@ class Recorder:
         return self.summary()
 
     def _health_event(self) -> None:
-        self._events.append(("/health", self.control.robot.clock.now_ns, snapshot_health(self.control)))
+        self._events.append(("/health", self.port.robot.clock.now_ns, self.port.health().as_dict()))
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -404,7 +389,7 @@ class Recorder:
     # ------------------------------------------------------------ the writer thread
 
     def _write_loop(self) -> None:
-        priority = self.control.config.realtime.priority
+        priority = self.port.config.realtime.priority
         if priority is not None:
             # just below the tick: a writer preempted by another process while it holds the GIL
             # would keep the tick waiting for as long as it is off the CPU
@@ -435,18 +420,18 @@ class Recorder:
 
         The idle time of a period runs from the ticks' recent lateness + work past a deadline to
         a margin before the next deadline. A virtual clock has no idle time: short slices."""
-        control = self.control
-        period = control.period_ns
+        port = self.port
+        period = port.period_ns
         now = time.monotonic_ns()
-        if stopping or control.state != "running" or control.source.kind == "virtual":
+        if stopping or not port.running or port.clock_kind == "virtual":
             return now + 200_000
         margin = max(200_000, period // 5)
         start = min(self._busy_ns, period - 2 * margin)
-        phase = (now - control.ticker.t0_ns) % period
+        phase = (now - port.deadlines_origin_ns) % period
         if not start <= phase < period - margin:
             time.sleep(((start - phase) % period) / 1e9)
             now = time.monotonic_ns()
-            phase = (now - control.ticker.t0_ns) % period
+            phase = (now - port.deadlines_origin_ns) % period
         return now + max(0, period - margin - phase)
 
     def _work(self) -> Iterator[bool]:
@@ -496,7 +481,7 @@ class Recorder:
                     msg = blob[i * size : (i + 1) * size]
                     if writer is not None:
                         writer.add_message(ch.channel_id, times[i], msg, times[i], tick_list[i] & 0xFFFFFFFF)
-                    if ch.live is not None and tick_list[i] % live_every == 0:
+                    if live is not None and ch.live is not None and tick_list[i] % live_every == 0:
                         live.log(ch.live, msg, times[i])
                         self.live_messages += 1
                     if i % self.STRIDE == self.STRIDE - 1:
@@ -518,11 +503,11 @@ class Recorder:
         self._last_flush = time.monotonic_ns()
 
     def _write_events(self) -> None:
-        faults = self.control.faults
+        faults = self.port.faults
         while self._faults_seen < len(faults):
             f = faults[self._faults_seen]
             self._faults_seen += 1
-            self._events.append(("/faults", self.control.robot.clock.now_ns, f.as_dict()))
+            self._events.append(("/faults", self.port.robot.clock.now_ns, f.as_dict()))
         while self._events:
             topic, stamp, body = self._events.popleft()
             data = json.dumps(_jsonable(body)).encode()
@@ -530,13 +515,13 @@ class Recorder:
             t = stamp + self._offset_ns
             if self._writer is not None:
                 self._writer.add_message(cid, t, data, t, 0)
-            if live_channel is not None:
+            if live_channel is not None and self.live is not None:
                 self.live.log(live_channel, data, t)
             self.messages += 1
 
     def _last_timing(self) -> None:
         """The run's last tick: its timing was stored after its publisher ran."""
-        ring, stats = self.ring, self.control.stats
+        ring, stats = self.ring, self.port.timing
         count = stats.count
         if count == 0 or ring.state[R.LAST_COUNT] != count - 1:
             return

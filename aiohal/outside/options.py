@@ -1,5 +1,6 @@
-"""Doors to other machines. Each bridge's transport is imported only when it is started, so
-the tick core never imports a network library (tests/test_layers.py)."""
+"""The doors' config sections: ``[client]`` (shared memory) and ``[bridge.zenoh]``. Kept apart
+from the doors, so that validating a config opens nothing and imports no network library
+(the bridge imports zenoh only when it starts; tests/test_layers.py)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,17 @@ from typing import Literal
 from pydantic import Field
 
 from ..hal import Options
+
+
+class ClientSection(Options):
+    """``[client]``: the shared-memory door for processes on this machine (docs/client.md)."""
+
+    shm: bool = Field(
+        False,
+        description="Publish state and take setpoints through shared memory "
+        "(segment aiohal.<robot>); needed by the stream controller.",
+    )
+    capacity: int = Field(1024, ge=2, le=1 << 20, description="Setpoints the ring holds.")
 
 
 class ZenohBridgeSection(Options):

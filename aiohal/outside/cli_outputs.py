@@ -1,8 +1,10 @@
-"""What a run from the command line keeps and shows besides its report: the recording
-(``--record``, ``[record]``), the live Foxglove server (``--foxglove``) and the terminal status.
+"""What ``python -m aiohal`` runs beside the loop and keeps after it, besides the report: the
+recording (``--record``, ``[record]``), the live Foxglove server (``--foxglove``) and the
+terminal status.
 
 The CLI calls :func:`add_arguments`, :func:`check` before anything starts, and
-:class:`RunOutputs` around the run; the work is in :mod:`aiohal.record` and :mod:`aiohal.status`.
+:class:`RunOutputs` around the run; the work is in :mod:`.recorder`, :mod:`.foxglove_server`
+and :mod:`.terminal_status`, each of which reads the loop through its port.
 """
 
 from __future__ import annotations
@@ -12,10 +14,17 @@ import importlib.util
 import logging
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .errors import AiohalError, MissingDependencyError
-from .report import check_output_path
+from ..errors import AiohalError, MissingDependencyError
+from ..run_report import check_output_path
+from .port import LoopPort
+
+if TYPE_CHECKING:
+    from ..config import Config
+    from .foxglove_server import FoxgloveServer
+    from .recorder import Recorder
+    from .terminal_status import StatusPanel
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +50,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def record_path(config: Any, args: argparse.Namespace) -> Path | None:
+def record_path(config: Config, args: argparse.Namespace) -> Path | None:
     return args.record if args.record is not None else config.record.path
 
 
-def check(config: Any, args: argparse.Namespace) -> None:
+def check(config: Config, args: argparse.Namespace) -> None:
     """Refuse what cannot work before anything starts (the CLI exits 2)."""
     path = record_path(config, args)
     if path is not None:
@@ -65,33 +74,33 @@ def check(config: Any, args: argparse.Namespace) -> None:
 class RunOutputs:
     """Started once the robot is active, closed after it is deactivated."""
 
-    def __init__(self, control: Any, config: Any, args: argparse.Namespace) -> None:
-        self.control = control
-        self.path = record_path(config, args)
-        self.options = config.record
-        self.port = args.foxglove
+    def __init__(self, port: LoopPort, args: argparse.Namespace) -> None:
+        self.port = port
+        self.path = record_path(port.config, args)
+        self.options = port.config.record
+        self.foxglove_port: int | None = args.foxglove
         self.show_status = not args.quiet and sys.stdout.isatty()
-        self.recorder: Any = None
-        self.live: Any = None
-        self.status: Any = None
+        self.recorder: Recorder | None = None
+        self.live: FoxgloveServer | None = None
+        self.status: StatusPanel | None = None
 
     def start(self) -> None:
-        if self.port is not None:
-            from .record.live import LiveServer
+        if self.foxglove_port is not None:
+            from .foxglove_server import FoxgloveServer
 
-            self.live = LiveServer(self.port)
+            self.live = FoxgloveServer(self.foxglove_port)
             log.info("live view: Foxglove on ws://%s:%d", self.live.host, self.live.port)
         if self.path is not None or self.live is not None:
-            from .record.recorder import Recorder
+            from .recorder import Recorder
 
-            self.recorder = Recorder(self.control, self.path, self.options, live=self.live)
+            self.recorder = Recorder(self.port, self.path, self.options, live=self.live)
             self.recorder.attach()
             if self.path is not None:
                 log.info("recording to %s", self.path)
         if self.show_status:
-            from .status import StatusPanel
+            from .terminal_status import StatusPanel
 
-            self.status = StatusPanel(self.control)
+            self.status = StatusPanel(self.port)
             self.status.start()
 
     def stop_status(self) -> None:

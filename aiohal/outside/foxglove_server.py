@@ -12,7 +12,7 @@ from typing import Any
 from ..errors import MissingDependencyError
 
 
-class LiveServer:
+class FoxgloveServer:
     """A Foxglove WebSocket server on ``host:port`` (localhost by default; port 0: any free port)."""
 
     def __init__(self, port: int = 8765, host: str = "127.0.0.1", name: str = "aiohal") -> None:

@@ -38,8 +38,9 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 
 from ..logutil import RateLimitedLogger
-from ..safety import SafetyLevel
-from . import ZenohBridgeSection
+from ..safety import SafetyLevel, SafetyRequestRefused
+from .options import ZenohBridgeSection
+from .port import LoopPort
 
 if TYPE_CHECKING:
     from ..client import RobotClient
@@ -77,13 +78,13 @@ def zenoh_config(section: ZenohBridgeSection):
 class ZenohBridge:
     """Made with the loop (nothing opened), started when the loop is active, closed with it."""
 
-    def __init__(self, control: Any, section: ZenohBridgeSection) -> None:
-        self.control = control
+    def __init__(self, port: LoopPort, section: ZenohBridgeSection) -> None:
+        self.port = port
         self.section = section
-        robot = control.robot
+        robot = port.robot
         self.base = f"{section.prefix}/{robot.name}"
         self.dof = robot.dof
-        rate = 1e9 / control.period_ns
+        rate = 1e9 / port.period_ns
         self.every = max(1, round(rate / section.state_hz))
         q = section.queue
         self._ticks = np.zeros((q, 3), dtype=np.int64)  # tick, now_ns, level
@@ -110,7 +111,7 @@ class ZenohBridge:
     # ------------------------------------------------------------ the tick's side
 
     def _make_publisher(self):
-        control, robot = self.control, self.control.robot
+        port, robot = self.port, self.port.robot
         state_rows = memoryview(robot.state.block[:3]).cast("B")  # position, velocity, effort: adjacent
         command_position = memoryview(robot.command.position).cast("B")
         cut = 3 * robot.dof * 8
@@ -119,13 +120,13 @@ class ZenohBridge:
             for i in range(self.section.queue)
         ]
         ticks = [memoryview(self._ticks[i]) for i in range(self.section.queue)]
-        queue, every, clock, faults = self.section.queue, self.every, robot.clock, control.faults
+        queue, every, clock, faults = self.section.queue, self.every, robot.clock, port.faults
         events = self._events
         due = [0]
-        last = [int(control.level), len(faults)]
+        last = [int(port.level), len(faults)]
 
-        def publish(_loop: Any) -> None:
-            level = control.level
+        def publish(_: object) -> None:
+            level = port.level
             if level != last[0] or len(faults) != last[1]:
                 events.append((int(level), len(faults), clock.tick))  # rare: allocation allowed
                 last[0], last[1] = int(level), len(faults)
@@ -157,7 +158,7 @@ class ZenohBridge:
         if section.accept_setpoints:
             from ..client import RobotClient
 
-            self._client = RobotClient(self.control.robot.name, command=True)
+            self._client = RobotClient(self.port.robot.name, command=True)
         self._session = zenoh.open(zenoh_config(section))
         s = self._session
         self._pub_state = s.declare_publisher(f"{self.base}/state")
@@ -166,11 +167,11 @@ class ZenohBridge:
         self._pub_faults = s.declare_publisher(f"{self.base}/faults")
         # every key under cmd/ is heard, so that a command on a key not configured is counted
         self._sub = s.declare_subscriber(f"{self.base}/cmd/**", self._on_command)
-        self._thread = threading.Thread(target=self._run, name=f"aiohal-zenoh-{self.control.robot.name}", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"aiohal-zenoh-{self.port.robot.name}", daemon=True)
         self._thread.start()
         log.info(
             "zenoh bridge for %s: publishing under %s/, accepting %s",
-            self.control.robot.name,
+            self.port.robot.name,
             self.base,
             ", ".join(self._accepted_keys()) or "no command",
         )
@@ -226,7 +227,7 @@ class ZenohBridge:
 
     def _publish_event(self, level: int, n_faults: int, tick: int) -> None:
         self._pub_safety.put(json.dumps({"level": SafetyLevel(level).name.lower(), "tick": tick}))
-        for fault in self.control.faults[self._faults_sent : n_faults]:
+        for fault in self.port.faults[self._faults_sent : n_faults]:
             self._pub_faults.put(json.dumps(fault.as_dict()))
         self._faults_sent = max(self._faults_sent, n_faults)
 
@@ -234,16 +235,16 @@ class ZenohBridge:
 
     def report(self) -> dict[str, Any]:
         """A light report (no percentiles: they would take the GIL from the tick for milliseconds)."""
-        control = self.control
+        port = self.port
         return {
-            "robot": control.robot.name,
-            "joints": list(control.robot.joint_names),
-            "tick": control.robot.clock.tick,
-            "ticks": control.stats.count,
-            "missed_ticks": control.ticker.missed,
-            "level": control.level.name.lower(),
-            "controller": control.controller_type,
-            "faults": len(control.faults),
+            "robot": port.robot.name,
+            "joints": list(port.robot.joint_names),
+            "tick": port.tick,
+            "ticks": port.timing.count,
+            "missed_ticks": port.missed_ticks,
+            "level": port.level.name.lower(),
+            "controller": port.controller_type,
+            "faults": len(port.faults),
             "bridge": {
                 **self.counters,
                 "refused_by_reason": dict(self.refused_by_reason),
@@ -282,7 +283,7 @@ class ZenohBridge:
             raise _Refused("malformed") from None
         if not isinstance(msg, dict) or "position" not in msg:
             raise _Refused("malformed")
-        robot = self.control.robot
+        robot = self.port.robot
         position = self._vector(msg["position"], robot)
         velocity = None if msg.get("velocity") is None else self._vector(msg["velocity"], robot)
         if not np.all((position >= robot.position_min) & (position <= robot.position_max)):
@@ -314,22 +315,20 @@ class ZenohBridge:
         return np.array(value, dtype=np.float64)
 
     def _safety(self, name: str) -> None:
-        control = self.control
+        port = self.port
         request = {
-            "hold": lambda: control.hold("requested over zenoh"),
-            "estop": lambda: control.estop("requested over zenoh", source="zenoh"),
-            "rearm": lambda: control.rearm(source="zenoh"),
+            "hold": lambda: port.hold("requested over zenoh"),
+            "estop": lambda: port.estop("requested over zenoh", source="zenoh"),
+            "rearm": lambda: port.rearm(source="zenoh"),
         }[name]
 
         def action() -> None:
-            from ..safety import SafetyRequestRefused
-
             try:
                 request()
             except SafetyRequestRefused as exc:  # the safety channel shows the level that stayed
-                log.warning("robot %s: %s over zenoh refused: %s", control.robot.name, name, exc)
+                log.warning("robot %s: %s over zenoh refused: %s", port.robot.name, name, exc)
 
-        log.warning("robot %s: %s requested over zenoh", control.robot.name, name)
+        log.warning("robot %s: %s requested over zenoh", port.robot.name, name)
         cast(asyncio.AbstractEventLoop, self._aio).call_soon_threadsafe(
             action
         )  # set by start()  # acted on between two ticks, in the loop's thread

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .safety import SafetyLevel
-from .stats import PHASES
+from ..safety import SafetyLevel
+from ..tick_timing import PHASES
 
 
 def _pyplot():
@@ -95,7 +95,7 @@ def main(argv: list[str]) -> int:
     p.add_argument("-o", "--out", type=Path, default=Path("."), help="folder for the PNGs")
     p.add_argument("--joints", nargs="+", default=None, help="joint names or glob patterns (default: all, first 12)")
     args = p.parse_args(argv)
-    from .record.reader import load
+    from .reader import load
 
     try:
         recording = load(args.recording)

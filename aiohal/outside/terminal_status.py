@@ -1,44 +1,42 @@
 """The live terminal status of a run: a rich panel refreshed a few times a second.
 
 Rendered on the event loop between ticks (never in the tick, and not from rich's own refresh
-thread, whose Python work would take the GIL from the tick at any moment); it reads the loop's
-statistics and the drivers' health as the report does.
+thread, whose Python work would take the GIL from the tick at any moment); it reads the tick's
+timing and the drivers' health through the loop's port, as the report reads them.
 """
 
 from __future__ import annotations
 
 import asyncio
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .loop import ControlLoop
+from .port import LoopPort
 
 
-def status(control: ControlLoop, window: int = 1000) -> dict[str, Any]:
+def panel_figures(port: LoopPort, window: int = 1000) -> dict[str, Any]:
     """The figures the panel shows, over the last ``window`` ticks."""
-    from .record.recorder import snapshot_health
-
-    stats = control.stats
+    stats = port.timing
     n = stats.count
     last = min(n, window, stats.mask + 1)
     idx = (n - 1 - np.arange(last)) & stats.mask
     lateness = stats.lateness[idx]
     span_s = (stats.last_tick_ns - stats.first_tick_ns) / 1e9
-    health = snapshot_health(control)
+    health = port.health()
+    faults = port.faults
     return {
-        "robot": control.robot.name,
+        "robot": port.robot.name,
         "ticks": n,
         "rate_hz": (n - 1) / span_s if n > 1 and span_s > 0 else float("nan"),
         "lateness_p99_us": float(np.percentile(lateness, 99)) / 1e3 if last else float("nan"),
         "work_p50_us": float(np.median(stats.work[idx])) / 1e3 if last else float("nan"),
-        "missed_ticks": control.ticker.missed - control._missed_before,
-        "safety_level": health["safety_level"],
-        "faults": [str(f) for f in control.faults[-3:]],
-        "fault_count": len(control.faults),
-        "drivers": health["drivers"],
-        "controller": health["controller"],
+        "missed_ticks": port.missed_ticks,
+        "safety_level": health.level.name.lower(),
+        "faults": [str(f) for f in faults[-3:]],
+        "fault_count": len(faults),
+        "drivers": health.drivers,
+        "controller": health.controller,
     }
 
 
@@ -81,10 +79,10 @@ def _short(value: Any) -> str:
 
 
 class StatusPanel:
-    """``async with StatusPanel(control):`` shows the panel until the block ends."""
+    """Shows the panel from :meth:`start` to :meth:`stop`, on the running event loop."""
 
-    def __init__(self, control: ControlLoop, refresh_hz: float = 4.0, console: Any = None) -> None:
-        self.control = control
+    def __init__(self, port: LoopPort, refresh_hz: float = 4.0, console: Any = None) -> None:
+        self.port = port
         self.period = 1.0 / refresh_hz
         self.console = console
         self._task: asyncio.Task | None = None
@@ -96,7 +94,7 @@ class StatusPanel:
         from rich.live import Live
 
         self._live = Live(
-            render(status(self.control)), console=self.console or Console(), auto_refresh=False, transient=True
+            render(panel_figures(self.port)), console=self.console or Console(), auto_refresh=False, transient=True
         )
         self._live.start()
         self._task = asyncio.get_running_loop().create_task(self._refresh())
@@ -104,7 +102,7 @@ class StatusPanel:
     async def _refresh(self) -> None:
         while True:
             await asyncio.sleep(self.period)
-            self._live.update(render(status(self.control)), refresh=True)
+            self._live.update(render(panel_figures(self.port)), refresh=True)
             self.refreshes += 1
 
     def stop(self) -> None:

@@ -1,0 +1,55 @@
+"""Opens and closes the loop's doors to other processes, as the config asks: the shared-memory
+door (``[client] shm``) and the network bridges (``[bridge.*]``). They are made with the loop's
+drivers, opened when it is active and closed with its drivers; each copies its state at the
+end of the tick without blocking."""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+from .port import LoopPort
+
+if TYPE_CHECKING:
+    from .shm_door import ShmDoor
+    from .zenoh import ZenohBridge
+
+log = logging.getLogger(__name__)
+
+
+class Doorkeeper:
+    def __init__(self, port: LoopPort) -> None:
+        config = port.config
+        self._port = port
+        self.shm: ShmDoor | None = None
+        self.zenoh: ZenohBridge | None = None
+        if config.client.shm:
+            from .shm_door import ShmDoor
+
+            self.shm = ShmDoor(port, config.client.capacity)
+            port.at_tick_end(self.shm.publish)
+        zenoh_section = config.bridge.zenoh
+        if zenoh_section is not None and zenoh_section.enabled:
+            from .zenoh import ZenohBridge  # zenoh itself is imported when the bridge starts
+
+            self.zenoh = ZenohBridge(port, zenoh_section)
+            port.at_tick_end(self.zenoh.publish)
+
+    def activate(self) -> None:
+        if self.zenoh is not None:
+            try:
+                self.zenoh.start()
+            except Exception as exc:  # the network door failing must not keep the robot from its safe loop
+                self._port.record_fault("bridge:zenoh", "open", exc)
+                self.zenoh.close()
+                self.zenoh = None
+        if self.shm is not None:
+            self.shm.activate()
+
+    def close(self) -> None:
+        if self.shm is not None:
+            self.shm.close()
+            self.shm = None
+        if self.zenoh is not None:
+            self.zenoh.close()
+            self.zenoh = None

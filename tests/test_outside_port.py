@@ -1,0 +1,81 @@
+"""The loop's port: what everything outside the tick reads of a loop, and asks of it."""
+
+from __future__ import annotations
+
+import pytest
+from helpers import arm_raw, virtual_loop
+
+from aiohal.outside.terminal_status import panel_figures, render
+from aiohal.safety import SafetyLevel, SafetyRequestRefused
+
+
+@pytest.mark.asyncio
+async def test_at_tick_end_sees_each_tick_once_with_what_it_left():
+    loop = virtual_loop(arm_raw(type="sine", params={"amplitude": 0.2}))
+    port = loop.port
+    seen = []
+
+    def publish(_: object) -> None:
+        seen.append((port.tick, port.running, port.level, float(port.robot.command.position[0])))
+
+    async with loop:
+        port.at_tick_end(publish)
+        await loop.run(ticks=50)
+        assert not port.running
+        ticks = [s[0] for s in seen]
+        assert ticks == list(range(ticks[0], ticks[0] + 50)) and ticks[-1] == port.tick
+        assert all(running and level == SafetyLevel.RUN for _, running, level, _ in seen)
+        assert len({round(p, 9) for *_, p in seen}) > 10  # the sine's commands, tick by tick
+        assert port.timing.count == 50 and port.missed_ticks == 0
+        assert port.clock_kind == "virtual" and port.period_ns == 1_000_000
+
+        port.stop_calling(publish)
+        await loop.run(ticks=10)
+        assert len(seen) == 50
+
+
+@pytest.mark.asyncio
+async def test_health_is_the_drivers_and_the_controllers_as_the_report_gives_them():
+    loop = virtual_loop(arm_raw(type="sine", params={"amplitude": 0.2}))
+    async with loop:
+        await loop.run(ticks=20)
+        health = loop.port.health()
+        report = loop.report()
+    assert health.level == SafetyLevel.RUN and health.tick == loop.robot.clock.tick
+    assert health.drivers["arm"]["status"] == report["drivers"]["arm"]["status"] == "open"
+    assert health.controller["type"] == "sine"
+    assert health.as_dict()["safety_level"] == "run"
+
+
+@pytest.mark.asyncio
+async def test_requests_act_or_are_refused_with_the_loops_reasons():
+    loop = virtual_loop(arm_raw())
+    port = loop.port
+    async with loop:
+        await loop.run(ticks=20)
+        port.hold("a test")
+        assert port.level == SafetyLevel.HOLD
+        with pytest.raises(SafetyRequestRefused, match="only from run"):
+            port.hold("again")
+        port.estop("a test", source="test")
+        assert port.level == SafetyLevel.ESTOP
+        with pytest.raises(SafetyRequestRefused, match="reset_faults\\(\\) first"):
+            port.rearm(source="test")
+        port.reset_faults(source="test")
+        assert port.level == SafetyLevel.DISABLED
+        port.rearm(source="test")
+        assert port.level == SafetyLevel.RUN
+        fault = port.record_fault("test:door", "open", "refused by a test")
+        assert port.faults[-1] is fault and loop.report()["faults"][-1]["source"] == "test:door"
+
+
+@pytest.mark.asyncio
+async def test_the_terminal_status_shows_the_run_through_the_port():
+    loop = virtual_loop(arm_raw())
+    async with loop:
+        await loop.run(ticks=30)
+        figures = panel_figures(loop.port)
+    assert figures["robot"] == "test_arm" and figures["ticks"] == 30 and figures["missed_ticks"] == 0
+    assert figures["safety_level"] == "run" and figures["fault_count"] == 0
+    assert figures["drivers"]["arm"]["status"] == "open" and figures["controller"]["type"] == "hold"
+    assert render(figures) is not None
