@@ -150,6 +150,26 @@ async def test_a_node_whose_heartbeat_stops_puts_the_robot_in_its_safe_state():
 
 
 @pytest.mark.asyncio
+async def test_silence_while_this_process_was_stalled_is_not_a_lost_heartbeat():
+    """A frozen process hears no heartbeat either: after a gap in its own reads, each node
+    gets a whole timeout from the resume, and one that stays silent is lost then."""
+    raw = raw_config(channel(), heartbeat_ms=10, heartbeat_timeout_ms=100)
+    async with ControlLoop(parse_config(raw)) as loop:
+        driver = driver_of(loop)
+        await loop.run(ticks=20)
+        driver.sim.drives[1].go_silent()
+        # as after a 1 s freeze of the whole process: no read and no heartbeat for a second
+        driver._heard -= 1.0
+        driver._last_read_s -= 1.0
+        driver._next_heartbeat_check = 0.0
+        report = await loop.run(ticks=10)  # 40 ms after the resume, within the timeout
+        assert report["faults"] == [] and driver.lost_nodes == []
+        report = await loop.run(ticks=200)  # a whole timeout later, node 1 is still silent
+    fault, *_ = [f for f in report["faults"] if f["source"] == "driver:bus"]
+    assert "heartbeat lost" in fault["error"] and "node 1" in fault["error"] and "node 2" not in fault["error"]
+
+
+@pytest.mark.asyncio
 async def test_tpdos_of_the_wrong_length_are_counted_and_dropped():
     async with ControlLoop(parse_config(raw_config(channel()))) as loop:
         driver = driver_of(loop)

@@ -352,6 +352,7 @@ class CanopenDriver(Driver):
         self._frame_sizes: list[int] = []
         self._heard = np.zeros(len(options.nodes))  # monotonic time of each node's last heartbeat
         self._next_heartbeat_check = 0.0
+        self._last_read_s = 0.0  # monotonic time of the last read() (a gap in them is a stall)
         self._heartbeat_check_s = options.heartbeat_timeout_ms * 1e-4
         self._emcy: deque[tuple[int, int, int]] = deque()  # (node index, code, register) from the notifier thread
         self._last_emcy = [0] * len(options.nodes)  # each node's last EMCY error code (0: none or reset)
@@ -692,6 +693,12 @@ class CanopenDriver(Driver):
         view = self.view
         clock = view.clock
         now = time.monotonic()
+        if now - self._last_read_s > self._heartbeat_check_s * 5:  # half the timeout without a read
+            # this process did not run (frozen, a host stall): the nodes' silence since is not
+            # theirs to answer for; each gets a whole timeout from now, as the watchdog process
+            # counts from its own late wake-up
+            np.maximum(self._heard, now, out=self._heard)
+        self._last_read_s = now
         if now >= self._next_heartbeat_check:  # every tenth of the timeout: a numpy call, not per tick
             self._next_heartbeat_check = now + self._heartbeat_check_s
             heard = self._heard
