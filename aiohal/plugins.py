@@ -38,7 +38,7 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "sine": ("aiohal.controllers.sine:SineController", None),
         "gait": ("aiohal.controllers.gait:GaitController", None),
         "chirp": ("aiohal.controllers.chirp:ChirpController", None),
-        "circle": ("aiohal.controllers.circle:CircleController", "sim"),
+        "circle": ("aiohal.controllers.circle_fast:FastCircleController", "sim"),
         "sequence": ("aiohal.controllers.sequence:SequenceController", None),
         "stream": ("aiohal.controllers.stream:StreamController", None),
     },
