@@ -156,7 +156,13 @@ def setup_nohal_mujoco(spec: dict, phase_log: list | None = None):
     limited = model.actuator_ctrllimited[actuators].astype(bool)
     tau_min = np.where(limited, model.actuator_ctrlrange[actuators, 0], -np.inf)
     tau_max = np.where(limited, model.actuator_ctrlrange[actuators, 1], np.inf)
-    data.qpos[qpos_adr] = np.clip(per_joint(opts.initial_position), q_min, q_max)
+    start = per_joint(opts.initial_position)
+    if opts.keyframe is not None:  # the keyframe's pose, except the joints initial_position names
+        mujoco.mj_resetDataKeyframe(model, data, model.key(opts.keyframe).id)
+        given = opts.initial_position if "initial_position" in opts.model_fields_set else {}
+        if isinstance(given, dict):
+            start = np.array([float(given.get(j, q)) for j, q in zip(names, data.qpos[qpos_adr], strict=True)])
+    data.qpos[qpos_adr] = np.clip(start, q_min, q_max)
     mujoco.mj_forward(model, data)
     gravity = opts.gravity_compensation
 
