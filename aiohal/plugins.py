@@ -24,7 +24,7 @@ GROUPS: dict[str, str] = {"driver": "aiohal.drivers", "controller": "aiohal.cont
 #: name -> (import target "module:attribute", pip extra that provides its dependencies)
 BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
     "driver": {
-        "mock": ("aiohal.drivers.mock:MockDriver", None),
+        "mock": ("aiohal.drivers.mock_fast:FastMockDriver", None),
         "mujoco": ("aiohal.drivers.mujoco:MujocoDriver", "sim"),
         "nrt_hand": ("aiohal.drivers.nrt_hand:NrtHandDriver", None),
         "ethercat": ("aiohal.drivers.ethercat.driver:EthercatDriver", "ethercat"),
@@ -38,7 +38,7 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "sine": ("aiohal.controllers.sine:SineController", None),
         "gait": ("aiohal.controllers.gait:GaitController", None),
         "chirp": ("aiohal.controllers.chirp:ChirpController", None),
-        "circle": ("aiohal.controllers.circle:CircleController", "sim"),
+        "circle": ("aiohal.controllers.circle_fast:FastCircleController", "sim"),
         "sequence": ("aiohal.controllers.sequence:SequenceController", None),
         "stream": ("aiohal.controllers.stream:StreamController", None),
     },

@@ -24,7 +24,7 @@ its numbers (joints, limits, gains, sites, initial pose) from the same TOML at s
 each tick touches only plain numpy arrays and MuJoCo. It does:
 
 * MuJoCo robots: read q and q̇ (``qpos``/``qvel`` ``take``); the circle controller's
-  operations in the order of ``controllers/circle.py`` (tracking error by forward kinematics
+  operations in the order of ``controllers/circle_fast.py`` (tracking error by forward kinematics
   of the measured q after the ramp, minimum-jerk target, forward kinematics and site
   Jacobians of q* on the controller's own MjData, ``mju`` damped-least-squares solve, step
   clipped to 0.95 × the velocity limit, q* kept in range); the torque law of
@@ -156,11 +156,17 @@ def setup_nohal_mujoco(spec: dict, phase_log: list | None = None):
     limited = model.actuator_ctrllimited[actuators].astype(bool)
     tau_min = np.where(limited, model.actuator_ctrlrange[actuators, 0], -np.inf)
     tau_max = np.where(limited, model.actuator_ctrlrange[actuators, 1], np.inf)
-    data.qpos[qpos_adr] = np.clip(per_joint(opts.initial_position), q_min, q_max)
+    start = per_joint(opts.initial_position)
+    if opts.keyframe is not None:  # the keyframe's pose, except the joints initial_position names
+        mujoco.mj_resetDataKeyframe(model, data, model.key(opts.keyframe).id)
+        given = opts.initial_position if "initial_position" in opts.model_fields_set else {}
+        if isinstance(given, dict):
+            start = np.array([float(given.get(j, q)) for j, q in zip(names, data.qpos[qpos_adr], strict=True)])
+    data.qpos[qpos_adr] = np.clip(start, q_min, q_max)
     mujoco.mj_forward(model, data)
     gravity = opts.gravity_compensation
 
-    # the controller's own kinematic model, set up as controllers/circle.py does
+    # the controller's own kinematic model, set up as controllers/circle_fast.py does
     kmodel = load_model(params.model or config.robot.model)
     kdata = mujoco.MjData(kmodel)
     k_qpos, k_dof = joint_addresses(kmodel, names)

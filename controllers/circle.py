@@ -112,70 +112,108 @@ class CircleController(Controller):
         self.data = mujoco.MjData(self.model)
         names = list(params.joints or robot.joint_names)
         self.rows = robot.indices(names)  # the robot's rows the IK moves
-        # a run of rows (every joint, usually) is a slice: q*'s rows are then a view, not a gather
-        self._gather = not np.array_equal(self.rows, np.arange(self.rows[0], self.rows[0] + len(self.rows)))
-        if not self._gather:
-            self.rows = slice(int(self.rows[0]), int(self.rows[0]) + len(self.rows))
         self.qpos_adr, self.dof_adr = joint_addresses(self.model, names)
-        all_qpos, _ = joint_addresses(self.model, list(robot.joint_names))
-        # a fixed-base model usually stores the joints in order: write them as one slice
-        first = int(all_qpos[0])
-        contiguous = np.array_equal(all_qpos, np.arange(first, first + len(all_qpos)))
-        self.all_qpos = slice(first, first + len(all_qpos)) if contiguous else all_qpos
+        self.all_qpos, _ = joint_addresses(self.model, list(robot.joint_names))
         self.site_ids = np.array(
             [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, s) for s in params.sites], dtype=np.intp
         )
-        sites = len(self.site_ids)
-        m, n = 3 * sites, len(names)
-        self._jac_full = np.zeros((3, self.model.nv))
-        self.J = np.zeros((m, n))
-        self._A = np.zeros((m, m))
-        self._w = np.zeros(m)
-        self._x = np.zeros(m)
-        self._err = np.zeros(m)
-        self._task = np.zeros(m)
-        self._x_d = np.zeros(m)
-        self._v_d = np.zeros(m)
-        self._tmp = np.zeros(m)
-        self._dq = np.zeros(n)
-        self._reg = (params.damping**2) * np.eye(m)
+        m = 3 * len(self.site_ids)
+        self.J = np.zeros((m, len(names)))
+        self._jac = np.zeros((3, self.model.nv))
+        self._damping = params.damping**2 * np.eye(m)
         self.q_min = robot.position_min[self.rows]
         self.q_max = robot.position_max[self.rows]
         self.max_step = robot.velocity_limit[self.rows] * 0.95
         a, b = PLANES[params.plane]
-        u, v = np.zeros(3), np.zeros(3)
-        u[a], v[b] = 1.0, 1.0
-        self.u = u
-        self.U = np.tile(u, sites)  # the plane's axes, once per site
-        self.V = np.tile(v, sites)
+        self.u = np.eye(3)[a]
+        self.U = np.tile(np.eye(3)[a], len(self.site_ids))  # the plane's axes, once per site
+        self.V = np.tile(np.eye(3)[b], len(self.site_ids))
         self.omega = 2.0 * math.pi / params.period
 
     # ------------------------------------------------------------ lifecycle
 
     def start(self, t: float) -> None:
         robot = self.robot
+        params = self.params
         self.t0 = t
         self.q_cmd = robot.state.position.copy()  # IK integrates the commanded configuration
-        self.x_start = np.zeros(3 * len(self.site_ids))
-        site_positions = _kinematics(self)
-        site_positions(self.q_cmd, self.x_start, True)  # the Jacobian too, for _check_start
-        params = self.params
+        self.x_start = self._site_positions(self.q_cmd)
+        self._jacobian()  # for _check_start
+        sites = len(self.site_ids)
         if params.center is not None:
             center = np.array(params.center, dtype=float)
-            self.center = np.tile(center, len(self.site_ids)) if center.ndim == 1 else center.ravel()
+            self.center = np.tile(center, sites) if center.ndim == 1 else center.ravel()
         else:
             offset = np.array(params.offset) if params.offset is not None else -params.radius * self.u
-            self.center = self.x_start + np.tile(offset, len(self.site_ids))
+            self.center = self.x_start + np.tile(offset, sites)
         self.start_warning = _check_start(self)  # raises if a circle is out of reach
         if self.start_warning:
             log.warning("circle: %s", self.start_warning)
+        self.last_target = self.x_start.copy()  # the target the last command was made for
         self._error = [0.0, 0.0, 0]  # tracking: sum of squares, largest square, samples
         robot.command.mode[:] = Mode.POSITION
         robot.command.velocity[:] = 0.0
-        self._tick = _tick_function(self, site_positions)
 
     def update(self, t: float, dt: float) -> None:
-        self._tick(t, dt)
+        p = self.params
+        elapsed = t - self.t0
+        if elapsed > p.ramp:
+            self._track(p.max_error_m)
+        x_d, v_d = self._target(elapsed)
+        x = self._site_positions(self.q_cmd)
+        J = self._jacobian()
+        task = v_d + p.gain * (x_d - x)  # feed-forward plus feedback on the commanded pose
+        dq = J.T @ np.linalg.solve(J @ J.T + self._damping, task) * dt
+        limit = self.max_step * dt
+        dq = np.clip(dq, -limit, limit)
+        self.q_cmd[self.rows] = np.clip(self.q_cmd[self.rows] + dq, self.q_min, self.q_max)
+        command = self.robot.command
+        command.position[:] = self.q_cmd
+        if dt > 0:
+            command.velocity[self.rows] = dq / dt
+        self.last_target = x_d
+
+    def _target(self, elapsed: float) -> tuple[np.ndarray, np.ndarray]:
+        """The sites' target position and velocity: on the circle, blended in from the start
+        pose with a minimum-jerk ramp."""
+        p = self.params
+        phase = self.omega * elapsed
+        c, s = math.cos(phase), math.sin(phase)
+        x_d = self.center + p.radius * (c * self.U + s * self.V)
+        v_d = p.radius * self.omega * (c * self.V - s * self.U)
+        if elapsed < p.ramp:  # x = start + b(t)·(circle - start)
+            r = elapsed / p.ramp
+            b = r**3 * (10.0 - 15.0 * r + 6.0 * r**2)
+            db = 30.0 * r**2 * (1.0 - r) ** 2 / p.ramp
+            v_d = b * v_d + db * (x_d - self.x_start)
+            x_d = self.x_start + b * (x_d - self.x_start)
+        return x_d, v_d
+
+    def _track(self, max_error_m: float) -> None:
+        """The measured pose against the target the last command was made for; a fault above
+        ``max_error_m``."""
+        x = self._site_positions(self.robot.state.position)
+        squares = ((x - self.last_target) ** 2).reshape(-1, 3).sum(axis=1)
+        error = self._error
+        error[0] += float(squares.sum())
+        error[1] = max(error[1], float(squares.max()))
+        error[2] += len(squares)
+        if error[1] > max_error_m**2:
+            raise RuntimeError(f"tracking error {math.sqrt(error[1]):.3f} m exceeds max_error_m {max_error_m:g} m")
+
+    def _site_positions(self, q_all: np.ndarray) -> np.ndarray:
+        """Forward kinematics at joint positions ``q_all`` (robot order)."""
+        self.data.qpos[self.all_qpos] = q_all
+        mujoco.mj_kinematics(self.model, self.data)
+        return self.data.site_xpos[self.site_ids].ravel()
+
+    def _jacobian(self) -> np.ndarray:
+        """The sites' Jacobians in the last pose given to _site_positions, stacked (3 rows per site)."""
+        mujoco.mj_comPos(self.model, self.data)
+        for i, sid in enumerate(self.site_ids):
+            mujoco.mj_jacSite(self.model, self.data, self._jac, None, int(sid))
+            self.J[3 * i : 3 * i + 3] = self._jac[:, self.dof_adr]
+        return self.J
 
     def metrics(self) -> dict:
         sum_sq, max_sq, samples = getattr(self, "_error", (0.0, 0.0, 0))
@@ -236,134 +274,3 @@ def _check_start(c: CircleController) -> str:
                 "poorly: start from another pose (initial_position or keyframe)"
             )
     return "; ".join(warnings)
-
-
-# The tick's work is a closure over the controller's arrays, built once at start(): every
-# attribute lookup and method frame costs more than its line, and more still on the caches
-# the step and the wait left cold; it keeps the overhead benchmark's WALK-MAN ratio under
-# 1.10 (docs/performance.md). tests/test_circle.py compares it with a plain formulation.
-
-
-def _kinematics(c: CircleController):
-    """``site_positions(q_all, out, jacobian)``: forward kinematics at joint positions
-    ``q_all`` (robot order) into ``out``, and the site Jacobians into ``c.J`` if asked."""
-    model, data = c.model, c.data
-    qpos, site_xpos = data.qpos, data.site_xpos
-    all_qpos, site_ids, dof_adr, jac, J = c.all_qpos, c.site_ids, c.dof_adr, c._jac_full, c.J
-    blocks = [(int(sid), J[3 * i : 3 * i + 3]) for i, sid in enumerate(site_ids)]
-    kinematics, com_pos, jac_site = mujoco.mj_kinematics, mujoco.mj_comPos, mujoco.mj_jacSite
-
-    def site_positions(q_all: np.ndarray, out: np.ndarray, jacobian: bool) -> None:
-        qpos[all_qpos] = q_all
-        kinematics(model, data)
-        site_xpos.take(site_ids, axis=0, out=out.reshape(-1, 3))
-        if jacobian:
-            com_pos(model, data)
-            for sid, rows in blocks:
-                jac_site(model, data, jac, None, sid)
-                jac.take(dof_adr, axis=1, out=rows)
-
-    return site_positions
-
-
-def _tick_function(c: CircleController, site_positions):
-    """``update(t, dt)`` of a started controller."""
-    p = c.params
-    radius, omega, ramp, gain = p.radius, c.omega, p.ramp, p.gain
-    allowed_sq = p.max_error_m**2
-    t0, center, x_start, U, V, reg = c.t0, c.center, c.x_start, c.U, c.V, c._reg
-    J, A, w, dq, x, err, task, x_d, v_d, tmp = c.J, c._A, c._w, c._dq, c._x, c._err, c._task, c._x_d, c._v_d, c._tmp
-    q_min, q_max, max_step, rows, q_cmd = c.q_min, c.q_max, c.max_step, c.rows, c.q_cmd
-    gather = c._gather
-    q = np.zeros(len(max_step)) if gather else q_cmd[rows]  # q*'s moving rows: a view unless gathered
-    last_target = x_start.copy()  # the target the last command was made for
-    sites = len(c.site_ids)
-    error = c._error
-    measured = c.robot.state.position
-    command_position = c.robot.command.position
-    command_velocity = c.robot.command.velocity
-    velocity_rows = None if gather else command_velocity[rows]  # a view of the moving rows
-    subtract, multiply, add, minimum, maximum, copyto = (
-        np.subtract,
-        np.multiply,
-        np.add,
-        np.minimum,
-        np.maximum,
-        np.copyto,
-    )
-    cos, sin = math.cos, math.sin
-    mul_mat_mat_t, chol_factor, chol_solve, mul_mat_t_vec = (
-        mujoco.mju_mulMatMatT,
-        mujoco.mju_cholFactor,
-        mujoco.mju_cholSolve,
-        mujoco.mju_mulMatTVec,
-    )
-
-    def update(t: float, dt: float) -> None:
-        elapsed = t - t0
-        # tracking: the measured pose against the target the last command was made for
-        if elapsed > ramp:
-            site_positions(measured, x, False)
-            subtract(x, last_target, out=err)
-            multiply(err, err, out=err)
-            sum_sq, max_sq = error[0], error[1]
-            for e in err.reshape(-1, 3).sum(axis=1):
-                sum_sq += e
-                if e > max_sq:
-                    max_sq = e
-            error[0], error[1] = sum_sq, max_sq
-            error[2] += sites
-            if max_sq > allowed_sq:
-                raise RuntimeError(f"tracking error {math.sqrt(max_sq):.3f} m exceeds max_error_m {p.max_error_m:g} m")
-        # target: x = centre + r(cos·U + sin·V),  v = rω(-sin·U + cos·V)
-        phase = omega * elapsed
-        c, s = cos(phase), sin(phase)
-        multiply(U, radius * c, out=x_d)
-        multiply(V, radius * s, out=tmp)
-        add(x_d, tmp, out=x_d)
-        add(x_d, center, out=x_d)
-        multiply(U, -radius * omega * s, out=v_d)
-        multiply(V, radius * omega * c, out=tmp)
-        add(v_d, tmp, out=v_d)
-        if elapsed < ramp:  # blend from the start pose: x = start + b(t)·(circle - start)
-            r = elapsed / ramp
-            b = r * r * r * (10.0 + r * (-15.0 + 6.0 * r))
-            db = 30.0 * r * r * (1.0 - r) * (1.0 - r) / ramp
-            subtract(x_d, x_start, out=tmp)
-            multiply(v_d, b, out=v_d)
-            add(v_d, db * tmp, out=v_d)
-            multiply(tmp, b, out=tmp)
-            add(x_start, tmp, out=x_d)
-        site_positions(q_cmd, x, True)
-        # task velocity: feed-forward plus feedback on the commanded pose
-        subtract(x_d, x, out=task)
-        multiply(task, gain, out=task)
-        add(task, v_d, out=task)
-        # dq = Jᵀ (J Jᵀ + λ² I)⁻¹ task · dt, with MuJoCo's small dense routines: no BLAS call
-        # on the tick (its first call starts a thread pool and costs milliseconds)
-        mul_mat_mat_t(A, J, J)
-        add(A, reg, out=A)
-        chol_factor(A, 0.0)
-        chol_solve(w, A, task)
-        mul_mat_t_vec(dq, J, w)
-        multiply(dq, dt, out=dq)
-        limit = max_step * dt
-        minimum(dq, limit, out=dq)
-        maximum(dq, -limit, out=dq)
-        if gather:
-            q_cmd.take(rows, out=q)
-        add(q, dq, out=q)
-        minimum(q, q_max, out=q)
-        maximum(q, q_min, out=q)
-        if gather:
-            q_cmd[rows] = q
-        copyto(command_position, q_cmd)
-        if dt > 0:
-            if gather:
-                multiply(dq, 1.0 / dt, out=dq)
-                command_velocity[rows] = dq
-            else:
-                multiply(dq, 1.0 / dt, out=velocity_rows)
-        copyto(last_target, x_d)
-
-    return update

@@ -283,7 +283,7 @@ class MujocoDriver(Driver):
 
     async def read(self) -> None:
         # spelled out, with write(): a helper frame per call costs more than its lines on the
-        # tick's cold caches (see controllers/circle.py)
+        # tick's cold caches (see controllers/circle_fast.py)
         if self._pending is not None:
             pending, self._pending = self._pending, None
             await pending  # the step of the last tick, done in the worker thread

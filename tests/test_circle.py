@@ -1,5 +1,5 @@
-"""The circle controller's tick (a closure over its arrays, with MuJoCo's small dense routines)
-against a plain formulation of the same damped-least-squares step in numpy."""
+"""The ``circle`` type's tick (a closure over its arrays, with MuJoCo's small dense routines)
+against the plain controller it is written from and the damped-least-squares step in numpy."""
 
 from __future__ import annotations
 
@@ -14,7 +14,10 @@ from hypothesis import strategies as st
 
 mujoco = require_module("mujoco")
 
+from aiohal import plugins
 from aiohal.config import parse_config
+from aiohal.controllers.circle import CircleController
+from aiohal.controllers.circle_fast import FastCircleController
 from aiohal.loop import ControlLoop
 from aiohal.ticker import VirtualTickSource
 
@@ -54,15 +57,20 @@ def plain_step(c, q_all: np.ndarray, elapsed: float, dt: float) -> tuple[np.ndar
     return q_next, dq / dt
 
 
+def kuka_raw(controller: str) -> dict:
+    raw = tomllib.loads((CONFIGS / "kuka_lwr_sim.toml").read_text())
+    raw["controller"]["type"] = controller
+    # the test sets the tick's time and pose at will: far from the circle, not a tracking fault
+    raw["controller"]["params"]["max_error_m"] = 100.0
+    return raw
+
+
 @pytest.fixture(scope="module")
 def started():
     """A lockstep KUKA loop, activated and run for a few ticks: its controller started."""
     import asyncio
 
-    raw = tomllib.loads((CONFIGS / "kuka_lwr_sim.toml").read_text())
-    # the test sets the tick's time and pose at will: far from the circle, not a tracking fault
-    raw["controller"]["params"]["max_error_m"] = 100.0
-    config = parse_config(raw, base_dir=CONFIGS).with_loop(clock="virtual")
+    config = parse_config(kuka_raw("circle"), base_dir=CONFIGS).with_loop(clock="virtual")
     loop = ControlLoop(config, tick_source=VirtualTickSource())
     runner = asyncio.new_event_loop()
     runner.run_until_complete(loop.__aenter__())
@@ -77,6 +85,7 @@ def started():
        nudge=st.lists(st.floats(-0.05, 0.05), min_size=7, max_size=7))
 def test_the_circle_tick_matches_the_plain_formulation(started, elapsed, dt, nudge):
     c = started.controller
+    assert isinstance(c, FastCircleController)
     command = started.robot.command
     q_cmd = c.q_cmd
     q_cmd += np.array(nudge)  # any commanded configuration near the start pose
@@ -86,3 +95,29 @@ def test_the_circle_tick_matches_the_plain_formulation(started, elapsed, dt, nud
     np.testing.assert_allclose(command.position, expected_q, rtol=0, atol=1e-10)
     np.testing.assert_allclose(command.velocity[c.rows], expected_v, rtol=0, atol=1e-7)
     np.copyto(q_cmd, before - np.array(nudge))  # back near the start for the next example
+
+
+def run_kuka(controller: str, ticks: int) -> tuple[np.ndarray, dict]:
+    """The KUKA circle in lockstep: the final measured position and the controller's report."""
+    import asyncio
+
+    async def run():
+        config = parse_config(kuka_raw(controller), base_dir=CONFIGS).with_loop(clock="virtual")
+        async with ControlLoop(config, tick_source=VirtualTickSource()) as loop:
+            report = await loop.run(ticks=ticks)
+            return loop.robot.state.position.copy(), report["controller"]
+
+    return asyncio.run(run())
+
+
+def test_the_circle_type_runs_the_plain_controller_closed_up():
+    plugins.register("controller", "plain_circle", CircleController)
+    try:
+        plain_q, plain = run_kuka("plain_circle", 1500)  # past the 1 s ramp: tracking counts
+    finally:
+        plugins.unregister("controller", "plain_circle")
+    fast_q, fast = run_kuka("circle", 1500)
+    assert plain["samples"] == fast["samples"] > 0
+    np.testing.assert_allclose(fast_q, plain_q, rtol=0, atol=1e-9)
+    assert fast["rms_error_m"] == pytest.approx(plain["rms_error_m"], abs=1e-6)
+    assert fast["max_error_m"] == pytest.approx(plain["max_error_m"], abs=1e-6)

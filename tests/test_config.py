@@ -12,7 +12,7 @@ from helpers import arm_raw
 from pydantic import ValidationError
 
 from aiohal.config import json_schema, load_config, parse_config
-from aiohal.drivers.mock import MockDriver
+from aiohal.drivers.mock_fast import FastMockDriver
 from aiohal.errors import ConfigError, ConfigIssue
 
 
@@ -36,7 +36,7 @@ def test_mock_arm_config_loads():
     assert config.robot.name == "mock_arm"
     assert [j.name for j in config.joints] == ["a1", "a2", "e1", "a3", "a4", "a5", "a6"]
     assert [j.index for j in config.joints] == list(range(7))
-    assert [(d.name, d.type, d.cls) for d in config.drivers] == [("arm", "mock", MockDriver)]
+    assert [(d.name, d.type, d.cls) for d in config.drivers] == [("arm", "mock", FastMockDriver)]
     assert config.drivers[0].joints == tuple(j.name for j in config.joints)  # "*" expanded in order
     assert config.drivers[0].options.dynamics == "first_order"
     # [joint_defaults] acceleration merged into every joint; the joints' own keys kept

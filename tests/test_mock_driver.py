@@ -13,9 +13,8 @@ from hypothesis import strategies as st
 
 from aiohal import kernel_call
 from aiohal.drivers import mock_kernels
-from aiohal.drivers.mock import MOVED_ROWS
 from aiohal.hal import Controller
-from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, CommandRow, Mode
+from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, CommandRow, Mode, StateRow
 
 
 class Fixed(Controller):
@@ -202,7 +201,7 @@ def test_views_write_in_place():
 def numpy_step(command, mode, sim, dt, alpha):
     """The mock's step in plain numpy, the reference the compiled step must match (alpha None:
     mirror; ``sim`` has the state block's rows)."""
-    position, motion, effort = (sim[row] for row in MOVED_ROWS)
+    position, motion, effort = sim[StateRow.POSITION], sim[StateRow.VELOCITY], sim[StateRow.EFFORT]
     command = {row: command[row] for row in CommandRow}
     velocity_rows, effort_rows = mode == Mode.VELOCITY, mode == Mode.EFFORT
     with np.errstate(all="ignore"):
@@ -241,6 +240,47 @@ def test_the_compiled_step_matches_the_numpy_formulation(data, n, dt, first_orde
     np.testing.assert_array_equal(np.isnan(sim), nan)
     np.testing.assert_array_equal(sim[~nan].view(np.uint64), expected[~nan].view(np.uint64))
     assert (ticks == 5).all() and (stamps == 77).all()
+
+
+@pytest.mark.parametrize("dynamics", ["mirror", "first_order"])
+def test_the_mock_type_moves_the_joints_as_the_plain_driver(dynamics):
+    """FastMockDriver (the ``mock`` type) against MockDriver, on the same commands in every mode."""
+    import asyncio
+
+    from aiohal import plugins
+    from aiohal.drivers.mock import MockDriver
+    from aiohal.drivers.mock_fast import FastMockDriver
+
+    rng = np.random.default_rng(7)
+    commands = [(rng.integers(1, 4, 6), rng.uniform(-2, 2, 6), rng.uniform(-2, 2, 6), rng.uniform(-5, 5, 6))
+                for _ in range(40)]
+
+    class Replay(Controller):
+        def start(self, t):
+            self.k = 0
+
+        def update(self, t, dt):
+            mode, position, velocity, effort = commands[self.k % len(commands)]
+            self.k += 1
+            cmd = self.robot.command
+            cmd.mode[:], cmd.position[:], cmd.velocity[:], cmd.effort[:] = mode, position, velocity, effort
+
+    async def run(driver_type):
+        raw = raw_with({"dynamics": dynamics}, n=6)
+        raw["driver"][0]["type"] = driver_type
+        loop = virtual_loop(raw, controller=Replay())
+        async with loop:
+            await loop.run(ticks=len(commands))
+            return type(loop.slots[0].driver), loop.robot.state.block[:3].copy()
+
+    plugins.register("driver", "plain_mock", MockDriver)
+    try:
+        plain_type, plain = asyncio.run(run("plain_mock"))
+    finally:
+        plugins.unregister("driver", "plain_mock")
+    fast_type, fast = asyncio.run(run("mock"))
+    assert (plain_type, fast_type) == (MockDriver, FastMockDriver)
+    np.testing.assert_allclose(fast, plain, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.asyncio

@@ -239,7 +239,7 @@ def test_builtins_load_lazily():
     )
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.splitlines() == ["[]", "['aiohal.drivers.mock']"]
+    assert proc.stdout.splitlines() == ["[]", "['aiohal.drivers.mock', 'aiohal.drivers.mock_fast']"]
 
 
 @pytest.fixture
