@@ -24,7 +24,7 @@ from aiohal import kernel_call
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
 from aiohal.robot import HandGroup, StateRow
 from aiohal.safety.watchdog import SendDatagram
-from aiohal.servo import ServoParams
+from aiohal.simulation.servo import ServoParams
 
 ESTOP_PAYLOAD = b"ESTOP"
 

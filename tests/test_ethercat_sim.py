@@ -18,7 +18,9 @@ from hypothesis import strategies as st
 
 from aiohal.drivers.ethercat.sim import control
 from aiohal.drivers.ethercat.sim.bench import soem_map
-from aiohal.drivers.ethercat.sim.od import (
+from aiohal.drivers.ethercat.sim.segment import Segment
+from aiohal.drivers.ethercat.sim.sii import crc8
+from aiohal.simulation.od import (
     ABORT_NO_OBJECT,
     BOOL,
     INT16,
@@ -29,8 +31,6 @@ from aiohal.drivers.ethercat.sim.od import (
     PdoCodec,
     SdoAbort,
 )
-from aiohal.drivers.ethercat.sim.segment import Segment
-from aiohal.drivers.ethercat.sim.sii import crc8
 
 NOP, APRD, APWR, APRW, FPRD, FPWR, FPRW, BRD, BWR, BRW, LRD, LWR, LRW, ARMW, FRMW = range(15)
 INIT, PREOP, BOOT, SAFEOP, OP = 1, 2, 3, 4, 8

@@ -1,5 +1,5 @@
 """The simulated CiA 402 drive with ``dynamics = "servo"``: the shared servo model
-(:mod:`aiohal.servo`) behind the drive's objects, in the drive's motor-side units."""
+(:mod:`aiohal.simulation.servo`) behind the drive's objects, in the drive's motor-side units."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from aiohal.drivers.ethercat.sim.drive import Drive
 from aiohal.fieldbus.cia402 import DriveUnits
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec
 from aiohal.robot import JointCommand, JointState, Mode
-from aiohal.servo import ReferenceServo, ServoParams
+from aiohal.simulation.servo import ReferenceServo, ServoParams
 
 GEAR = 100.0
 COUNTS_PER_MOTOR_RAD = 131072 / (2 * math.pi)

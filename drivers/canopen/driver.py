@@ -45,7 +45,7 @@ from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 from aiohal.safety.watchdog import SendCanFrame, can_frame
-from aiohal.servo import ServoParams
+from aiohal.simulation.servo import ServoParams
 
 from . import busload
 from .sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc, sensor_issues
@@ -127,7 +127,7 @@ class SimulationOptions(Options):
 
     dynamics: Literal["motor", "servo"] = Field(
         "motor",
-        description="motor: a simple motor model; servo: aiohal.servo's cascade (LOLA's, a hip-like joint "
+        description="motor: a simple motor model; servo: aiohal.simulation.servo's cascade (LOLA's, a hip-like joint "
         "behind servo.gear_ratio, which every node's gear_ratio must match).",
     )
     servo: ServoParams = Field(default_factory=ServoParams, description="The drives and joints of dynamics = servo.")

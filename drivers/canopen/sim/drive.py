@@ -26,8 +26,9 @@ from typing import cast
 import canopen
 from canopen.sdo import SdoAbortedError, SdoRecord
 
+from aiohal.simulation.od import Entry, ObjectDictionary, PdoCodec, SdoAbort
+
 from ...ethercat.sim.drive import Drive
-from ...ethercat.sim.od import Entry, ObjectDictionary, PdoCodec, SdoAbort
 
 log = logging.getLogger(__name__)
 

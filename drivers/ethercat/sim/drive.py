@@ -22,7 +22,7 @@ keeps the previous mode; with no supported mode yet, Operation enabled gives no 
 
 Two dynamics, chosen per drive with ``configure(dynamics=...)``:
 
-``"servo"``: LOLA's cascade with a motor, gear and load (:mod:`aiohal.servo`, the model every
+``"servo"``: LOLA's cascade with a motor, gear and load (:mod:`aiohal.simulation.servo`, the model every
 simulated drive shares; parameters with ``configure(servo={...})``, a hip-like joint by
 default). CSP runs the whole cascade on the interpolated target with 0x60B1 and 0x60B2 as its
 velocity and torque feed-forward, CSV the velocity and current loops, CST the current loop;
@@ -55,9 +55,10 @@ from typing import Any, cast
 
 import numpy as np
 
-from . import od as odm
+from aiohal.simulation import od as odm
+from aiohal.simulation.od import RW, ObjectDictionary, PdoCodec, SdoAbort
+
 from .devices import Device
-from .od import RW, ObjectDictionary, PdoCodec, SdoAbort
 
 # states
 NOT_READY = "not_ready_to_switch_on"
@@ -133,7 +134,7 @@ class Drive(Device):
     csv_tau = 0.005  # s
     max_speed = 1000.0  # rad/s
     dynamics = "motor"  # or "servo" (see the module's docstring)
-    servo_params: Any = None  # aiohal.servo.ServoParams for "servo"; None: the hip-like defaults
+    servo_params: Any = None  # aiohal.simulation.servo.ServoParams for "servo"; None: the hip-like defaults
 
     def build(self, od: ObjectDictionary) -> None:
         self._ff_mapped = False  # RxPDOs map the velocity offset (compile_pdo)
@@ -215,7 +216,7 @@ class Drive(Device):
         self.saturated = False
         self.faults = 0
         self.outputs_lost_ns: int | None = None
-        self._servo: Any = None  # aiohal.servo.ServoBank (dynamics "servo"), built where the joint stands
+        self._servo: Any = None  # aiohal.simulation.servo.ServoBank (dynamics "servo"), built where the joint stands
         self._servo_loop = -1
         self._cw_state: str | None = None  # the state the last controlword was applied in
         self._params_dirty = True
@@ -292,10 +293,10 @@ class Drive(Device):
                 if value == "servo":
                     self._warm_servo()
             elif key == "servo":
-                from aiohal.servo import ServoParams
+                from aiohal.simulation.servo import ServoParams
 
                 if not isinstance(value, dict):
-                    raise ValueError("drive: servo must be a table of aiohal.servo.ServoParams fields")
+                    raise ValueError("drive: servo must be a table of aiohal.simulation.servo.ServoParams fields")
                 try:
                     self.servo_params = ServoParams(**value)
                 except ValueError as exc:  # pydantic's ValidationError is one
@@ -524,7 +525,7 @@ class Drive(Device):
     def _warm_servo() -> None:
         """Import and run the compiled cascade once now: the first call loads it (a few hundred
         ms), which inside an exchange would stall the whole segment."""
-        from aiohal import servo as sv
+        from aiohal.simulation import servo as sv
 
         sv.ServoBank(sv.ServoParams(), np.zeros(1)).step(1e-3)
 
@@ -533,7 +534,7 @@ class Drive(Device):
         state, as a real drive takes them from its objects. The drive's units are the motor's
         (counts of its encoder, per mille of its rated torque); the cascade's targets are the
         joint's, through the model's gear."""
-        from aiohal import servo as sv
+        from aiohal.simulation import servo as sv
 
         cpr = self._cpr
         if self._servo is None:
