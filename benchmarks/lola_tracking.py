@@ -3,7 +3,7 @@ while walking, without and with the learned velocity feed-forward, and with a 2 
 
 ``configs/lola_hip_sim.toml``: the ``gait`` controller (a hip flexion at 2.7 km/h, a stride of
 1.2 s; target position, target velocity and model torque feed-forward) on the mock driver's
-simulated servo drive (``aiohal.servo``), in lockstep, through the HAL's real path (read,
+simulated servo drive (``aiohal.simulation.servo``), in lockstep, through the HAL's real path (read,
 controller, extrapolation, feed-forward, limits, write). Runs:
 
 * ``ref``: controller and bus at 1 kHz, k_e = 0 (k_vel,ff = 1: the target velocity as is);

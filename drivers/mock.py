@@ -23,7 +23,7 @@ from pydantic import Field
 from aiohal.hal import Driver, JointValues, Options, unknown_joint_issues
 from aiohal.robot import Mode
 from aiohal.safety.watchdog import SendDatagram
-from aiohal.servo import ServoParams
+from aiohal.simulation.servo import ServoParams
 
 ESTOP_PAYLOAD = b"ESTOP"
 

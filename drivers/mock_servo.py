@@ -1,5 +1,5 @@
 """The mock's ``dynamics = "servo"``: each joint behind a simulated servo drive
-(:mod:`aiohal.servo`, LOLA's cascade with the motor and the load).
+(:mod:`aiohal.simulation.servo`, LOLA's cascade with the motor and the load).
 
 The drive gets, at each write, the command's target position, its target velocity as velocity
 feed-forward and its effort plus feed-forward as torque feed-forward, as a CiA 402 drive in
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from aiohal.robot import DriverView, Mode
-from aiohal.servo import ServoBank, ServoParams
+from aiohal.simulation.servo import ServoBank, ServoParams
 
 
 class MockServo:

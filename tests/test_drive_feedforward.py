@@ -12,6 +12,7 @@ from aiohal.drivers.ethercat.sim.drive import Drive
 from aiohal.fieldbus.cia402 import DriveUnits
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec
 from aiohal.robot import JointCommand, JointState, Mode
+from aiohal.simulation.cia402_drive import DriveModel
 
 COUNTS_PER_RAD = 131072 / (2 * math.pi)
 # byte offsets in RxPDO 0x1602 (controlword, target position, target velocity, target torque,
@@ -64,10 +65,10 @@ def test_velocity_and_torque_feedforward_arrive_as_0x60b1_and_0x60b2_in_csp():
     command.effort[:] = 0.1
     command.feedforward[:] = 0.2
     cycle(drive, image, group, command, k + 1)
-    assert drive.e_mode.value == 8  # CSP
-    assert drive.e_vel_offset.value == round(0.25 * COUNTS_PER_RAD)  # counts/s, as 0x60FF
-    assert drive.e_torque_offset.value == 300  # per mille of the 1 N·m rated torque
-    assert drive.e_target_vel.value == 0 and drive.e_target_torque.value == 0  # CSP: the targets stay 0
+    assert drive.model.e_mode.value == 8  # CSP
+    assert drive.model.e_vel_offset.value == round(0.25 * COUNTS_PER_RAD)  # counts/s, as 0x60FF
+    assert drive.model.e_torque_offset.value == 300  # per mille of the 1 N·m rated torque
+    assert drive.model.e_target_vel.value == 0 and drive.model.e_target_torque.value == 0  # CSP: the targets stay 0
 
 
 def test_a_drive_without_the_offsets_still_gets_its_csp_target():
@@ -76,8 +77,8 @@ def test_a_drive_without_the_offsets_still_gets_its_csp_target():
     command.position[:] = state.position + 0.01
     command.velocity[:] = 0.25
     cycle(drive, image, group, command, k + 1)
-    assert drive.e_target_pos.value == round((state.position[0] + 0.01) * COUNTS_PER_RAD)
-    assert drive.e_vel_offset.value == 0
+    assert drive.model.e_target_pos.value == round((state.position[0] + 0.01) * COUNTS_PER_RAD)
+    assert drive.model.e_vel_offset.value == 0
 
 
 def test_the_simulated_drive_applies_the_torque_offset():
@@ -93,7 +94,7 @@ def test_the_simulated_drive_applies_the_torque_offset():
         for j in range(k + 1, k + 400):
             cycle(drive, image, group, command, j)
         offsets[ff] = state.position[0] - hold
-    stiffness = Drive.inertia * (2 * math.pi * Drive.csp_hz) ** 2  # N·m/rad
+    stiffness = DriveModel.inertia * (2 * math.pi * DriveModel.csp_hz) ** 2  # N·m/rad
     assert abs(offsets[0.0]) < 1e-4
     assert offsets[0.2] == pytest.approx(0.2 / stiffness, rel=0.05)
 

@@ -82,7 +82,7 @@ def test_a_divider_that_cannot_hold_the_time_is_set_and_the_slave_trips_on_time(
     enable_drive(bus, DRIVE)
     assert not trip_after(bus, 49.9)
     assert trip_after(bus, 50.1)
-    assert bus.seg.slaves[0].device.state == "switch_on_disabled"  # its abort option (0x6007 = 2)
+    assert bus.seg.slaves[0].device.model.state == "switch_on_disabled"  # its abort option (0x6007 = 2)
 
 
 def test_a_time_the_divider_holds_keeps_the_divider_and_the_simulator_honours_it():

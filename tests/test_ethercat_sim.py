@@ -18,7 +18,9 @@ from hypothesis import strategies as st
 
 from aiohal.drivers.ethercat.sim import control
 from aiohal.drivers.ethercat.sim.bench import soem_map
-from aiohal.drivers.ethercat.sim.od import (
+from aiohal.drivers.ethercat.sim.segment import Segment
+from aiohal.drivers.ethercat.sim.sii import crc8
+from aiohal.simulation.od import (
     ABORT_NO_OBJECT,
     BOOL,
     INT16,
@@ -29,8 +31,6 @@ from aiohal.drivers.ethercat.sim.od import (
     PdoCodec,
     SdoAbort,
 )
-from aiohal.drivers.ethercat.sim.segment import Segment
-from aiohal.drivers.ethercat.sim.sii import crc8
 
 NOP, APRD, APWR, APRW, FPRD, FPWR, FPRW, BRD, BWR, BRW, LRD, LWR, LRW, ARMW, FRMW = range(15)
 INIT, PREOP, BOOT, SAFEOP, OP = 1, 2, 3, 4, 8
@@ -826,7 +826,7 @@ def test_sm_watchdog_trips_to_safeop_and_disables_the_drive():
     bus = Bus("drive,imu")
     bus.up()
     enable_drive(bus, 0x1001)
-    assert bus.seg.slaves[0].device.state == "operation_enabled"
+    assert bus.seg.slaves[0].device.model.state == "operation_enabled"
     bus.clock.advance(60)
     bus.seg.poll()
     assert bus.al(0x1001) == (OP, 0)
@@ -834,7 +834,7 @@ def test_sm_watchdog_trips_to_safeop_and_disables_the_drive():
     bus.seg.poll()
     assert bus.al(0x1001) == (SAFEOP | 0x10, 0x001B)
     assert bus.al(0x1002) == (OP, 0)  # no outputs, no SM watchdog
-    assert bus.seg.slaves[0].device.state == "switch_on_disabled"
+    assert bus.seg.slaves[0].device.model.state == "switch_on_disabled"
     assert bus.fprd(0x1001, 0x0440, 2)[0] == u16(0)
     assert bus.fprd(0x1001, 0x0442, 1)[0] == b"\x01"
     assert bus.seg.counters["watchdog_trips"] == 1
@@ -912,7 +912,7 @@ def test_drive_state_machine_through_controlword():
     assert drive_cycle(bus, st_, 0x06, cycles=2)[0] & 0x6F == 0x21
     assert drive_cycle(bus, st_, 0x0F, cycles=2)[0] & 0x6F == 0x27  # switch on + enable at once
     assert drive_cycle(bus, st_, 0x00, cycles=2)[0] & 0x4F == 0x40  # disable voltage
-    dev = bus.seg.slaves[0].device
+    dev = bus.seg.slaves[0].device.model
     assert dev.state == "switch_on_disabled"
 
 
@@ -1493,7 +1493,7 @@ def test_a_drive_with_a_power_on_fault_is_in_fault_from_its_first_exchange_at_ev
     assert drive["state"] == "fault" and drive["error_code"] == 0x7500
     control.apply(bus.seg, {"cmd": "clear"})
     control.apply(bus.seg, {"cmd": "power_cycle"})
-    assert bus.seg.slaves[0].device.power_on_fault is None
+    assert bus.seg.slaves[0].device.model.power_on_fault is None
 
 
 def test_hidden_objects_are_answered_as_missing_and_clear_shows_them_again():

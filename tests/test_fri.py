@@ -34,7 +34,7 @@ from aiohal.drivers.fri.protocol import (
 from aiohal.drivers.fri.sim import KrcOptions, KrcSimulator
 from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, JointSpec, Mode, Robot
-from aiohal.servo import ServoParams
+from aiohal.simulation.servo import ServoParams
 
 # (field, byte offset, bytes) as the reference (shared/reference/kuka_fri.md §1, §2) gives them
 MSR_LAYOUT = [

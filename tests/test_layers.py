@@ -1,5 +1,6 @@
-"""The layers the design names hold: the tick core imports no driver, no fieldbus code and no
-hardware or simulation library; controllers import no driver; no module imports itself back."""
+"""The layers the design names hold: the tick core imports no driver, no fieldbus or simulation
+code and no hardware or simulation library; neither bus driver imports the other; controllers
+import no driver; no module imports itself back."""
 
 from __future__ import annotations
 
@@ -10,8 +11,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = {"aiohal": ROOT / "aiohal", "aiohal.drivers": ROOT / "drivers", "aiohal.controllers": ROOT / "controllers"}
-CORE_ONLY = ("aiohal.fieldbus", "aiohal.mjcf", "aiohal.drivers", "aiohal.controllers", "mujoco", "pysoem", "can",
-             "canopen", "zenoh")
+#: the rooms apart from the tick core, then the libraries it never loads
+APART = ("aiohal.fieldbus", "aiohal.simulation", "aiohal.mjcf", "aiohal.drivers", "aiohal.controllers")
+CORE_ONLY = (*APART, "mujoco", "pysoem", "can", "canopen", "zenoh")
+#: bus drivers, each with its simulator: what both need is in aiohal.fieldbus or aiohal.simulation
+BUSES = ("aiohal.drivers.ethercat", "aiohal.drivers.canopen")
 
 
 def module_files() -> dict[str, Path]:
@@ -26,6 +30,11 @@ def module_files() -> dict[str, Path]:
             if name.startswith("aiohal.drivers") or name.startswith("aiohal.controllers") or package == "aiohal":
                 out.setdefault(name, path)
     return out
+
+
+def within(name: str, packages: tuple[str, ...]) -> bool:
+    """``name`` is one of ``packages`` or a module inside one."""
+    return any(name == p or name.startswith(p + ".") for p in packages)
 
 
 def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
@@ -53,14 +62,40 @@ def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
     return found
 
 
+def core_modules() -> dict[str, Path]:
+    """The tick core's modules: aiohal's, outside the rooms kept apart from it."""
+    return {m: path for m, path in module_files().items() if within(m, ("aiohal",)) and not within(m, APART)}
+
+
 def test_core_imports_no_driver_fieldbus_or_hardware_library():
-    core = [m for m in module_files() if m.startswith("aiohal") and not m.startswith(CORE_ONLY[:4])
-            and not m.endswith("__main__")]
+    core = [m for m in core_modules() if not m.endswith("__main__")]
     code = (f"import sys, importlib\nfor m in {core!r}: importlib.import_module(m)\n"
             f"print(sorted(m for m in sys.modules if m.startswith({CORE_ONLY!r})))")
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
+
+
+def test_core_imports_no_simulation_module_even_lazily():
+    known = set(module_files())
+    for name, path in core_modules().items():
+        simulation = {m for m in imports_of(name, path, known) if within(m, ("aiohal.simulation",))}
+        assert not simulation, f"{name} imports {sorted(simulation)}"
+
+
+def test_neither_bus_imports_the_other_and_shared_code_imports_no_driver():
+    files = module_files()
+    known = set(files)
+    for name, path in files.items():
+        imported = imports_of(name, path, known)
+        for bus in BUSES:
+            if within(name, (bus,)):
+                others = tuple(b for b in BUSES if b != bus)
+                crossing = {m for m in imported if within(m, others)}
+                assert not crossing, f"{name} imports {sorted(crossing)}"
+        if within(name, ("aiohal.fieldbus", "aiohal.simulation")):
+            drivers = {m for m in imported if within(m, ("aiohal.drivers",))}
+            assert not drivers, f"{name} imports {sorted(drivers)}"
 
 
 def test_controllers_import_no_driver():

@@ -1,6 +1,6 @@
 """The simulated bus devices' joint models: the first-order servo tracks a moving target
 without lag and is exact for any step; the cascade model gives each mode's command to the
-shared servo drive (aiohal.servo) as the loop that mode asks for."""
+shared servo drive (aiohal.simulation.servo) as the loop that mode asks for."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from aiohal.fieldbus.servo import CascadeServoModel, ServoModel, joint_model
 from aiohal.robot import Mode
-from aiohal.servo import CURRENT_LOOP, LOOP, POSITION_LOOP, VELOCITY_LOOP, ReferenceServo, ServoParams
+from aiohal.simulation.joints import CascadeServoModel, ServoModel, joint_model
+from aiohal.simulation.servo import CURRENT_LOOP, LOOP, POSITION_LOOP, VELOCITY_LOOP, ReferenceServo, ServoParams
 
 
 def test_a_ramp_is_tracked_without_lag_whatever_the_step():

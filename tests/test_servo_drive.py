@@ -8,7 +8,17 @@ import math
 import numpy as np
 import pytest
 
-from aiohal.servo import CURRENT_LOOP, OFF, POSITION_LOOP, VELOCITY_LOOP, Q, ReferenceServo, ServoBank, ServoParams, W
+from aiohal.simulation.servo import (
+    CURRENT_LOOP,
+    OFF,
+    POSITION_LOOP,
+    VELOCITY_LOOP,
+    Q,
+    ReferenceServo,
+    ServoBank,
+    ServoParams,
+    W,
+)
 
 
 def trajectory(k: int, period: float):

@@ -1,5 +1,5 @@
 """The simulated CiA 402 drive with ``dynamics = "servo"``: the shared servo model
-(:mod:`aiohal.servo`) behind the drive's objects, in the drive's motor-side units."""
+(:mod:`aiohal.simulation.servo`) behind the drive's objects, in the drive's motor-side units."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from aiohal.drivers.ethercat.sim.drive import Drive
 from aiohal.fieldbus.cia402 import DriveUnits
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec
 from aiohal.robot import JointCommand, JointState, Mode
-from aiohal.servo import ReferenceServo, ServoParams
+from aiohal.simulation.servo import ReferenceServo, ServoParams
 
 GEAR = 100.0
 COUNTS_PER_MOTOR_RAD = 131072 / (2 * math.pi)
@@ -52,7 +52,7 @@ def test_the_drive_runs_the_shared_servo_model_on_what_it_received():
     the drive decoded from its objects (0x607A, 0x60B1, 0x60B2)."""
     drive, image, group, state, command = servo_bus()  # at 0 rad, where gravity does not pull
     k0 = enable(drive, image, group, state, command)
-    assert drive.pos == 0.0
+    assert drive.model.pos == 0.0
     start = 0.0
     reference = ReferenceServo(ServoParams(**PARAMS), 0.0)
     for k in range(1, 400):
@@ -61,11 +61,11 @@ def test_the_drive_runs_the_shared_servo_model_on_what_it_received():
         command.velocity[:] = 1.8 * math.cos(6.0 * t)
         command.feedforward[:] = -10.8 * math.sin(6.0 * t)
         cycle(drive, image, group, command, k0 + k)
-        reference.command(drive.e_target_pos.value / COUNTS_PER_MOTOR_RAD / GEAR,
-                          drive.e_vel_offset.value / COUNTS_PER_MOTOR_RAD / GEAR,
-                          drive.e_torque_offset.value / 1000.0 * GEAR)
+        reference.command(drive.model.e_target_pos.value / COUNTS_PER_MOTOR_RAD / GEAR,
+                          drive.model.e_vel_offset.value / COUNTS_PER_MOTOR_RAD / GEAR,
+                          drive.model.e_torque_offset.value / 1000.0 * GEAR)
         reference.step(1e-3)
-        assert drive.pos / COUNTS_PER_MOTOR_RAD / GEAR == pytest.approx(reference.position, rel=1e-9), k
+        assert drive.model.pos / COUNTS_PER_MOTOR_RAD / GEAR == pytest.approx(reference.position, rel=1e-9), k
     assert abs(state.position[0] - (start + 0.3 * math.sin(6.0 * 0.398))) < 0.01  # and it tracked
 
 
@@ -94,7 +94,7 @@ def test_cst_gives_the_commanded_joint_torque():
     command.effort[:] = 12.0
     for k in range(1, 50):
         cycle(drive, image, group, command, k0 + k)
-    assert drive.mode == 10
+    assert drive.model.mode == 10
     assert state.effort[0] == pytest.approx(12.0, rel=0.01)  # 0x6077 through the units
     assert state.position[0] == 0.0
 
@@ -109,7 +109,7 @@ def test_a_disabled_drive_turns_its_power_stage_off():
     drive.configure(fault="0x2310")
     for k in range(200, 210):
         cycle(drive, image, group, command, k0 + k)
-    assert drive.state == "fault" and drive.torque == 0.0
+    assert drive.model.state == "fault" and drive.model.torque == 0.0
 
 
 @pytest.mark.parametrize("bad, message", [

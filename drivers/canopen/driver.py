@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import threading
 import time
 from collections import deque
 from pathlib import Path
@@ -38,14 +37,15 @@ from pydantic import Field
 from aiohal.config import ConfigPath
 from aiohal.errors import AiohalError
 from aiohal.fieldbus.busvar import decode_mapping
-from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind, State, Target
-from aiohal.fieldbus.drives import DriveGroup, DriveSpec, respond_to_event
+from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind
+from aiohal.fieldbus.cia402_driver import Cia402Driver
+from aiohal.fieldbus.drives import DriveGroup, DriveSpec
 from aiohal.fieldbus.pdo_options import DriveUnitOptions, parse_number, parse_pdo_entry, pdo_issues
-from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
+from aiohal.hal import FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 from aiohal.safety.watchdog import SendCanFrame, can_frame
-from aiohal.servo import ServoParams
+from aiohal.simulation.servo import ServoParams
 
 from . import busload
 from .sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc, sensor_issues
@@ -127,7 +127,7 @@ class SimulationOptions(Options):
 
     dynamics: Literal["motor", "servo"] = Field(
         "motor",
-        description="motor: a simple motor model; servo: aiohal.servo's cascade (LOLA's, a hip-like joint "
+        description="motor: a simple motor model; servo: aiohal.simulation.servo's cascade (LOLA's, a hip-like joint "
         "behind servo.gear_ratio, which every node's gear_ratio must match).",
     )
     servo: ServoParams = Field(default_factory=ServoParams, description="The drives and joints of dynamics = servo.")
@@ -247,8 +247,9 @@ def _od_value(var: ODVariable) -> int:
     return int(cast(int, var.value if var.value is not None else var.default))
 
 
-class CanopenDriver(Driver):
+class CanopenDriver(Cia402Driver):
     Options = CanopenOptions
+    bus_name = "canopen"
     device_kinds = frozenset({"imu", "force_torque"})
     options: CanopenOptions
 
@@ -337,11 +338,11 @@ class CanopenDriver(Driver):
 
     def __init__(self, name, view, options) -> None:
         super().__init__(name, view, options)
+        self._init_drive_state()  # the drives, the lock on the bus's cycles and their state, no estop
         self.sim: SimBus | None = None  # simulate: the simulated nodes
         self.bus: can.BusABC | None = None
         self.network: canopen.Network | None = None
         self.remotes: list[canopen.RemoteNode] = []
-        self.drives: DriveGroup | None = None
         self.gateway: SensorGateway | None = None
         self._inputs = np.zeros(SPARE, dtype=np.uint8)
         self._outputs = np.zeros(SPARE, dtype=np.uint8)
@@ -356,11 +357,8 @@ class CanopenDriver(Driver):
         self._heartbeat_check_s = options.heartbeat_timeout_ms * 1e-4
         self._emcy: deque[tuple[int, int, int]] = deque()  # (node index, code, register) from the notifier thread
         self._last_emcy = [0] * len(options.nodes)  # each node's last EMCY error code (0: none or reset)
-        self._drive_mask = np.zeros(view.dof, dtype=bool)
-        self._lock = threading.Lock()  # the tick, bring-up/close cycles and estop on the bus
         self._warn = RateLimitedLogger(log)
         self._active = False
-        self._estopped = False
         self._written = False  # write() sent this tick's cycle (the loop skips write below hold)
         self._seen = 0
         self._failed_cycles = 0  # cycles in a row with a frame not sent
@@ -373,10 +371,8 @@ class CanopenDriver(Driver):
         self.malformed = 0
         self.late_cycles = 0
         self.emergencies = 0
-        self.drive_faults = 0
         self.lost_nodes: list[str] = []
         self._started_ns = 0
-        self._enabled_at_close: int | None = None
 
     # ------------------------------------------------------------ lifecycle
 
@@ -485,7 +481,7 @@ class CanopenDriver(Driver):
         for node in self.remotes:
             node.nmt.send_command(0x01)  # OPERATIONAL
         if self.drives is not None:
-            self._wait_enabled()
+            self._wait_enabled(opts.enable_timeout_s)
         self._started_ns = time.monotonic_ns()
         self._written = True  # the first tick's read() sends nothing: its write() does
         self._active = True
@@ -652,18 +648,16 @@ class CanopenDriver(Driver):
         drives.write_holding()
         self._send_cycle()
 
-    def _wait_enabled(self) -> None:
-        period_s = self._cycle_ns() * 1e-9
-        drives = cast(DriveGroup, self.drives)  # bring-up waits only when the bus has drives
-        deadline = time.monotonic() + self.options.enable_timeout_s
-        while time.monotonic() < deadline:
-            with self._lock:
-                self._cycle_holding()
-            if drives.all_enabled():
-                return
-            time.sleep(period_s)
-        states = ", ".join(f"{m.name} {m.state.label}" for m in drives.machines if not m.enabled)
-        raise CanopenError(f"drives not enabled within {self.options.enable_timeout_s:g} s: {states}")
+    def _bringup_wait(self) -> None:
+        """Bring-up cycles the bus itself, a cycle a period."""
+        with self._lock:
+            self._cycle_holding()
+        time.sleep(self._cycle_ns() * 1e-9)
+
+    def _not_enabled_error(self, timeout_s: float) -> Exception:
+        if self._estop_requested:
+            return CanopenError("emergency stop during bring-up: the drives were not enabled")
+        return CanopenError(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
 
     def _send_cycle(self) -> None:
         out = self._out_view
@@ -732,7 +726,7 @@ class CanopenDriver(Driver):
 
     async def write(self) -> None:
         with self._lock:
-            if self._estopped:
+            if self._estop_sent:
                 return
             if self.drives is not None:
                 self.drives.write(self.view.command)
@@ -791,7 +785,6 @@ class CanopenDriver(Driver):
         drives = cast(DriveGroup, self.drives)  # its own drives' state machines report events
         detail = ""
         if event.kind is EventKind.FAULT_ENTERED:
-            self.drive_faults += 1
             machine = drives.machines[i]
             from_drive = machine.error_code  # 0x603F, when the drive maps it
             if self._emcy:  # an EMCY the notifier took after this read began: the fault's code
@@ -799,30 +792,9 @@ class CanopenDriver(Driver):
             if not from_drive and self._last_emcy[i]:  # 0x603F unmapped: the code the EMCY gave
                 machine.error_code = self._last_emcy[i]
                 detail = f" (EMCY error code 0x{machine.error_code:04X})"
-        respond_to_event(drives, i, event, self.view, self._drive_mask, f"canopen {self.name}", detail)
+        self._respond(i, event, detail)
 
     # ------------------------------------------------------------ application API
-
-    def reset_faults(self) -> list[str]:
-        """Grant one fault reset to every faulted drive and enable again those that left
-        Operation enabled unasked; each is enabled where it stands. Their names."""
-        if self.drives is None or self._estopped:
-            return []
-        with self._lock:
-            return self.drives.reset_and_enable()
-
-    def release_estop(self) -> bool:
-        """Leave the emergency stop: every drive (quick-stopped) gets a fault reset where it
-        needs one and is enabled again where it stands, held there by the cycles ``read()``
-        sends until the loop, re-armed, commands it."""
-        if self.drives is None or self.bus is None:
-            return False
-        with self._lock:
-            self._estopped = False
-            self.drives.reset_faults()
-            self.drives.request(Target.ENABLED)
-        log.info("canopen %s: emergency stop released; drives enabled where they stand", self.name)
-        return True
 
     def _remote(self, node: int | str) -> canopen.RemoteNode:
         for k, n in enumerate(self.options.nodes):
@@ -842,22 +814,12 @@ class CanopenDriver(Driver):
 
     # ------------------------------------------------------------ safety and shutdown
 
-    def estop(self) -> None:
-        """Quick stop every drive: one cycle of controlwords 0x02 sent now, without blocking."""
-        if self.drives is None or self.bus is None or self._estopped:
-            return
-        self._estopped = True
-        self.drives.request(Target.QUICK_STOP)
-        if not self._lock.acquire(timeout=0.002):
-            return
-        try:
-            self.drives.controlwords[:] = 0x02
-            self.drives.write_holding()
-            self._send_cycle()
-        except Exception as exc:  # never raise from estop
-            log.error("canopen %s: sending the quick stop failed: %s", self.name, exc)
-        finally:
-            self._lock.release()
+    def _bus_ready(self) -> bool:
+        return self.bus is not None
+
+    def _send_holding(self) -> None:
+        cast(DriveGroup, self.drives).write_holding()  # estop sends only when the bus has drives
+        self._send_cycle()
 
     def safe_actions(self) -> list:
         """An NMT Stop to every node (or ``estop_frame``), sent by the watchdog process on its
@@ -868,31 +830,21 @@ class CanopenDriver(Driver):
         return [SendCanFrame(self.options.channel, estop_can_frame(self.options.estop_frame))]
 
     async def close(self) -> None:
-        if self.drives is not None:
-            self._enabled_at_close = sum(m.enabled for m in self.drives.machines)
+        self._remember_enabled()
         await asyncio.to_thread(self._shutdown)
 
     def _shutdown(self, budget_s: float = 0.5) -> None:
+        """Quick stop every drive and wait for it (the ramp), then disable it, within
+        ``budget_s``; then every node to PRE-OPERATIONAL, and nothing sent any more."""
         try:
             if self.drives is not None and self.bus is not None:
-                self.drives.request(Target.QUICK_STOP if not self._estopped else Target.DISABLED)
-                self._estopped = False
-                deadline = time.monotonic() + budget_s
-                period_s = self._cycle_ns() * 1e-9
-                while time.monotonic() < deadline:
-                    with self._lock:
-                        self._cycle_holding()
-                    if not any(
-                        m.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE) for m in self.drives.machines
-                    ):
-                        break
-                    time.sleep(period_s)
+                self._stop_drives(budget_s, self._cycle_ns() * 1e-9)
                 for node in self.remotes:
                     node.nmt.send_command(0x80)
         except Exception as exc:
             log.warning("canopen %s: stopping the drives failed: %s", self.name, exc)
         finally:
-            self._estopped = True
+            self._estop_requested = self._estop_sent = True
             if self.network is not None:
                 self.network.disconnect()
             if self.sim is not None:
@@ -911,7 +863,6 @@ class CanopenDriver(Driver):
             "late_cycles": self.late_cycles,
             "error_frames": self.error_frames,
             "emergencies": self.emergencies,
-            "drive_faults": self.drive_faults,
         }
         if self._frame_sizes:
             rate = 1e9 / self._cycle_ns()
@@ -925,11 +876,7 @@ class CanopenDriver(Driver):
                 if self.gateway is not None:
                     achieved += self.gateway.bits / elapsed / opts.bitrate
                 out["bus_load_pct"] = round(100 * achieved, 1)
-        if self.drives is not None:
-            enabled = self._enabled_at_close
-            if enabled is None:
-                enabled = sum(m.enabled for m in self.drives.machines)
-            out["drives_enabled"] = f"{enabled}/{len(self.drives)}"
+        out.update(self._drives_health())
         if self.lost_nodes:
             out["lost"] = self.lost_nodes
         if self.gateway is not None:

@@ -41,9 +41,8 @@ import numpy as np
 import pysoem  # the `ethercat` extra; a missing one is reported by the plugin loader
 
 from aiohal.fieldbus.busvar import ProcessImage, UnknownVariableError, VariableTypeError
-from aiohal.fieldbus.cia402 import DriveEvent, EventKind, State, Target
-from aiohal.fieldbus.drives import respond_to_event
-from aiohal.hal import Driver
+from aiohal.fieldbus.cia402 import DriveEvent, EventKind, Target
+from aiohal.fieldbus.cia402_driver import Cia402Driver
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
 
@@ -77,8 +76,9 @@ def _has_variable(image: ProcessImage, slave: str, name: str) -> bool:
     return True
 
 
-class EthercatDriver(Driver):
+class EthercatDriver(Cia402Driver):
     Options = EthercatOptions
+    bus_name = "ethercat"
     device_kinds = frozenset({"imu", "force_torque"})
     options: EthercatOptions
 
@@ -135,11 +135,9 @@ class EthercatDriver(Driver):
     def _init_state(self) -> None:
         """Everything a bring-up attempt starts from (the counters included)."""
         period_ns = self.view.clock.period_ns
-        self._lock = threading.Lock()  # one thread at a time on the cyclic frame and the device state
+        self._init_drive_state()  # the drives, the lock on the cyclic frame and their state, no estop
         self._activated = False  # the first read (activation) was done
         self._in_op = False  # every slave reached OP: the drives apply outputs, their machines run
-        self._estop_requested = False
-        self._estop_sent = False
         self._outstanding = False  # a cyclic frame was sent and not yet received
         self._written = False  # write() packed this tick's outputs (the loop skips write in ESTOP)
         self._last_tick_ns = 0  # when a tick last cycled the bus (monotonic)
@@ -160,7 +158,6 @@ class EthercatDriver(Driver):
         self.infos: list[SlaveInfo] = []
         self.sm_watchdogs: dict[str, float] = {}  # slave name -> its SM watchdog time (ms), read back after OP
         self.image: ProcessImage | None = None
-        self.drives: DriveGroup | None = None
         self.sensors: list[tuple[int, ImuDevice | ForceTorqueDevice]] = []
         self._taring: list[ForceTorqueDevice] = []  # F/T sensors with a tare under way
         self.lost: set[int] = set()
@@ -175,9 +172,7 @@ class EthercatDriver(Driver):
         self.frames_lost = 0  # ...of which no frame came back in time (the others: a slave short)
         self.diagnoses = 0
         self.recovered = 0
-        self.drive_faults = 0
         self.emergencies = 0
-        self._enabled_at_close: int | None = None
         self._rtt_ns = np.zeros(RING, dtype=np.int64)
         self._cpu_ns = np.zeros(RING, dtype=np.int64)
         self._read_cpu = 0
@@ -316,7 +311,6 @@ class EthercatDriver(Driver):
             target = Target.ENABLED if opts.enable_on_open and not self._estop_requested else Target.DISABLED
             self.drives = DriveGroup(image, specs, stuck_after=stuck, target=target)
             self.drives.bind_state(self.view.state)
-            self._drive_mask = np.zeros(view.dof, dtype=bool)
             if self._estop_requested:
                 self.drives.request(Target.QUICK_STOP)
 
@@ -402,29 +396,21 @@ class EthercatDriver(Driver):
                 raise EthercatError(f"cycling the bus between ticks failed: {exc}") from exc
             log.warning("ethercat %s: cycling the bus between ticks failed: %s", self.name, exc)
 
-    def _wait_enabled(self, timeout_s: float) -> None:
-        drives = self.drives
-        assert drives is not None
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and self._keepalive_error is None and not self._estop_requested:
-            if drives.all_enabled():
-                return
-            time.sleep(0.005)
+    def _bringup_wait(self) -> None:
+        """The keep-alive thread cycles the bus meanwhile: a pause, or the error that stopped it."""
+        if self._keepalive_error is not None:
+            self._stop_keepalive()  # raises it
+        time.sleep(0.005)
+
+    def _not_enabled_error(self, timeout_s: float) -> Exception:
+        """The keep-alive thread stopped first (its error, if any, is the one raised)."""
         self._stop_keepalive()
         if self._estop_requested:
-            raise BringUpError("emergency stop during bring-up: the drives were not enabled")
+            return BringUpError("emergency stop during bring-up: the drives were not enabled")
         # a drive still in Fault after its reset would be in Fault again; a slow one may not be
+        drives = cast(DriveGroup, self.drives)  # bring-up waits only when the bus has drives
         error = BringUpError if any(m.faulted for m in drives.machines) else TransientBringUpError
-        raise error(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
-
-    def _not_enabled(self) -> str:
-        if self.drives is None:
-            return ""
-        return ", ".join(
-            f"{m.name} {m.state.label}" + (f" (error 0x{m.error_code:04X})" if m.faulted else "")
-            for m in self.drives.machines
-            if not m.enabled
-        )
+        return error(f"drives not enabled within {timeout_s:g} s: {self._not_enabled()}")
 
     # ------------------------------------------------------------ the tick
 
@@ -568,12 +554,9 @@ class EthercatDriver(Driver):
         if threading.get_ident() != self._loop_thread:  # the keep-alive thread: the loop's next read handles it
             self._pending.append((i, event))
             return
-        if event.kind is EventKind.FAULT_ENTERED:
-            self.drive_faults += 1
-        elif event.kind is EventKind.LOST_ENABLED:
+        if event.kind is EventKind.LOST_ENABLED:
             self._check_states = True  # its slave may have left OP (SM watchdog): that fails the driver
-        # only drives raise events, so there are drives
-        respond_to_event(cast(DriveGroup, self.drives), i, event, self.view, self._drive_mask, f"ethercat {self.name}")
+        self._respond(i, event)
 
     def _handle_pending(self) -> None:
         pending, self._pending = self._pending, []
@@ -687,34 +670,6 @@ class EthercatDriver(Driver):
 
     # ------------------------------------------------------------ application API
 
-    def reset_faults(self) -> list[str]:
-        """Grant one fault reset to every faulted drive and enable again those that left
-        Operation enabled unasked; each is enabled where it stands. The names of those drives."""
-        if self.drives is None or self._estop_requested:
-            return []
-        with self._lock:
-            return self.drives.reset_and_enable()
-
-    def release_estop(self) -> bool:
-        """Leave the emergency stop: every drive (quick-stopped, then disabled by its ramp) gets
-        a fault reset where it needs one and is enabled again where it stands, held there by
-        the cycles until the loop, re-armed, commands it."""
-        if self.drives is None or not self.bus.is_open:
-            return False
-        with self._lock:
-            self._estop_requested = False
-            self._estop_sent = False
-            self.drives.reset_faults()
-            self.drives.request(Target.ENABLED)
-        log.info("ethercat %s: emergency stop released; drives enabled where they stand", self.name)
-        return True
-
-    def enable_drives(self) -> None:
-        """Enable every drive (with ``enable_on_open = false``); each starts where it stands."""
-        if self.drives is not None and not self._estop_requested:
-            with self._lock:
-                self.drives.request(Target.ENABLED)
-
     def tare(self, device: str) -> None:
         """Zero a force/torque sensor, named by its robot device (e.g. ``"wrist_ft"``) or its
         slave: its control output is set for a few cycles of the loop (the sensor tares on
@@ -761,67 +716,38 @@ class EthercatDriver(Driver):
 
     # ------------------------------------------------------------ safety and shutdown
 
-    def estop(self) -> None:
-        """Quick stop every drive: a frame is sent from here at once when the bus is free
-        (within 2 ms); otherwise the next cycle, the tick's or the keep-alive's, carries it."""
-        self._estop_requested = True  # bring-up in progress: it stops and does not enable
-        drives, bus = self.drives, self.bus
-        if drives is None or self._estop_sent or not bus.is_open:
-            return
-        self._estop_sent = True
-        drives.request(Target.QUICK_STOP)
-        if not self._lock.acquire(timeout=0.002):
-            return
-        try:
-            if self._outstanding:
-                self.bus.receive(1000)
-                self._outstanding = False
-            drives.controlwords[:] = [0x02] * len(drives)  # Quick stop (the machines take over next cycle)
-            self._pack_outputs_holding()
-            self.bus.send()
-            self._outstanding = True
-        except Exception as exc:  # never raise from estop
-            log.error("ethercat %s: sending the quick stop failed: %s", self.name, exc)
-        finally:
-            self._lock.release()
+    def _bus_ready(self) -> bool:
+        return self.bus.is_open
+
+    def _send_holding(self) -> None:
+        if self._outstanding:  # a frame of the tick's is still out: take it first
+            self.bus.receive(1000)
+            self._outstanding = False
+        self._pack_outputs_holding()
+        self.bus.send()
+        self._outstanding = True
+
+    def _cycle_holding(self) -> None:
+        self._bringup_cycle(min(self.options.bringup_receive_timeout_us, 10_000))
 
     async def close(self) -> None:
         if self._executor is None:
             return  # never opened
         self._stop_keepalive(raise_error=False)
-        if self.drives is not None:  # for the report: how the run left them, not the shutdown
-            self._enabled_at_close = sum(m.enabled for m in self.drives.machines)
+        self._remember_enabled()
         await asyncio.get_running_loop().run_in_executor(self._executor, self._shutdown)
         self._executor.shutdown(wait=False)
 
     def _shutdown(self, budget_s: float = 1.0) -> None:
         """Quick stop every drive and wait for it (the ramp), then disable it, within
         ``budget_s``; then every slave to INIT."""
-        bus, drives = self.bus, self.drives
         try:
-            if bus.is_open and drives is not None and self.image is not None:
-                deadline = time.monotonic() + budget_s
-                period_s = self.view.clock.period_ns * 1e-9
-                timeout_us = min(self.options.bringup_receive_timeout_us, 10_000)
-                moving = (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
-                for target, done in (
-                    (Target.QUICK_STOP, lambda m: m.state not in moving),
-                    (
-                        Target.DISABLED,
-                        lambda m: m.state in (State.SWITCH_ON_DISABLED, State.NOT_READY_TO_SWITCH_ON, State.FAULT),
-                    ),
-                ):
-                    drives.request(target)
-                    while time.monotonic() < deadline:
-                        with self._lock:
-                            self._bringup_cycle(timeout_us)
-                        if all(done(m) for m in drives.machines):
-                            break
-                        time.sleep(period_s)
+            if self.bus.is_open and self.drives is not None and self.image is not None:
+                self._stop_drives(budget_s, self.view.clock.period_ns * 1e-9)
         except Exception as exc:
             log.warning("ethercat %s: stopping the drives failed: %s", self.name, exc)
         finally:
-            bus.close()
+            self.bus.close()
 
     def health(self) -> dict[str, Any]:
         if self._executor is None:
@@ -853,12 +779,7 @@ class EthercatDriver(Driver):
         out["al_checks"] = self.al_checks
         if self.al_checks_unanswered:
             out["al_checks_unanswered"] = self.al_checks_unanswered
-        if self.drives is not None:
-            enabled = self._enabled_at_close
-            if enabled is None:
-                enabled = sum(m.enabled for m in self.drives.machines)
-            out["drives_enabled"] = f"{enabled}/{len(self.drives)}"
-            out["drive_faults"] = self.drive_faults
+        out.update(self._drives_health())
         if self.emergencies:
             out["emergencies"] = self.emergencies
         if self.lost or self.diagnoses:

@@ -39,11 +39,11 @@ import numpy as np
 from pydantic import Field
 
 from aiohal.errors import AiohalError
-from aiohal.fieldbus import simprocess
-from aiohal.fieldbus.sim_joints import SimulatedJoints
 from aiohal.hal import AnyOptions, Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault, Mode
+from aiohal.simulation import process as simprocess
+from aiohal.simulation.joint_options import SimulatedJoints
 
 from .protocol import (
     DEFAULT_PORT,

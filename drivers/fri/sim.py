@@ -9,7 +9,7 @@ user ints: the strategy is taken from ``$FRI_FRM_INT[strategy_int]`` while in mo
 ``$FRI_FRM_INT[command_int]`` = 10 starts command mode once the quality is PERFECT (the
 command must match the set point, else an interpolation error keeps it in monitor mode), 20
 stops it; ``$FRI_TO_INT[status_int]`` reports 10 (monitor) or 20 (command). In command mode
-with the drives powered the joints follow the command (``aiohal.fieldbus.servo``:
+with the drives powered the joints follow the command (``aiohal.simulation.joints``:
 ``--dynamics first_order``, no physics, or ``servo``, each joint behind a simulated servo
 drive taking the command's slope as velocity feed-forward and, in joint impedance, its added
 torque as torque feed-forward); when the quality falls to ``drop_quality`` the KRC drops to monitor mode, powers the
@@ -48,8 +48,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from aiohal.fieldbus.servo import add_dynamics_arguments, joint_model, servo_from_arguments
 from aiohal.robot import Mode
+from aiohal.simulation.joints import add_dynamics_arguments, joint_model, servo_from_arguments
 
 from .protocol import (
     CMD,
@@ -69,7 +69,7 @@ from .protocol import (
 )
 
 if TYPE_CHECKING:
-    from aiohal.servo import ServoParams
+    from aiohal.simulation.servo import ServoParams
 
 WINDOW = 100  # packets in FRI's statistics
 #: a step above ``max_step`` by less than this is float32 rounding of the set point's two halves
@@ -87,8 +87,8 @@ class KrcOptions:
     drop_quality: Quality = Quality.UNACCEPTABLE  # in CMD at or below this: back to MON, drives off
     ramp_packets: int = 20  # quality is capped while the window fills: BAD, then OK, then graded
     time_constant: float = 0.004  # dynamics "first_order"
-    dynamics: str = "first_order"  # or "servo" (aiohal.fieldbus.servo.joint_model)
-    servo: ServoParams | None = None  # dynamics "servo": the drives (None: aiohal.servo's defaults)
+    dynamics: str = "first_order"  # or "servo" (aiohal.simulation.joints.joint_model)
+    servo: ServoParams | None = None  # dynamics "servo": the drives (None: aiohal.simulation.servo's defaults)
     drop_answers: float = 0.0
     max_step: float = MAX_STEP  # rad per cycle in command mode: a larger step is an interpolation error
     seed: int = 0

@@ -31,12 +31,12 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from aiohal.errors import AiohalError
-from aiohal.fieldbus import simprocess
-from aiohal.fieldbus.sim_joints import SimulatedJoints
 from aiohal.hal import Driver, FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault, Mode
 from aiohal.safety.watchdog import SendDatagram
+from aiohal.simulation import process as simprocess
+from aiohal.simulation.joint_options import SimulatedJoints
 
 from .protocol import (
     COMMAND_RECORD,

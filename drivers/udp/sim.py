@@ -3,7 +3,7 @@
 Each board has its own socket (its own port, as boards have their own addresses), answers
 every command with its joints' state at once, obeys an e-stop datagram at once (latched until
 RESET) and stops its joints when no command came for its watchdog time. The joints are one
-model of ``aiohal.fieldbus.servo``, advanced whenever the simulator wakes: ``--dynamics
+model of ``aiohal.simulation.joints``, advanced whenever the simulator wakes: ``--dynamics
 first_order`` (the position error decays with ``--time-constant``) or ``servo`` (each joint
 behind a simulated servo drive, LOLA's cascade, its parameters as ``--servo-json``).
 
@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from aiohal.fieldbus.servo import add_dynamics_arguments, joint_model, servo_from_arguments
+from aiohal.simulation.joints import add_dynamics_arguments, joint_model, servo_from_arguments
 
 from .protocol import (
     COMMAND_RECORD,
@@ -53,7 +53,7 @@ from .protocol import (
 )
 
 if TYPE_CHECKING:
-    from aiohal.servo import ServoParams
+    from aiohal.simulation.servo import ServoParams
 
 RECV_SIZE = 2048
 
@@ -96,7 +96,7 @@ class SimBoard:
 
 class BoardSimulator:
     """``layout``: joints per board (board ids 1..N unless ``ids``); ``initial``: start positions;
-    ``dynamics`` and ``servo`` (an ``aiohal.servo.ServoParams``): see ``joint_model``."""
+    ``dynamics`` and ``servo`` (an ``aiohal.simulation.servo.ServoParams``): see ``joint_model``."""
 
     def __init__(
         self,

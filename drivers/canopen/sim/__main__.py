@@ -47,7 +47,10 @@ def main(
     parser.add_argument("--sensors", action="store_true", help="also the IMU + F/T gateway (aiohal_sensors.dbc)")
     parser.add_argument("--sensor-period-ms", type=float, default=4.0)
     parser.add_argument(
-        "--dynamics", choices=("motor", "servo"), default="motor", help="servo: aiohal.servo's cascade per drive"
+        "--dynamics",
+        choices=("motor", "servo"),
+        default="motor",
+        help="servo: aiohal.simulation.servo's cascade per drive",
     )
     parser.add_argument(
         "--servo-json", type=json.loads, default=None, help="with --dynamics servo: ServoParams as JSON"

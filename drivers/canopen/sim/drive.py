@@ -9,7 +9,8 @@ objects each time it enters OPERATIONAL, so a master that remaps them in PRE-OPE
 gets what it asked for.
 
 The drive itself (state machine, CSP/CSV/CST servo model, faults and their EMCY codes) is the
-model of aiohal's simulated EtherCAT drives, behind the application objects (0x6000 and up).
+simulated CiA 402 drive every bus simulator shares (:mod:`aiohal.simulation.cia402_drive`),
+behind the application objects (0x6000 and up).
 
 Fault injection: :meth:`inject_fault` (drive fault, EMCY with its code), :meth:`go_silent`
 (the node stops: no heartbeat, no PDO, no SDO answer), :attr:`drop_tpdos` (the next n TPDO
@@ -26,8 +27,8 @@ from typing import cast
 import canopen
 from canopen.sdo import SdoAbortedError, SdoRecord
 
-from ...ethercat.sim.drive import Drive
-from ...ethercat.sim.od import Entry, ObjectDictionary, PdoCodec, SdoAbort
+from aiohal.simulation.cia402_drive import DriveModel
+from aiohal.simulation.od import Entry, ObjectDictionary, PdoCodec, SdoAbort
 
 log = logging.getLogger(__name__)
 
@@ -46,10 +47,10 @@ class SimDrive:
         self.network = network
         self.node_id = node_id
         self.node = canopen.LocalNode(node_id, str(eds))
-        self.model = Drive(serial=node_id)
-        # the drive model's object dictionary: a Drive has CoE, so it is built with the model
-        self.model_od = cast(ObjectDictionary, self.model.od)
-        self.model.state_changed(0, 2, 0)  # power-on self test done: Switch on disabled
+        self.model_od = ObjectDictionary()  # the drive's application objects
+        self._emergencies: list[tuple[int, int]] = []  # (code, register): sent after the SYNC's TPDOs
+        self.model = DriveModel(self.model_od, lambda code, register: self._emergencies.append((code, register)))
+        self.model.self_test_done()  # Switch on disabled
         self.lock = threading.Lock()  # the notifier thread and an injecting test
         self.rx: dict[int, PdoCodec] = {}
         self.tx: list[tuple[int, PdoCodec]] = []
@@ -154,7 +155,7 @@ class SimDrive:
             self.pending.clear()
             self.syncs += 1
             self.model.step(self.syncs * self.cycle_ns, True)
-            emergencies = self.model.take_emergencies()
+            emergencies, self._emergencies = self._emergencies, []
             frames = []
             if self.drop_tpdos > 0:
                 self.drop_tpdos -= 1
@@ -164,8 +165,8 @@ class SimDrive:
                     codec.encode(buf, 0)
                     size = codec.size - 1 if self.wrong_dlc else codec.size
                     frames.append((cob_id, bytes(buf[:size])))
-        for code, register, extra in emergencies:
-            self.node.emcy.send(code, register, extra[:5])
+        for code, register in emergencies:
+            self.node.emcy.send(code, register)
         for cob_id, payload in frames:
             self.network.send_message(cob_id, payload)
 

@@ -58,10 +58,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--dynamics",
         choices=("motor", "servo"),
-        help="every drive's dynamics: servo is aiohal.servo's cascade (a hip-like joint behind a gear)",
+        help="every drive's dynamics: servo is aiohal.simulation.servo's cascade (a hip-like joint behind a gear)",
     )
     p.add_argument(
-        "--servo-json", metavar="JSON", type=json.loads, help="with --dynamics servo: aiohal.servo.ServoParams fields"
+        "--servo-json",
+        metavar="JSON",
+        type=json.loads,
+        help="with --dynamics servo: aiohal.simulation.servo.ServoParams fields",
     )
     p.add_argument("--drop-prob", type=float, help="shortcut for --inject drop prob")
     p.add_argument("--delay-ms", type=float, help="shortcut for --inject delay ms")

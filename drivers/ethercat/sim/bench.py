@@ -12,6 +12,7 @@ import struct
 import time
 from typing import Any
 
+from .drive import Drive
 from .segment import APRD, APWR, BRD, BWR, FPRD, FPWR, FRMW, LRW, Segment
 
 HEADER = bytes.fromhex("ffffffffffff010101010101") + b"\x88\xa4"
@@ -155,7 +156,9 @@ def measure(segment: Segment, frames: int = 2000) -> dict[str, Any]:
         for _st, off in drives:
             struct.pack_into("<HiihB", data, off, cw, 5000, 0, 0, 8)
         m.lrw(bytes(data), first)
-    enabled = sum(1 for esc in segment.active if getattr(esc.device, "state", "") == "operation_enabled")
+    enabled = sum(
+        1 for esc in segment.active if isinstance(esc.device, Drive) and esc.device.model.state == "operation_enabled"
+    )
     fr = frame((LRW, 2, 0, 0, bytes(data)), (FRMW, 2, first, 0x0910, bytes(8)))
     handle = segment.handle_frame
     reply = handle(fr)

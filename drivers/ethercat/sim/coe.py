@@ -20,7 +20,7 @@ from __future__ import annotations
 import struct
 from typing import Any
 
-from .od import (
+from aiohal.simulation.od import (
     ABORT_COMMAND,
     ABORT_GENERAL,
     ABORT_LENGTH,

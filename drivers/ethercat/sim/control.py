@@ -179,8 +179,8 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
             esc.op_delay_ns = 0
             if esc.device.od is not None:
                 esc.device.od.hidden = set()
-            if isinstance(esc.device, Drive) and esc.device.power_on_fault is not None:  # only drives have one
-                esc.device.power_on_fault = None
+            if isinstance(esc.device, Drive) and esc.device.model.power_on_fault is not None:  # only drives have one
+                esc.device.model.power_on_fault = None
             default_watchdog = (esc.wd_implemented, esc.wd_sm_trigger, esc.wd_divider_power_on) == (
                 True,
                 True,

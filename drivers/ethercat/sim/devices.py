@@ -18,8 +18,9 @@ import math
 import random
 from typing import Any
 
-from . import od as odm
-from .od import RO, RW, RWP, Entry, ObjectDictionary, PdoCodec, SdoAbort
+from aiohal.simulation import od as odm
+from aiohal.simulation.od import RO, RW, RWP, Entry, ObjectDictionary, PdoCodec, SdoAbort
+
 from .sii import (
     COE_COMPLETE_ACCESS,
     COE_PDO_ASSIGN,

@@ -1,4 +1,5 @@
-"""CoE object dictionary: data types, entries, objects, and PDO image codecs.
+"""The object dictionary of simulated CiA 301 devices: data types, entries, objects, and PDO
+image codecs; the EtherCAT slaves' CoE and the CANopen drive nodes use it alike.
 
 An :class:`Entry` holds one value (``entry.value``); device models keep references to the entries
 they drive, so a PDO exchange and an SDO access see the same value. A PDO mapping (objects

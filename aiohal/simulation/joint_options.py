@@ -1,7 +1,7 @@
 """The joints' model of a simulated bus device started as a subprocess (the UDP boards, the
 KRC): the options a driver's ``simulation`` table takes, and the simulator's command line
 for them (``--dynamics``, ``--time-constant``, ``--servo-json``; see
-:mod:`aiohal.fieldbus.servo`)."""
+:mod:`aiohal.simulation.joints`)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Literal
 from pydantic import Field
 
 from aiohal.hal import FiniteFloat, Options
-from aiohal.servo import ServoParams
+from aiohal.simulation.servo import ServoParams
 
 
 class SimulatedJoints(Options):

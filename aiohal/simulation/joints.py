@@ -9,7 +9,7 @@ Two, with one interface (``command``, ``stop``, ``step``; ``position``, ``veloci
   advance whenever a datagram comes and stays stable however late it is. Every joint in one
   set of array operations.
 * ``"servo"``, :class:`CascadeServoModel`: each joint behind the servo drive every simulated
-  drive shares (:mod:`aiohal.servo`, compiled with numba, loaded only for this model).
+  drive shares (:mod:`aiohal.simulation.servo`, compiled with numba, loaded only for this model).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 from aiohal.robot import Mode
 
 if TYPE_CHECKING:
-    from aiohal.servo import ServoParams
+    from aiohal.simulation.servo import ServoParams
 
 
 class ServoModel:
@@ -82,7 +82,7 @@ class ServoModel:
 
 
 class CascadeServoModel:
-    """``n`` joints behind simulated servo drives (:mod:`aiohal.servo`: LOLA's cascade with the
+    """``n`` joints behind simulated servo drives (:mod:`aiohal.simulation.servo`: LOLA's cascade with the
     motor, gear, friction and load), with :class:`ServoModel`'s interface.
 
     The command's mode picks the drive's loop, as a CiA 402 drive's mode does:
@@ -109,7 +109,7 @@ class CascadeServoModel:
     max_step = 0.1  # s: FRI's longest cycle
 
     def __init__(self, n: int, params: ServoParams | list[ServoParams] | None = None, initial=None) -> None:
-        from aiohal import servo as sv  # numba: only the simulators that run this model load it
+        from aiohal.simulation import servo as sv  # numba: only the simulators that run this model load it
 
         self._sv = sv
         self.n = n
@@ -167,7 +167,9 @@ def add_dynamics_arguments(parser: argparse.ArgumentParser, time_constant: float
     parser.add_argument(
         "--time-constant", type=float, default=time_constant, help="first_order: the tracking time constant (s)"
     )
-    parser.add_argument("--servo-json", default=None, help="servo: the drives' aiohal.servo.ServoParams as JSON")
+    parser.add_argument(
+        "--servo-json", default=None, help="servo: the drives' aiohal.simulation.servo.ServoParams as JSON"
+    )
 
 
 def servo_from_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> ServoParams | None:
@@ -179,7 +181,7 @@ def servo_from_arguments(parser: argparse.ArgumentParser, args: argparse.Namespa
         parser.error("argument --servo-json: only with --dynamics servo")
     import pydantic
 
-    from aiohal.servo import ServoParams
+    from aiohal.simulation.servo import ServoParams
 
     try:
         return ServoParams.model_validate_json(args.servo_json)

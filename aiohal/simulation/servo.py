@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit, types
 from pydantic import Field
 
-from .hal import Options
+from aiohal.hal import Options
 
 
 class ServoParams(Options):
