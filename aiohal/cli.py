@@ -256,7 +256,8 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: early.append(signal.Signals(signum)))
     try:
-        from .loop import ControlLoop, DriverStatus
+        from .lifecycle import DriverStatus
+        from .loop import ControlLoop
         from .run_report import format_report, write_json
 
         for sig in (signal.SIGINT, signal.SIGTERM):

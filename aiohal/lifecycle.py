@@ -1,11 +1,19 @@
-"""The lifecycle's words: the loop's states, each driver's status, and the slot that holds a
-driver with its status and timing counters (shared by the loop and the safety supervisor)."""
+"""The lifecycle's words and steps: the loop's states, each driver's status, the slot that holds
+a driver with its status and timing counters (shared by the loop and the safety supervisor),
+and bringing the drivers up and down."""
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import Callable
 from enum import StrEnum
+from typing import Any
 
+from .errors import DriverError
 from .hal import Driver
+
+#: ``record_fault(source, phase, error)``: the loop's (its supervisor's) record of faults
+RecordFault = Callable[[str, str, Any], object]
 
 
 class LoopState(StrEnum):
@@ -59,3 +67,58 @@ class DriverSlot:
         self.write_ns = 0
         self.max_read_ns = 0
         self.max_write_ns = 0
+
+    def report(self, ticks: int) -> dict:
+        """This driver's part of the run report: status, timing and its own health."""
+        try:
+            health = self.driver.health()
+        except Exception as exc:
+            health = {"health_error": str(exc)}
+        return {
+            "type": self.type,
+            "status": self.status.value,
+            "joints": len(self.driver.view.joint_names),
+            "read_us_mean": round(self.read_ns / ticks / 1e3, 2) if ticks else None,
+            "write_us_mean": round(self.write_ns / ticks / 1e3, 2) if ticks else None,
+            "read_us_max": round(self.max_read_ns / 1e3, 2),
+            "write_us_max": round(self.max_write_ns / 1e3, 2),
+            **health,
+        }
+
+
+async def open_drivers(slots: list[DriverSlot], record_fault: RecordFault) -> None:
+    """Open every driver, then read each once; the first that raises is recorded, marked
+    failed and raised again as a :class:`DriverError` naming it and the phase."""
+    for phase in ("open", "read"):
+        for slot in slots:
+            step = slot.driver.open if phase == "open" else slot.driver.read
+            try:
+                await step()
+            except Exception as exc:
+                record_fault(f"driver:{slot.name}", phase, exc)
+                slot.status = DriverStatus.FAILED
+                raise DriverError(slot.name, phase, f"{type(exc).__name__}: {exc}") from exc
+            if phase == "open":
+                slot.status = DriverStatus.OPEN
+
+
+async def close_drivers(slots: list[DriverSlot], timeout_s: float, record_fault: RecordFault) -> None:
+    """Close every driver not yet closed, the last opened first, also the failed ones. A
+    close() that raises or hangs past ``timeout_s`` is recorded and e-stopped; one that hangs
+    is abandoned (its thread may never finish)."""
+    for slot in reversed(slots):
+        if slot.status in (DriverStatus.CLOSED, DriverStatus.ABANDONED):
+            continue
+        try:
+            await asyncio.wait_for(slot.driver.close(), timeout_s)
+        except Exception as exc:  # includes TimeoutError: a close() that hangs
+            if isinstance(exc, TimeoutError):
+                exc = TimeoutError(f"close() did not return within {timeout_s:g} s")
+            record_fault(f"driver:{slot.name}", "close", exc)
+            try:
+                slot.driver.estop()
+            except Exception:
+                pass
+            slot.status = DriverStatus.ABANDONED if isinstance(exc, TimeoutError) else slot.status
+        if slot.status not in (DriverStatus.FAILED, DriverStatus.ABANDONED):
+            slot.status = DriverStatus.CLOSED

@@ -33,21 +33,21 @@ from .config import from_parts as config_from_parts
 from .errors import ConfigError, ControllerError, DriverError, LifecycleError
 from .feedforward import VelocityFeedforward, gains_of
 from .hal import Controller
-from .lifecycle import DriverSlot, DriverStatus, LoopState
+from .lifecycle import DriverSlot, LoopState, close_drivers, open_drivers
 from .limits import CommandLimiter
 from .outside.doorkeeper import Doorkeeper
 from .outside.port import LoopPort
-from .realtime import RealtimeState, freeze_heap, freeze_young, thaw_heap
-from .realtime import apply as apply_realtime
+from .realtime import RealtimeState, apply_for_clock, freeze_heap, freeze_young, thaw_heap
 from .realtime import restore as restore_realtime
 from .robot import Mode
+from .run_report import build as build_report
 from .safety import FaultRecord, SafetyEvent, SafetyLevel
 from .safety.stall import StallWatchdog
 from .safety.supervisor import Supervisor
 from .safety.watchdog import FIRED, STAMP, TICK, WatchdogProcess
 from .target_extrapolation import TargetExtrapolator
 from .tick_timing import TickStats
-from .ticker import Ticker, TickSource, TimerfdTickSource, make_source
+from .ticker import Ticker, TickSource, make_source
 
 assert (TICK, STAMP, FIRED) == (0, 1, 3)  # the tick stores heartbeat[0], [1] and reads [3]
 
@@ -205,10 +205,7 @@ class ControlLoop:
             freeze_heap()  # the one full collection, before any driver has a thread to feed
             self._heap_frozen = True
         try:
-            for slot in self.slots:
-                await self._bring_up(slot, "open", slot.driver.open)
-            for slot in self.slots:
-                await self._bring_up(slot, "read", slot.driver.read)
+            await open_drivers(self.slots, self.record_fault)
             self.supervisor.start_watchdog()
         except BaseException:
             self.estop("bring-up failed", source="loop")
@@ -245,16 +242,6 @@ class ControlLoop:
             self.supervisor.controller_failed("start", exc)
         cast(Doorkeeper, self.doors).activate()
 
-    async def _bring_up(self, slot: DriverSlot, phase: str, step: Callable) -> None:
-        try:
-            await step()
-        except Exception as exc:
-            self.record_fault(f"driver:{slot.name}", phase, exc)
-            slot.status = DriverStatus.FAILED
-            raise DriverError(slot.name, phase, f"{type(exc).__name__}: {exc}") from exc
-        if phase == "open":
-            slot.status = DriverStatus.OPEN
-
     async def deactivate(self) -> None:
         """Stop the controller and close every driver (also the failed ones)."""
         if self.state in (LoopState.CLOSED, LoopState.CREATED, LoopState.CONFIGURED):
@@ -275,23 +262,7 @@ class ControlLoop:
 
     async def _close_drivers(self) -> None:
         self.supervisor.stop_watchdog()
-        timeout = self.config.loop.close_timeout_ms / 1e3
-        for slot in reversed(self.slots):
-            if slot.status in (DriverStatus.CLOSED, DriverStatus.ABANDONED):
-                continue
-            try:
-                await asyncio.wait_for(slot.driver.close(), timeout)
-            except Exception as exc:  # includes TimeoutError: a close() that hangs
-                if isinstance(exc, TimeoutError):
-                    exc = TimeoutError(f"close() did not return within {timeout:g} s")
-                self.record_fault(f"driver:{slot.name}", "close", exc)
-                try:
-                    slot.driver.estop()
-                except Exception:
-                    pass
-                slot.status = DriverStatus.ABANDONED if isinstance(exc, TimeoutError) else slot.status
-            if slot.status not in (DriverStatus.FAILED, DriverStatus.ABANDONED):
-                slot.status = DriverStatus.CLOSED
+        await close_drivers(self.slots, self.config.loop.close_timeout_ms / 1e3, self.record_fault)
         if self._heap_frozen:  # every path that closes the drivers ends the loop's freeze
             thaw_heap()
             self._heap_frozen = False
@@ -418,23 +389,7 @@ class ControlLoop:
         self._run_finished.clear()
         self.realtime = RealtimeState()
         try:
-            if self.source.kind == "virtual":
-                # a virtual clock runs flat out: SCHED_FIFO would starve the machine (and be throttled)
-                rt = self.config.realtime
-                asked = [
-                    name
-                    for name, value in (
-                        ("priority", rt.priority),
-                        ("lock_memory", rt.lock_memory),
-                        ("cpus", rt.cpus),
-                        ("spin_guard_us", rt.spin_guard_us),
-                    )
-                    if value
-                ]
-                if asked:  # by design, not a fault: a note, not a warning
-                    self.realtime.applied["not_applied"] = f"{', '.join(asked)} (virtual clock)"
-            else:
-                self.realtime = apply_realtime(self.config.realtime)
+            self.realtime = apply_for_clock(self.source.kind, self.config.realtime)
             if self._heap_frozen:
                 freeze_young()  # what open() and earlier runs left: young generations only
             watchdog = StallWatchdog(self.supervisor, self.config.loop.stall_timeout_ms / 1e3)
@@ -611,71 +566,6 @@ class ControlLoop:
     # ------------------------------------------------------------ report
 
     def report(self) -> dict:
-        """Timing, faults, drivers and the controller's own metrics of the run so far."""
-        stats = self.stats
-        summary = stats.summary()
-        n = stats.count
-        span = (stats.last_tick_ns - stats.first_tick_ns) / 1e9
-        achieved = (n - 1) / span if n > 1 and span > 0 else float("nan")
-        target = 1e9 / self.period_ns
-        controller = self.controller
-        metrics: dict[str, Any] = {"type": self.controller_type}
-        if self._given_controller is None and self.config.controller.type != self.controller_type:
-            metrics["configured"] = self.config.controller.type
-        if self.extrapolator is not None:
-            metrics.update(
-                every=self.extrapolator.every,
-                extrapolate=self.extrapolator.extrapolate,
-                updates=self.extrapolator.updates,
-            )
-        if controller is not None:
-            try:
-                metrics.update(controller.metrics())
-            except Exception as exc:
-                metrics["metrics_error"] = f"{type(exc).__name__}: {exc}"
-        drivers = {}
-        for slot in self.slots:
-            try:
-                health = slot.driver.health()
-            except Exception as exc:
-                health = {"health_error": str(exc)}
-            drivers[slot.name] = {
-                "type": slot.type,
-                "status": slot.status.value,
-                "joints": len(slot.driver.view.joint_names),
-                "read_us_mean": round(slot.read_ns / n / 1e3, 2) if n else None,
-                "write_us_mean": round(slot.write_ns / n / 1e3, 2) if n else None,
-                "read_us_max": round(slot.max_read_ns / 1e3, 2),
-                "write_us_max": round(slot.max_write_ns / 1e3, 2),
-                **health,
-            }
-        return {
-            "robot": self.robot.name,
-            "joints": self.robot.dof,
-            "clock": self.source.kind,
-            "event_loop": self.event_loop,
-            **self._waits(),
-            "overrun_policy": self.config.loop.overrun,
-            "realtime": self.realtime.report() if self.realtime else {},
-            "rate_hz_target": round(target, 3),
-            "rate_hz_achieved": round(achieved, 3),
-            "ticks": n,
-            "missed_ticks": self.missed_ticks,
-            "duration_s": round(span, 4),
-            **summary,
-            "safety_level": self.level.name.lower(),
-            "safety_worst": self.worst_level.name.lower(),
-            "safety": [t.as_dict() for t in self.supervisor.machine.transitions],
-            "stop_reason": self.stop_reason,
-            "commands_refused": self.limiter.refused,
-            "faults": [f.as_dict() for f in self.faults],
-            "drivers": drivers,
-            "controller": metrics,
-        }
-
-    def _waits(self) -> dict:
-        """How the timerfd's waits went: blocked on the timer, or round the event loop."""
-        source = self.source
-        if not isinstance(source, TimerfdTickSource):
-            return {}
-        return {"waits": {"on_timer": source.idle_waits, "through_loop": source.loop_waits}}
+        """Timing, faults, drivers and the controller's own metrics of the run so far
+        (:func:`aiohal.run_report.build`)."""
+        return build_report(self)

@@ -122,6 +122,27 @@ def apply(settings: RealtimeSection) -> RealtimeState:
     return state
 
 
+def apply_for_clock(clock_kind: str, settings: RealtimeSection) -> RealtimeState:
+    """:func:`apply`, except on a virtual clock: it runs flat out, and SCHED_FIFO would starve
+    the machine (and be throttled); what was asked is noted, by design, not as a warning."""
+    if clock_kind != "virtual":
+        return apply(settings)
+    state = RealtimeState()
+    asked = [
+        name
+        for name, value in (
+            ("priority", settings.priority),
+            ("lock_memory", settings.lock_memory),
+            ("cpus", settings.cpus),
+            ("spin_guard_us", settings.spin_guard_us),
+        )
+        if value
+    ]
+    if asked:
+        state.applied["not_applied"] = f"{', '.join(asked)} (virtual clock)"
+    return state
+
+
 def restore(state: RealtimeState) -> None:
     """Undo the per-thread settings (scheduling, affinity, slack); memory stays locked."""
     try:

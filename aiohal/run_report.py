@@ -1,4 +1,5 @@
-"""The end-of-run timing report as text for people (the JSON form is the loop's report dict)."""
+"""The run report: built from the loop (:func:`build`, the JSON form) and written as text for
+people (:func:`format_report`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,102 @@ import os
 import stat
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
+
+from .ticker import TimerfdTickSource
+
+if TYPE_CHECKING:
+    from .config import Config
+    from .hal import Controller
+    from .lifecycle import DriverSlot
+    from .limits import CommandLimiter
+    from .realtime import RealtimeState
+    from .robot import Robot
+    from .safety import FaultRecord, SafetyLevel
+    from .safety.supervisor import Supervisor
+    from .target_extrapolation import TargetExtrapolator
+    from .tick_timing import TickStats
+    from .ticker import TickSource
+
+
+class ReportedLoop(Protocol):
+    """What the report reads of the loop (:class:`aiohal.loop.ControlLoop`)."""
+
+    config: Config
+    robot: Robot
+    source: TickSource
+    stats: TickStats
+    period_ns: int
+    slots: list[DriverSlot]
+    limiter: CommandLimiter
+    extrapolator: TargetExtrapolator | None
+    supervisor: Supervisor
+    realtime: RealtimeState | None
+    event_loop: str
+    stop_reason: str
+
+    @property
+    def missed_ticks(self) -> int: ...
+    @property
+    def level(self) -> SafetyLevel: ...
+    @property
+    def worst_level(self) -> SafetyLevel: ...
+    @property
+    def faults(self) -> list[FaultRecord]: ...
+    @property
+    def controller(self) -> Controller | None: ...
+    @property
+    def controller_type(self) -> str: ...
+
+
+def build(loop: ReportedLoop) -> dict[str, Any]:
+    """Timing, faults, drivers and the controller's own metrics of the run so far."""
+    stats = loop.stats
+    n = stats.count
+    span = (stats.last_tick_ns - stats.first_tick_ns) / 1e9
+    achieved = (n - 1) / span if n > 1 and span > 0 else float("nan")
+    metrics: dict[str, Any] = {"type": loop.controller_type}
+    configured = loop.supervisor.configured_type
+    if configured != loop.controller_type:
+        metrics["configured"] = configured
+    if loop.extrapolator is not None:
+        metrics.update(
+            every=loop.extrapolator.every, extrapolate=loop.extrapolator.extrapolate, updates=loop.extrapolator.updates
+        )
+    if loop.controller is not None:
+        try:
+            metrics.update(loop.controller.metrics())
+        except Exception as exc:
+            metrics["metrics_error"] = f"{type(exc).__name__}: {exc}"
+    source = loop.source  # a timerfd's waits: blocked on the timer, or round the event loop
+    waits = (
+        {"waits": {"on_timer": source.idle_waits, "through_loop": source.loop_waits}}
+        if isinstance(source, TimerfdTickSource)
+        else {}
+    )
+    return {
+        "robot": loop.robot.name,
+        "joints": loop.robot.dof,
+        "clock": loop.source.kind,
+        "event_loop": loop.event_loop,
+        **waits,
+        "overrun_policy": loop.config.loop.overrun,
+        "realtime": loop.realtime.report() if loop.realtime else {},
+        "rate_hz_target": round(1e9 / loop.period_ns, 3),
+        "rate_hz_achieved": round(achieved, 3),
+        "ticks": n,
+        "missed_ticks": loop.missed_ticks,
+        "duration_s": round(span, 4),
+        **stats.summary(),
+        "safety_level": loop.level.name.lower(),
+        "safety_worst": loop.worst_level.name.lower(),
+        "safety": [t.as_dict() for t in loop.supervisor.machine.transitions],
+        "stop_reason": loop.stop_reason,
+        "commands_refused": loop.limiter.refused,
+        "faults": [f.as_dict() for f in loop.faults],
+        "drivers": {slot.name: slot.report(n) for slot in loop.slots},
+        "controller": metrics,
+    }
 
 
 def _fmt(value: Any) -> str:

@@ -81,6 +81,8 @@ class Supervisor:
         self.controller_type = config.controller.type
         self.hold_controller: Controller | None = None
         self._configured: tuple[Controller, str] | None = None  # what rearm() restarts
+        #: the configured controller's type (the report names it when ``hold`` commands instead)
+        self.configured_type = config.controller.type
         #: a tick that starts longer than this after the one before is a stall (hold, a fault)
         gap_ms = config.safety.max_tick_gap_ms
         if gap_ms is None:
@@ -111,6 +113,7 @@ class Supervisor:
         """The configured controller (what :meth:`rearm` restarts) and the HAL's ``hold``."""
         self.controller, self.controller_type = controller, controller_type
         self._configured = (controller, controller_type)
+        self.configured_type = controller_type
         self.hold_controller = hold
 
     # ------------------------------------------------------------ levels and faults
