@@ -187,9 +187,13 @@ def test_safety_signals_hold_estop_and_rearm_a_running_robot(tmp_path):
     # SIGUSR1 holds, SIGUSR2 resets the faults and re-arms, SIGQUIT emergency-stops; SIGUSR2
     # again: the mock releases its stop, the robot is re-armed from where it stands
     proc, report_path, _ = _start(tmp_path)
-    for sig, seen in ((signal.SIGUSR1, "goes to hold"), (signal.SIGUSR2, "SIGUSR2 received"),
-                      (signal.SIGQUIT, "SIGQUIT received"), (signal.SIGUSR1, "SIGUSR1: hold from estop"),
-                      (signal.SIGUSR2, "SIGUSR2 received")):
+    proc.send_signal(signal.SIGUSR1)
+    _wait_for(proc, "goes to hold")
+    # rearm() is refused while hold brakes: at most the fastest joint's velocity over its
+    # acceleration limit (3.56 / 10 s in mock_arm.toml)
+    time.sleep(0.5)
+    for sig, seen in ((signal.SIGUSR2, "re-armed"), (signal.SIGQUIT, "SIGQUIT received"),
+                      (signal.SIGUSR1, "SIGUSR1: hold from estop"), (signal.SIGUSR2, "re-armed")):
         proc.send_signal(sig)
         _wait_for(proc, seen)
     proc.send_signal(signal.SIGINT)
