@@ -155,6 +155,7 @@ class ZenohBridge:
 
         section = self.section
         self._aio = asyncio.get_running_loop()
+        self._put = zenoh.SampleKind.PUT
         if section.accept_setpoints:
             from ..client import RobotClient
 
@@ -258,6 +259,8 @@ class ZenohBridge:
         key = str(sample.key_expr)
         name = key[len(self.base) + len("/cmd/") :]
         try:
+            if sample.kind != self._put:  # a delete carries no command: it must not e-stop
+                raise _Refused("not a put")
             payload = sample.payload.to_bytes()
             if name == "setpoint" and self.section.accept_setpoints:
                 self._setpoint(payload)
