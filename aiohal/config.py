@@ -24,6 +24,7 @@ from . import plugins
 from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
 from .feedforward import FeedforwardSection
 from .feedforward import section_issues as feedforward_issues
+from .files import FileRefused, check_regular, read_regular_text
 from .hal import Controller, Driver, Options, did_you_mean
 from .outside.options import BridgeSection, ClientSection
 from .outside.shm_segment import segment_name
@@ -765,6 +766,11 @@ def _cross_check(
     if safety is not None and safety.workspace and robot is not None:
         doc.issues += _workspace_issues(robot, safety)
     zenoh = bridge.zenoh if bridge is not None else None
+    if zenoh is not None and zenoh.config_file is not None:
+        try:
+            check_regular(zenoh.config_file)
+        except FileRefused as exc:
+            doc.add("bridge.zenoh.config_file", str(exc))
     if (
         zenoh is not None
         and zenoh.accept_setpoints
@@ -814,18 +820,8 @@ def load_config(path: str | Path) -> Config:
     path = Path(path)
     source = str(path)
     try:
-        with open(path, "rb") as f:
-            data = f.read(MAX_CONFIG_BYTES + 1)
-    except OSError as exc:
-        raise ConfigError([ConfigIssue("", f"cannot read the file: {exc}")], source) from None
-    if len(data) > MAX_CONFIG_BYTES:
-        raise ConfigError(
-            [ConfigIssue("", f"the file is larger than {MAX_CONFIG_BYTES // 1024} KiB: not a robot configuration")],
-            source,
-        )
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
+        text = read_regular_text(path, limit=MAX_CONFIG_BYTES)
+    except FileRefused as exc:
         raise ConfigError([ConfigIssue("", f"cannot read the file: {exc}")], source) from None
     too_deep = ConfigError([ConfigIssue("", f"tables or arrays nest more than {MAX_DEPTH} levels deep")], source)
     try:

@@ -26,8 +26,12 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import AfterValidator, Field, ValidationInfo
 
+from .files import read_regular_text
 from .hal import JointValues, Options
 from .robot import JointCommand, JointState, Mode
+
+#: a gains file has one line per joint
+MAX_GAINS_BYTES = 1 << 20
 
 
 def _relative(value: Path | None, info: ValidationInfo) -> Path | None:
@@ -56,10 +60,9 @@ class FeedforwardSection(Options):
         return self.gains is not None or self.k_e is not None
 
 
-def read_gains(path: Path) -> dict[str, float]:
-    """A gains file: ``[k_e]`` with one ``joint = value`` per joint."""
-    with open(path, "rb") as f:
-        data = tomllib.load(f)
+def read_gains(path: Path, key: str = "feedforward.gains") -> dict[str, float]:
+    """A gains file: ``[k_e]`` with one ``joint = value`` per joint (a regular file only)."""
+    data = tomllib.loads(read_regular_text(path, key, limit=MAX_GAINS_BYTES))
     table = data.get("k_e")
     if not isinstance(table, dict) or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in table.values()):
         raise ValueError(f"{path}: a table [k_e] of finite numbers per joint is needed")
@@ -78,7 +81,7 @@ def section_issues(section: FeedforwardSection, joint_names: list[str]) -> list[
     issues = []
     if section.gains is not None:
         try:
-            for name in read_gains(section.gains):
+            for name in read_gains(section.gains, key=""):  # the issue names the key
                 if name not in joint_names:
                     issues.append(("feedforward.gains", f"{section.gains}: unknown joint {name!r}"))
         except (OSError, ValueError, tomllib.TOMLDecodeError) as exc:

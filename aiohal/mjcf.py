@@ -13,8 +13,13 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from .files import check_regular
+
 
 def load_model(path: str | Path) -> mujoco.MjModel:
+    """The model at ``path``; MuJoCo reads the file itself, so it is checked to be a regular
+    file first (a FIFO would hang MuJoCo's read, a device fill memory)."""
+    check_regular(path)
     return mujoco.MjModel.from_xml_path(str(path))
 
 

@@ -10,7 +10,12 @@ and the next point starts a new stream from there (no re-arm). Before the first 
 robot holds where it started, for as long as it takes.
 
 A point that is not finite or lies outside a joint's range is refused and counted, never
-applied. Needs ``[client] shm = true`` (the config check says so).
+applied. The ring's indices come from another process, so the tick trusts none of them: it
+keeps the tail itself, takes at most the ring's capacity per tick, and a head behind the tail
+or more than a capacity ahead of it is a corrupt ring, a fault (:class:`StreamCorrupt`) that
+holds the robot. The stream is then detached: later points are ignored until the robot is
+re-armed, when the controller starts again from the head as it then is. Needs
+``[client] shm = true`` (the config check says so).
 """
 
 from __future__ import annotations
@@ -28,6 +33,10 @@ LATENCY_WINDOW = 1 << 16
 
 class StreamUnderrun(AiohalError, RuntimeError):
     """The setpoint stream ran dry for longer than the controller may hold."""
+
+
+class StreamCorrupt(AiohalError, RuntimeError):
+    """The ring's head is out of range of the tail: a writer broke the ring's protocol."""
 
 
 class StreamParams(Options):
@@ -93,14 +102,16 @@ class StreamController(Controller):
         self.streams_finished = 0
         self._cons[shm_segment.C_FINISHED] = 0
         # stale points from before this start are skipped: the consumer starts at the head
-        self._cons[shm_segment.C_TAIL] = self._head[shm_segment.P_HEAD]
+        # the tail is ours: kept here, never read back from the segment another process can write
+        self._tail = int(self._head[shm_segment.P_HEAD])
+        self._cons[shm_segment.C_TAIL] = self._tail
         self._cons[shm_segment.C_STREAMING] = 1
         cmd.velocity[:] = 0.0
 
     def _take(self, now: int) -> bool:
         """Move the oldest ring point (there is one) into ``_b``; False if it was refused."""
         cons = self._cons
-        tail = cons[shm_segment.C_TAIL]
+        tail = self._tail
         i = tail % self._capacity
         words = self._words[i]
         b = self._b
@@ -113,6 +124,7 @@ class StreamController(Controller):
             np.copyto(b.v, self._vel[i])
         t = int(words[shm_segment.SLOT_T_NS])
         sent = int(words[shm_segment.SLOT_SENT_NS])
+        self._tail = tail + 1
         cons[shm_segment.C_TAIL] = tail + 1  # the slot is ours now: the producer may reuse it
         robot = self.robot
         ok = self._ok
@@ -138,10 +150,18 @@ class StreamController(Controller):
     def update(self, t: float, dt: float) -> None:
         now = self.robot.clock.now_ns
         a = self._a
+        # one read of the head per tick, checked before use: it bounds what this tick consumes
+        head = int(self._head[shm_segment.P_HEAD])
+        ahead = head - self._tail
+        if not 0 <= ahead <= self._capacity:
+            raise StreamCorrupt(
+                f"the setpoint ring's head is {ahead} points ahead of the tail, outside 0..{self._capacity}: "
+                "the stream is detached until the robot is re-armed"
+            )
         # consume every point that is due: the newest due one becomes ``a``
         while True:
             if not self._has_b:
-                while self._cons[shm_segment.C_TAIL] != self._head[shm_segment.P_HEAD]:
+                while self._tail != head:
                     if self._take(now):  # else refused: try the next
                         self._has_b = True
                         break

@@ -4,6 +4,7 @@ wrap and underrun, the stream controller's interpolation, safety requests, and c
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -213,6 +214,53 @@ async def test_a_point_the_tick_finds_invalid_is_refused_and_counted():
             assert client.refused == 1 and client.applied == 1
             np.testing.assert_allclose(client.read().position, [0.01, 0.02, 0.03])
         assert loop.level == SafetyLevel.RUN
+
+
+@contextlib.contextmanager
+def interrupted_after(seconds: float):
+    """Raise TimeoutError in the main thread after ``seconds``: a tick that never returns is
+    interrupted between two bytecodes, so the test fails instead of hanging."""
+
+    def alarm(signum, frame):
+        raise TimeoutError(f"still inside after {seconds} s")
+
+    old = signal.signal(signal.SIGALRM, alarm)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("jump", [10**15, -(10**15), 17, -1])
+async def test_a_ring_head_out_of_range_holds_the_robot_and_detaches_the_stream(jump):
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=1.0))
+    async with loop:
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            client.send([0.01, 0.0, 0.0])
+            await loop.run(ticks=2)
+            client._seg.producer[shm_segment.P_HEAD] += jump  # a writer that breaks the protocol
+            with interrupted_after(10.0):
+                await loop.run(ticks=50)  # returns: the tick is bounded
+            assert loop.robot.clock.tick == 53
+            assert loop.level == SafetyLevel.HOLD
+            assert [f.source for f in loop.faults] == ["controller:stream"]
+            assert "StreamCorrupt" in loop.faults[0].error
+            np.testing.assert_allclose(client.read().command_position, [0.01, 0.0, 0.0])
+            with pytest.raises(NotStreaming):  # detached: nothing more is taken
+                client.send([0.02, 0.0, 0.0])
+            # re-armed, the controller starts again from the head as it is now
+            await ticking(loop, client.reset_faults, 10.0)
+            await ticking(loop, client.rearm, 10.0)
+            assert loop.level == SafetyLevel.RUN
+            client.send([0.03, 0.0, 0.0], final=True)
+            await loop.run(ticks=3)
+            np.testing.assert_allclose(client.read().command_position, [0.03, 0.0, 0.0])
+            assert loop.level == SafetyLevel.RUN
 
 
 # ---------------------------------------------------------------- safety requests

@@ -237,3 +237,32 @@ async def test_a_bridge_that_cannot_open_is_a_fault_not_a_dead_robot():
         assert [f.source for f in loop.faults] == ["bridge:zenoh"]
     finally:
         blocker.close()
+
+
+@pytest.mark.asyncio
+async def test_only_a_put_sample_is_a_command():
+    (port,) = free_ports(1)
+    raw = arm_raw(3)
+    raw["bridge"] = {"zenoh": {"listen": [ep(port)], "multicast_scouting": False, "accept_safety": ["estop"]}}
+    from types import SimpleNamespace
+
+    from helpers import virtual_loop
+
+    from aiohal.safety import SafetyLevel
+
+    loop = virtual_loop(raw)
+    async with loop:
+        await loop.run(ticks=2)
+        bridge = loop.doors.zenoh
+        key = f"{bridge.base}/cmd/estop"
+        delete = SimpleNamespace(key_expr=key, payload=zenoh.ZBytes(b""), kind=zenoh.SampleKind.DELETE)
+        bridge._on_command(delete)  # as zenoh's thread would
+        await asyncio.sleep(0.05)  # a request is acted on by the event loop between two ticks
+        await loop.run(ticks=5)
+        assert loop.level == SafetyLevel.RUN
+        assert bridge.report()["bridge"]["refused_by_reason"] == {"not a put": 1}
+        put = SimpleNamespace(key_expr=key, payload=zenoh.ZBytes(b""), kind=zenoh.SampleKind.PUT)
+        bridge._on_command(put)
+        await asyncio.sleep(0.05)
+        await loop.run(ticks=5)
+        assert loop.level == SafetyLevel.ESTOP

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
+from ..files import read_regular_text
 from ..logutil import RateLimitedLogger
 from ..safety import SafetyLevel, SafetyRequestRefused
 from .options import ZenohBridgeSection
@@ -65,7 +66,10 @@ def zenoh_config(section: ZenohBridgeSection):
     """The session's config: the file if one is named, then the section's keys over it."""
     import zenoh
 
-    config = zenoh.Config.from_file(section.config_file) if section.config_file else zenoh.Config()
+    if section.config_file:  # read here, a regular file only: zenoh's own reader would wait on a FIFO
+        config = zenoh.Config.from_json5(read_regular_text(section.config_file, "bridge.zenoh.config_file"))
+    else:
+        config = zenoh.Config()
     config.insert_json5("mode", json.dumps(section.mode))
     if section.listen:
         config.insert_json5("listen/endpoints", json.dumps(section.listen))
@@ -155,6 +159,7 @@ class ZenohBridge:
 
         section = self.section
         self._aio = asyncio.get_running_loop()
+        self._put = zenoh.SampleKind.PUT
         if section.accept_setpoints:
             from ..client import RobotClient
 
@@ -258,6 +263,8 @@ class ZenohBridge:
         key = str(sample.key_expr)
         name = key[len(self.base) + len("/cmd/") :]
         try:
+            if sample.kind != self._put:  # a delete carries no command: it must not e-stop
+                raise _Refused("not a put")
             payload = sample.payload.to_bytes()
             if name == "setpoint" and self.section.accept_setpoints:
                 self._setpoint(payload)

@@ -18,6 +18,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from ..lifetime import child_env, die_with_parent
 from .codec import PipeError
 from .ends import FastEnd, NrtEnd, PeerGone, pipe_pair
 
@@ -95,6 +96,7 @@ class NrtPeer:
                 [sys.executable, "-m", "aiohal.pipe", "--fd", str(fd), "--target", target, "--options", options_json],
                 pass_fds=(fd,),
                 stdin=subprocess.DEVNULL,
+                env=child_env(),
             )
         except BaseException:
             fast.close()
@@ -172,6 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--target", required=True)
     parser.add_argument("--options", default="{}")
     args = parser.parse_args(argv)
+    die_with_parent()  # a killed loop closes no pipe in time for a target that is not reading
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it closes the pipe to stop us
     end = NrtEnd(socket.socket(fileno=args.fd))
     try:

@@ -15,10 +15,13 @@ from typing import Any
 
 import numpy as np
 
+from ..files import open_regular
 from ..safety import SafetyLevel
 from ..tick_timing import PHASES, percentiles_us
 from .cdr import Layout
 
+#: a recording is loaded whole into memory: larger ones are refused, not read until it runs out
+MAX_RECORDING_BYTES = 4 << 30
 LEVELS = tuple(level.name.lower() for level in sorted(SafetyLevel))  # by value: the recorded number
 
 
@@ -129,7 +132,7 @@ def load(path: str | Path) -> Recording:
     data: dict[int, list[bytes]] = defaultdict(list)
     times: dict[int, list[int]] = defaultdict(list)
     truncated = False
-    with open(path, "rb") as f:
+    with open_regular(path, "recording", limit=MAX_RECORDING_BYTES) as f:
         try:
             for record in StreamReader(f).records:
                 if isinstance(record, Message):

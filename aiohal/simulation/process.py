@@ -1,12 +1,15 @@
 """A simulated bus (joint boards, a KUKA controller) as a subprocess a driver starts itself,
 so that a demo config is one command: the simulator prints one JSON line on stdout once it is
-listening (its ports), and one on stderr when it stops (its counters)."""
+listening (its ports), and one on stderr when it stops (its counters). The simulator ends with
+the process that started it, however that one ends (:mod:`aiohal.lifetime`)."""
 
 from __future__ import annotations
 
 import asyncio
 import json
 from typing import Any, cast
+
+from ..lifetime import child_env
 
 
 class SimulatorStartError(RuntimeError):
@@ -16,7 +19,7 @@ class SimulatorStartError(RuntimeError):
 async def start(args: list[str], timeout_s: float) -> tuple[asyncio.subprocess.Process, dict[str, Any]]:
     """Start ``args``; the process and the JSON object of its first stdout line."""
     process = await asyncio.create_subprocess_exec(
-        *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE
+        *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=child_env()
     )
     try:
         stdout = cast(asyncio.StreamReader, process.stdout)  # stdout=PIPE

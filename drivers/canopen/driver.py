@@ -21,6 +21,7 @@ SDO access (:meth:`sdo_read`, :meth:`sdo_write`) runs in a worker thread, never 
 from __future__ import annotations
 
 import asyncio
+import io
 import logging
 import time
 from collections import deque
@@ -41,6 +42,7 @@ from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind
 from aiohal.fieldbus.cia402_driver import Cia402Driver
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec
 from aiohal.fieldbus.pdo_options import DriveUnitOptions, parse_number, parse_pdo_entry, pdo_issues
+from aiohal.files import FileRefused, check_regular, read_regular_text
 from aiohal.hal import FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
@@ -200,12 +202,19 @@ class _ErrorFrames(can.Listener):
                 self.driver.bus_off = True
 
 
+def load_od(path: str | Path, node_id: int, key: str = "options.nodes[].eds") -> canopen.ObjectDictionary:
+    """A node's EDS/DCF, read here and handed to canopen as text: a regular file only."""
+    text = io.StringIO(read_regular_text(path, key))
+    text.name = str(path)  # canopen picks the format by the name's suffix
+    return canopen.import_od(text, node_id)
+
+
 def configured_frames(options: CanopenOptions) -> tuple[list[int], list[tuple[int, float]]]:
     """The frames the config implies, as its EDS/DCF files and DBC say: per cycle (every
     enabled RPDO, SYNC, every enabled TPDO: data bytes), and the sensors' ((bytes, Hz))."""
     cyclic = [0]  # SYNC
     for node in options.nodes:
-        od = canopen.import_od(str(node.eds or DRIVE_EDS), node.node_id)
+        od = load_od(node.eds or DRIVE_EDS, node.node_id)
         remapped = dict(node.remaps())
         for kind, comm, mapping in (("rpdo", 0x1400, 0x1600), ("tpdo", 0x1800, 0x1A00)):
             if kind in remapped:
@@ -268,8 +277,11 @@ class CanopenDriver(Cia402Driver):
             elif node.joint in moved:
                 issues.append((f"{where}.joint", f'"{node.joint}" is already moved by nodes[{moved[node.joint]}]'))
             moved.setdefault(node.joint, i)
-            if node.eds is not None and not Path(node.eds).is_file():
-                issues.append((f"{where}.eds", f"file not found: {node.eds}"))
+            if node.eds is not None:
+                try:
+                    check_regular(node.eds)
+                except FileRefused as exc:
+                    issues.append((f"{where}.eds", str(exc)))
             issues += pdo_issues(f"{where}.rx_pdos", node.rx_pdos, 0x1600, 0x17FF)
             issues += pdo_issues(f"{where}.tx_pdos", node.tx_pdos, 0x1A00, 0x1BFF)
         for joint in joints:
@@ -432,7 +444,7 @@ class CanopenDriver(Cia402Driver):
         rpdo_slices: list[tuple[int, int, int]] = []
         offsets = []
         for k, node_opts in enumerate(opts.nodes):
-            node = canopen.RemoteNode(node_opts.node_id, str(node_opts.eds or DRIVE_EDS))
+            node = canopen.RemoteNode(node_opts.node_id, load_od(node_opts.eds or DRIVE_EDS, node_opts.node_id))
             node.sdo.RESPONSE_TIMEOUT = opts.sdo_timeout_s
             network.add_node(node)
             self.remotes.append(node)

@@ -21,6 +21,7 @@ import cantools
 import numpy as np
 from pydantic import Field
 
+from aiohal.files import read_regular_text
 from aiohal.hal import FiniteFloat, Options
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import DeviceRecord, DriverView, Fault
@@ -48,8 +49,10 @@ class SensorOptions(Options):
 
 
 @lru_cache(maxsize=8)
-def load_dbc(path: str) -> cantools.database.can.Database:
-    return cast(cantools.database.can.Database, cantools.database.load_file(path, database_format="dbc"))
+def load_dbc(path: str, key: str = "options.dbc") -> cantools.database.can.Database:
+    """The DBC at ``path``, read here (a regular file only: a FIFO or a device is refused)."""
+    text = read_regular_text(path, key)
+    return cast(cantools.database.can.Database, cantools.database.load_string(text, database_format="dbc"))
 
 
 def _signal(db, name: str):

@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from aiohal.lifetime import die_with_parent
 from aiohal.robot import Mode
 from aiohal.simulation.joints import add_dynamics_arguments, joint_model, servo_from_arguments
 
@@ -426,6 +427,7 @@ def parse_address(text: str) -> tuple[str, int]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    die_with_parent()  # started by the fri driver: end with it, however it ends
     p = argparse.ArgumentParser(prog="python -m aiohal.drivers.fri.sim", description=__doc__.splitlines()[0])
     p.add_argument("--remote", required=True, help="HOST:PORT of the remote PC (the driver)")
     p.add_argument("--host", default="127.0.0.1")

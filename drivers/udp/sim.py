@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from aiohal.lifetime import die_with_parent
 from aiohal.simulation.joints import add_dynamics_arguments, joint_model, servo_from_arguments
 
 from .protocol import (
@@ -367,6 +368,7 @@ def parse_address(text: str) -> tuple[str, int]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    die_with_parent()  # started by the udp driver: end with it, however it ends
     p = argparse.ArgumentParser(prog="python -m aiohal.drivers.udp.sim", description=__doc__.splitlines()[0])
     p.add_argument("--boards", type=int, default=1, help="number of boards (ids 1..N)")
     p.add_argument("--joints-per-board", type=int, default=1)
