@@ -277,6 +277,27 @@ async def test_a_board_that_dies_sends_the_robot_to_its_safe_state():
 
 
 @pytest.mark.asyncio
+async def test_a_stall_of_this_process_is_not_a_silent_board():
+    """The boards answer commands: while this process did not run (here blocked for 0.3 s,
+    150 ticks at 500 Hz, between a read and the write, when no reply is due) none were sent,
+    and the boards are not silent."""
+    from aiohal.controllers.hold import HoldController
+
+    class StallsOnce(HoldController):
+        def update(self, t: float, dt: float) -> None:
+            if round(t * 500) == 100:
+                time.sleep(0.3)
+            super().update(t, dt)
+
+    loop = ControlLoop(parse_config(_config(3, silent_ticks=25, simulation={"priority": None})),
+                       controller=StallsOnce())
+    async with loop:
+        report = await loop.run(ticks=300)
+    assert not any("silent" in f["error"] for f in report["faults"]), report["faults"]
+    assert report["drivers"]["boards"]["status"] == "open" and loop.slots[0].driver.silent_boards == []
+
+
+@pytest.mark.asyncio
 async def test_servo_boards_track_a_ramp_and_velocity_feedforward_removes_its_lag():
     """``dynamics = "servo"`` through the driver and the boards' process it starts: a ramp at
     v lags behind the commands by v / K_p without velocity feed-forward (the P position loop

@@ -427,7 +427,7 @@ def parse_address(text: str) -> tuple[str, int]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    die_with_parent()  # started by the fri driver: end with it, however it ends
+    die_with_parent(signal.SIGKILL)  # started by the fri driver: gone with it at once (nothing to tidy)
     p = argparse.ArgumentParser(prog="python -m aiohal.drivers.fri.sim", description=__doc__.splitlines()[0])
     p.add_argument("--remote", required=True, help="HOST:PORT of the remote PC (the driver)")
     p.add_argument("--host", default="127.0.0.1")

@@ -227,6 +227,7 @@ class UdpDriver(Driver):
             0,
         )
         self.silent_boards: list[int] = []
+        self._last_read_tick = 0  # the tick of the last read() (a gap in them is a stall)
         self._warn = RateLimitedLogger(log)
 
     # ------------------------------------------------------------ bring-up
@@ -419,6 +420,11 @@ class UdpDriver(Driver):
         if self._first_read:  # the state read at open counts as the tick before the first
             self._first_read = False
             self.board_tick.fill(tick - 1)
+        elif tick - self._last_read_tick > self.options.silent_ticks // 2:
+            # ticks went by without a read (this process frozen, a host stall): the boards
+            # answer commands, and none were sent; each gets a whole silent_ticks from here
+            np.maximum(self.board_tick, tick - 1, out=self.board_tick)
+        self._last_read_tick = tick
         taken = self._drain(tick, now_ns)
         if self._outstanding:
             self.counters["lost"] += len(self.board_ids) - len(taken)

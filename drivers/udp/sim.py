@@ -368,7 +368,7 @@ def parse_address(text: str) -> tuple[str, int]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    die_with_parent()  # started by the udp driver: end with it, however it ends
+    die_with_parent(signal.SIGKILL)  # started by the udp driver: gone with it at once (nothing to tidy)
     p = argparse.ArgumentParser(prog="python -m aiohal.drivers.udp.sim", description=__doc__.splitlines()[0])
     p.add_argument("--boards", type=int, default=1, help="number of boards (ids 1..N)")
     p.add_argument("--joints-per-board", type=int, default=1)
