@@ -508,6 +508,7 @@ class _DriverEvents(DriverEvents):
 
     def __init__(self, supervisor: Supervisor, name: str, rows: slice) -> None:
         self.supervisor = supervisor
+        self.name = name
         self.source = f"driver:{name}"
         self.rows = rows
 
@@ -515,7 +516,7 @@ class _DriverEvents(DriverEvents):
         supervisor = self.supervisor
         supervisor.record_fault(self.source, phase, reason)
         if hold and supervisor.level > SafetyLevel.HOLD:
-            supervisor.enter_hold(f"{self.source[7:]}: {reason}", source=self.source)
+            supervisor.enter_hold(f"{self.name}: {reason}", source=self.source)
 
     def resync(self, mask: np.ndarray) -> None:
         self.supervisor.resync_joints(self.rows, mask)
