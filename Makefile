@@ -8,7 +8,7 @@ ARGS ?= --duration 10
 # the extras `make test` installs (.ci/run installs the same in its other Pythons' venvs)
 EXTRAS := dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh,docs
 
-.PHONY: run lint test check docs figures bench bench-quick clean
+.PHONY: run lint test suite check docs figures bench bench-quick clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -28,7 +28,14 @@ lint: $(STAMP)
 	$(VENV)/bin/mypy aiohal drivers controllers
 
 test: lint
-	$(PY) -m pytest
+	@$(MAKE) --no-print-directory suite
+
+# The suite in an installed venv (.ci/run: `make suite PY=.venv312/bin/python`). The tests that
+# need no real time run in parallel, one worker per core (pytest-xdist; a file's tests on one
+# worker, so that its module fixtures start once); then the realtime-marked ones, alone.
+suite:
+	$(PY) -m pytest -n auto --dist loadfile -m "not realtime"
+	$(PY) -m pytest -m realtime
 
 check: $(STAMP)
 	$(PY) -m aiohal check $(CONFIG)
