@@ -26,20 +26,113 @@ TEST_PROCESS_TICK_GAP_NS = 5_000_000_000
 def _host_stalls_are_not_the_subject(monkeypatch):
     """A loop ticking on a real clock inside the test process runs without SCHED_FIFO, and a
     loaded host (a user's CI, two CPU hogs) stops this process for 20-80 ms at times: with the
-    default bound (20 ms) that is a stall, and the robot holds. Tests about something else
-    must not be decided by the host, so such a loop gets a 5 s bound here. Tests about stalls
-    set ``[safety] max_tick_gap_ms`` themselves, run on the virtual clock, or run the robot in
-    a process of its own (tests/test_disturbances.py, tests/test_disturbance_matrix.py)."""
+    default bound (20 ms) that is a stall, and the robot holds; the watchdog process, with the
+    same default time (``[safety] watchdog_ms``), e-stops it. Tests about something else must
+    not be decided by the host, so such a loop gets a 5 s bound and a 5 s watchdog process
+    here. Tests about stalls set ``max_tick_gap_ms`` or ``watchdog_ms`` themselves, run on the
+    virtual clock, or run the robot in a process of its own (tests/test_disturbances.py,
+    tests/test_disturbance_matrix.py)."""
     from aiohal.safety import supervisor
 
-    original = supervisor.Supervisor.__init__
+    original_init = supervisor.Supervisor.__init__
+    original_start = supervisor.Supervisor.start_watchdog
+    watchdog_process = supervisor.WatchdogProcess
 
     def init(self, loop) -> None:
-        original(self, loop)
+        original_init(self, loop)
         if loop.config.safety.max_tick_gap_ms is None and loop.source.kind != "virtual":
             self.max_tick_gap_ns = TEST_PROCESS_TICK_GAP_NS
 
+    def start_watchdog(self) -> None:
+        if "watchdog_ms" in self.loop.config.safety.model_fields_set:
+            original_start(self)
+            return
+        with monkeypatch.context() as patch:
+            patch.setattr(supervisor, "WatchdogProcess", lambda actions, _ms, priority: watchdog_process(
+                actions, TEST_PROCESS_TICK_GAP_NS / 1e6, priority))
+            original_start(self)
+
     monkeypatch.setattr(supervisor.Supervisor, "__init__", init)
+    monkeypatch.setattr(supervisor.Supervisor, "start_watchdog", start_watchdog)
+
+
+#: the start of the reason a realtime test skips with when the host could not meet its bound
+HOST_UNFIT = "host unfit for this real-time bound"
+
+#: the bare reference: sleeps to absolute 1 ms deadlines, at a given SCHED_FIFO priority, until
+#: its stdin closes (or 10 min), then prints the worst lateness (ns) of its wakes
+_REFERENCE = """
+import os, select, sys, time
+if int(sys.argv[1]):
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(sys.argv[1])))
+period, worst = 1_000_000, 0
+deadline = start = time.monotonic_ns()
+print("ready", flush=True)
+while not select.select([sys.stdin], [], [], 0)[0] and deadline - start < 600e9:
+    deadline += period
+    time.sleep(max(0, deadline - time.monotonic_ns()) / 1e9)
+    now = time.monotonic_ns()
+    worst = max(worst, now - deadline)
+    deadline = max(deadline, now - now % period)  # after an overrun, from the current period on
+print(worst, flush=True)
+"""
+
+
+class HostReference:
+    """A bare reference measured beside a realtime test: a process of its own that only
+    sleeps to absolute 1 ms deadlines, at the SCHED_FIFO priority of what the test times, and
+    keeps its worst lateness. A bound on aiohal's time allows the host ``allowance_ms``; when
+    the bare loop itself woke later than that during the test, the host could not have met
+    the bound whatever aiohal does, and :meth:`require_fit` skips the test as run on an unfit
+    host (the run's summary counts those skips)."""
+
+    def __init__(self, allowance_ms: float, priority: int = 0) -> None:
+        import subprocess
+        import sys
+
+        self.allowance_ms = allowance_ms
+        self.priority = priority
+        self.worst_ms: float | None = None
+        self.proc = subprocess.Popen([sys.executable, "-I", "-c", _REFERENCE, str(priority)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        if self._line() != "ready":
+            self.proc.kill()
+            pytest.fail("the host reference did not start")
+
+    def _line(self) -> str:
+        import select
+
+        ready, _, _ = select.select([self.proc.stdout], [], [], NOT_HUNG_S)
+        return self.proc.stdout.readline().strip() if ready else ""
+
+    def stop(self) -> float:
+        """Ends the reference (once); its worst lateness in ms."""
+        if self.worst_ms is None:
+            self.proc.stdin.close()
+            line = self._line()
+            self.proc.kill()
+            self.proc.wait(NOT_HUNG_S)
+            self.worst_ms = int(line) / 1e6 if line else float("inf")
+        return self.worst_ms
+
+    def require_fit(self) -> None:
+        worst = self.stop()
+        if worst > self.allowance_ms:
+            where = f"at SCHED_FIFO {self.priority}" if self.priority else "at normal priority"
+            pytest.skip(f"{HOST_UNFIT}: a bare sleep loop {where} woke {worst:.1f} ms late beside this test "
+                        f"(the bound allows the host {self.allowance_ms:g} ms)")
+
+    def __enter__(self) -> HostReference:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    unfit = [r for r in terminalreporter.stats.get("skipped", [])
+             if isinstance(r.longrepr, tuple) and HOST_UNFIT in str(r.longrepr[-1])]
+    terminalreporter.write_line(f"realtime tests skipped on a host unfit for their bounds: {len(unfit)}")
 
 
 def _loop_factories() -> dict:
