@@ -19,7 +19,16 @@ import time
 
 import pytest
 from conftest import ROOT, start_segment
-from test_ethercat_driver import CONFIG, TicksRun, driver_of, one_drive_and, raw_config, segment, sim  # noqa: F401 (fixtures: this module's own segment of the same line)
+from test_ethercat_driver import (  # noqa: F401 (fixtures: this module's own segment of the same line)
+    CONFIG,
+    TicksRun,
+    driver_of,
+    frames_lost_allowed,
+    one_drive_and,
+    raw_config,
+    segment,
+    sim,
+)
 
 from aiohal.config import parse_config
 from aiohal.errors import DriverError
@@ -152,7 +161,8 @@ def test_a_second_master_is_refused_and_the_first_keeps_running(segment, tmp_pat
     report = json.loads(report_path.read_text())
     bus = report["drivers"]["bus"]
     assert report["faults"] == [] and bus["drives_enabled"] == "7/7"
-    assert bus["wkc_errors"] == bus["frames_lost"] <= max(20, bus["cycles"] // 20)  # late frames (stalls) only
+    # late frames only (the simulator not run in time by a loaded host): no wrong working counter
+    assert bus["wkc_errors"] == bus["frames_lost"] <= frames_lost_allowed(segment, bus["cycles"], 20)
 
 
 @pytest.mark.asyncio
