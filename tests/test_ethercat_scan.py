@@ -44,6 +44,8 @@ name = "scanned"
 rate_hz = 1000
 max_feedback_age = 5000
 stall_timeout_ms = 5000
+[safety]
+max_tick_gap_ms = 5000  # a stall of a loaded host (tens of ms) is not what is tested
 [joint_defaults]
 position = [-2.5, 2.5]
 velocity = 2.0

@@ -255,12 +255,13 @@ def _config(n: int, seconds_rate: int = 500, **options) -> dict:
 
 @pytest.mark.asyncio
 async def test_a_loop_runs_on_simulated_boards_it_started_itself():
-    loop = ControlLoop(parse_config(_config(4, key=KEY_HEX, silent_ticks=200, simulation={"priority": None})))
+    loop = ControlLoop(parse_config(_config(4, key=KEY_HEX, silent_ticks=200)))  # the boards at their priority
     async with loop:
         report = await loop.run(duration=0.5)
     health = loop.report()["drivers"]["boards"]  # after close: with the simulated boards' own counters
     assert report["faults"] == [] and report["safety_level"] == "run"
-    assert health["received"] > 0.5 * 250 * 4 and health["unauthenticated"] == health["malformed"] == 0
+    # most of the ticks run got each board's reply (a loaded host skips ticks: those sent nothing)
+    assert health["received"] > 0.5 * report["ticks"] * 4 and health["unauthenticated"] == health["malformed"] == 0
     assert health["simulated_boards"]["commands"] > 0 and health["simulated_boards"]["unauthenticated"] == 0
 
 
@@ -310,8 +311,8 @@ async def test_servo_boards_track_a_ramp_and_velocity_feedforward_removes_its_la
     rob = robot(1)
     opts = UdpOptions.model_validate({
         "simulate": True, "bind_address": "127.0.0.1", "silent_ticks": 1000,
-        "simulation": {"dynamics": "servo", "priority": None,
-                       "servo": {"position_gain": gain, "gravity_torque": 0.0}},
+        # the boards' process at its priority where allowed: it reports its counters on time
+        "simulation": {"dynamics": "servo", "servo": {"position_gain": gain, "gravity_torque": 0.0}},
     })
     d = UdpDriver("boards", rob.driver_view(rob.joint_names), opts)
     await d.open()
