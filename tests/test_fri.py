@@ -36,6 +36,9 @@ from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, JointSpec, Mode, Robot
 from aiohal.simulation.servo import ServoParams
 
+# the KRC grades how soon it is answered: answered as a robot's loop answers (conftest)
+pytestmark = pytest.mark.usefixtures("answers_at_fifo")
+
 # (field, byte offset, bytes) as the reference (shared/reference/kuka_fri.md §1, §2) gives them
 MSR_LAYOUT = [
     ("send_seq", 0, 2), ("refl_seq", 2, 2), ("packet_size", 4, 2), ("datagram_id", 6, 2), ("krl_real", 8, 64),
@@ -275,7 +278,7 @@ async def test_a_loop_at_200_hz_on_a_simulated_krc():
         "robot": {"name": "lwr"}, "loop": {"rate_hz": 200},
         "joints": {f"a{i}": {"position": [-2.9, 2.9], "velocity": 2.0, "acceleration": 20.0, "effort": 100.0} for i in range(7)},
         "driver": [{"type": "fri", "name": "krc", "joints": ["*"],
-                    "options": {"simulate": True, "simulation": {"priority": None}}}],
+                    "options": {"simulate": True}}],
         "controller": {"type": "sine", "params": {"amplitude": 0.1, "frequency": 0.5}},
     }
     loop = ControlLoop(parse_config(raw))
@@ -325,7 +328,7 @@ async def test_a_loop_on_a_simulated_krc_with_servo_dynamics():
         "joints": {f"a{i}": {"position": [-2.9, 2.9], "velocity": 2.0, "acceleration": 20.0, "effort": 100.0} for i in range(7)},
         "driver": [{"type": "fri", "name": "krc", "joints": ["*"],
                     "options": {"simulate": True, "initial_position": 0.5,
-                                "simulation": {"priority": None, "dynamics": "servo",
+                                "simulation": {"dynamics": "servo",
                                                "servo": {"gravity_torque": 40.0}}}}],
         "controller": {"type": "sine", "params": {"amplitude": 0.05, "frequency": 0.5}},
     }

@@ -25,6 +25,9 @@ from aiohal.drivers.fri.sim import STEP_ROUNDING
 from aiohal.loop import ControlLoop
 from aiohal.safety import SafetyLevel, SafetyRequestRefused
 
+# the KRC grades how soon it is answered: answered as a robot's loop answers (conftest)
+pytestmark = pytest.mark.usefixtures("answers_at_fifo")
+
 START = 0.3  # rad, every joint of the simulated arm at the start
 
 
