@@ -23,9 +23,9 @@ from pydantic import ValidationError
 
 from . import __version__, plugins
 from .config import Config, describe_validation_error, json_schema, load_config
+from .core.run_report import check_output_path, counted
 from .errors import AiohalError, ConfigError, ConfigIssue
 from .outside import cli_outputs
-from .run_report import check_output_path, counted
 from .safety import SafetyLevel
 
 if TYPE_CHECKING:
@@ -256,9 +256,9 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: early.append(signal.Signals(signum)))
     try:
-        from .lifecycle import DriverStatus
-        from .loop import ControlLoop
-        from .run_report import format_report, write_json
+        from .core.lifecycle import DriverStatus
+        from .core.loop import ControlLoop
+        from .core.run_report import format_report, write_json
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, on_signal, sig.name)

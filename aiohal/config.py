@@ -21,14 +21,14 @@ from typing import Annotated, Any, Literal, cast
 from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
 
 from . import plugins
+from .core.feedforward import FeedforwardSection
+from .core.feedforward import section_issues as feedforward_issues
+from .core.realtime import RealtimeSection
 from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
-from .feedforward import FeedforwardSection
-from .feedforward import section_issues as feedforward_issues
 from .files import FileRefused, check_regular, read_regular_text
 from .hal import Controller, Driver, Options, did_you_mean
 from .outside.options import BridgeSection, ClientSection
 from .outside.shm_segment import segment_name
-from .realtime import RealtimeSection
 from .record.options import RecordSection
 from .robot import JointSpec, Mode, Robot
 from .safety import SafetySection

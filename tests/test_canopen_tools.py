@@ -13,11 +13,11 @@ import canopen
 import pytest
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.canopen import scan
 from aiohal.drivers.canopen.sim import SimBus
 from aiohal.drivers.canopen.sim.__main__ import main as sim_main
 from aiohal.drivers.canopen.sim.__main__ import node_ids
-from aiohal.loop import ControlLoop
 
 _channels = itertools.count()
 

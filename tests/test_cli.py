@@ -292,7 +292,7 @@ def test_report_json_replaces_a_regular_file_through_its_own_directory(tmp_path)
 
 
 def test_report_json_that_became_unwritable_during_the_run_loses_only_the_file(tmp_path):
-    from aiohal.run_report import write_json
+    from aiohal.core.run_report import write_json
 
     gone = tmp_path / "gone"
     gone.mkdir()

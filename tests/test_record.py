@@ -23,9 +23,9 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
 from aiohal import ControlLoop, load_config
+from aiohal.core.ticker import VirtualTickSource
 from aiohal.outside.recorder import Recorder
 from aiohal.record import RecordSection, load
-from aiohal.ticker import VirtualTickSource
 
 ROOT = Path(__file__).resolve().parents[1]
 HUMANOID = ROOT / "configs" / "mock_humanoid.toml"
@@ -245,7 +245,7 @@ def test_cli_record_into_a_missing_folder_exits_2(tmp_path):
 
 
 def test_importing_the_loop_does_not_import_mcap():
-    code = "import sys, aiohal.loop, aiohal.cli; print(sorted(m for m in sys.modules if m.split('.')[0] in ('mcap', 'matplotlib', 'rich', 'foxglove')))"
+    code = "import sys, aiohal.core.loop, aiohal.cli; print(sorted(m for m in sys.modules if m.split('.')[0] in ('mcap', 'matplotlib', 'rich', 'foxglove')))"
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.stdout.strip() == "[]", proc.stderr
 

@@ -30,8 +30,8 @@ from aiohal.client import (
     RobotNotRunning,
 )
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.errors import AiohalError, ConfigError
-from aiohal.loop import ControlLoop
 from aiohal.outside import shm_segment
 from aiohal.safety import SafetyLevel, SafetyRequestRefused
 

@@ -145,7 +145,7 @@ def test_two_signals_half_a_millisecond_apart_are_an_emergency_stop(tmp_path, cl
     assert exited_after < NOT_HUNG_S
 
 
-@pytest.mark.parametrize("module", ["pydantic", "numpy", "aiohal.loop"])
+@pytest.mark.parametrize("module", ["pydantic", "numpy", "aiohal.core.loop"])
 def test_ctrl_c_while_starting_exits_130_without_a_traceback(module):
     # the SIGINT arrives exactly while `module` is being imported, as a Ctrl-C typed during start-up
     script = f"""

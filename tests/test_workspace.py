@@ -12,10 +12,10 @@ from conftest import CONFIGS, require_module
 mujoco = require_module("mujoco")
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
+from aiohal.core.ticker import VirtualTickSource
 from aiohal.errors import ConfigError
-from aiohal.loop import ControlLoop
 from aiohal.safety import SafetyRequestRefused
-from aiohal.ticker import VirtualTickSource
 
 CONFIG = CONFIGS / "kuka_lwr_sim.toml"
 MODEL = str(CONFIGS / "models" / "kuka_lwr.xml")

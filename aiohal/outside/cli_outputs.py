@@ -16,8 +16,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..core.run_report import check_output_path
 from ..errors import AiohalError, MissingDependencyError
-from ..run_report import check_output_path
 from .port import LoopPort
 
 if TYPE_CHECKING:

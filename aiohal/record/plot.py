@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.tick_timing import PHASES
 from ..safety import SafetyLevel
-from ..tick_timing import PHASES
 
 
 def _pyplot():

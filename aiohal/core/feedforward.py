@@ -26,9 +26,9 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import AfterValidator, Field, ValidationInfo
 
-from .files import read_regular_text
-from .hal import JointValues, Options
-from .robot import JointCommand, JointState, Mode
+from ..files import read_regular_text
+from ..hal import JointValues, Options
+from ..robot import JointCommand, JointState, Mode
 
 #: a gains file has one line per joint
 MAX_GAINS_BYTES = 1 << 20
@@ -45,7 +45,7 @@ class FeedforwardSection(Options):
     """``[feedforward]``: learned velocity feed-forward gains, and how to learn them."""
 
     gains: Annotated[Path | None, AfterValidator(_relative)] = Field(
-        None, description="A gains file written by `python -m aiohal.feedforward learn` (relative to this config)."
+        None, description="A gains file written by `python -m aiohal.learn_feedforward` (relative to this config)."
     )
     k_e: JointValues | None = Field(
         None, description="k_e given here, scalar or per joint (k_vel,ff = 1 + k_e); added to the file's, if both."

@@ -15,21 +15,21 @@ from typing import TYPE_CHECKING, Any, Protocol
 from .ticker import TimerfdTickSource
 
 if TYPE_CHECKING:
-    from .config import Config
-    from .hal import Controller
+    from ..config import Config
+    from ..hal import Controller
+    from ..robot import Robot
+    from ..safety import FaultRecord, SafetyLevel
+    from ..safety.supervisor import Supervisor
     from .lifecycle import DriverSlot
     from .limits import CommandLimiter
     from .realtime import RealtimeState
-    from .robot import Robot
-    from .safety import FaultRecord, SafetyLevel
-    from .safety.supervisor import Supervisor
     from .target_extrapolation import TargetExtrapolator
     from .tick_timing import TickStats
     from .ticker import TickSource
 
 
 class ReportedLoop(Protocol):
-    """What the report reads of the loop (:class:`aiohal.loop.ControlLoop`)."""
+    """What the report reads of the loop (:class:`aiohal.core.loop.ControlLoop`)."""
 
     config: Config
     robot: Robot
