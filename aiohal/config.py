@@ -45,8 +45,22 @@ def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
 ConfigPath = Annotated[Path, AfterValidator(_resolve_relative)]
 
 
+def _name_token(name: str) -> str:
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,63}", name):
+        raise ValueError(
+            "a letter, then at most 63 letters, digits or underscores: it names the shared-memory "
+            f"segment and the ROS 2 topics (e.g. {re.sub(r'[^A-Za-z0-9_]', '_', name).strip('_') or 'robot'!r})"
+        )
+    return name
+
+
 class RobotSection(Options):
-    name: str = Field("robot", min_length=1, description="Robot name, shown in logs and reports.")
+    name: Annotated[str, AfterValidator(_name_token)] = Field(
+        "robot",
+        description="Robot name, shown in logs and reports, and part of the names others find it by: "
+        "the shared-memory segment aiohal.<name>, ROS 2 topics /<name>/...: a letter, then letters, "
+        "digits and underscores (a ROS 2 name token).",
+    )
     model: ConfigPath | None = Field(None, description="Robot model file (MJCF), relative to this config.")
 
 
