@@ -23,8 +23,9 @@ from pydantic import ValidationError
 
 from . import __version__, plugins
 from .config import Config, describe_validation_error, json_schema, load_config
-from .core.run_report import check_output_path, counted
+from .core.run_report import counted
 from .errors import AiohalError, ConfigError, ConfigIssue
+from .files import check_output_path
 from .outside import cli_outputs
 from .safety import SafetyLevel
 
@@ -276,16 +277,23 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
             config.controller.type,
             config.loop.rate_hz,
         )
+        outputs = cli_outputs.RunOutputs(control.port, args)
+        try:
+            outputs.open_live()  # a port in use is refused here, before any driver opens
+        except AiohalError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         try:
             await control.activate()
         except AiohalError as exc:
             log.error("bring-up failed: %s", exc)
             print(f"error: {exc}", file=sys.stderr)
+            outputs.close()
             return 1
         except asyncio.CancelledError:  # a second signal while a driver was still opening
             print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
+            outputs.close()
             return 1
-        outputs = cli_outputs.RunOutputs(control.port, args)
         outputs.start()
         log.info(
             "running%s; Ctrl-C or SIGTERM stops safely",
@@ -314,7 +322,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         status = 1 if control.faults or control.worst_level <= SafetyLevel.ESTOP else 0
         if args.report_json is not None:
             try:
-                write_json(report, args.report_json, protect=(args.config,))
+                write_json(report, args.report_json, protect=(args.config, *config.named_files()))
             except (OSError, ValueError) as exc:  # the path changed during the run
                 log.error("report not written: %s", exc)
                 print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
@@ -340,7 +348,7 @@ def cmd_run(argv: Sequence[str]) -> int:
         return 2
     if args.report_json is not None:
         try:
-            check_output_path(args.report_json, protect=(args.config,))
+            check_output_path(args.report_json, protect=(args.config, *config.named_files()))
         except ValueError as exc:
             print(f"error: --report-json: {exc}", file=sys.stderr)
             return 2

@@ -253,7 +253,7 @@ def _report_targets(tmp_path: Path) -> dict[str, tuple[Path, str]]:
         "symlink": (link, "symbolic link"),
         "directory": (tmp_path, "directory"),
         "directory-with-slash": (Path(f"{tmp_path}/"), "directory"),
-        "config": (config, "configuration file"),
+        "config": (config, "the config or a file it names"),
         "missing-directory": (tmp_path / "nowhere" / "report.json", "does not exist"),
         "device": (tmp_path / "null", "not a regular file"),
     }

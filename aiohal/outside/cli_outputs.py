@@ -16,8 +16,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..core.run_report import check_output_path
 from ..errors import AiohalError, MissingDependencyError
+from ..files import check_output_path
 from .port import LoopPort
 
 if TYPE_CHECKING:
@@ -59,7 +59,7 @@ def check(config: Config, args: argparse.Namespace) -> None:
     path = record_path(config, args)
     if path is not None:
         try:  # the same rule as the report: only ever replace a regular file, never the config
-            check_output_path(path, protect=(args.config,))
+            check_output_path(path, protect=(args.config, *config.named_files()))
         except ValueError as exc:
             raise AiohalError(f"--record {path}: {exc}") from None
     if (path is not None or args.foxglove is not None) and importlib.util.find_spec("mcap") is None:
@@ -84,12 +84,16 @@ class RunOutputs:
         self.live: FoxgloveServer | None = None
         self.status: StatusPanel | None = None
 
-    def start(self) -> None:
-        if self.foxglove_port is not None:
+    def open_live(self) -> None:
+        """Bind the live view's port (before the robot starts: a port in use stops nothing)."""
+        if self.foxglove_port is not None and self.live is None:
             from .foxglove_server import FoxgloveServer
 
             self.live = FoxgloveServer(self.foxglove_port)
             log.info("live view: Foxglove on ws://%s:%d", self.live.host, self.live.port)
+
+    def start(self) -> None:
+        self.open_live()
         if self.path is not None or self.live is not None:
             from .recorder import Recorder
 
