@@ -212,6 +212,12 @@ def format_report(report: dict[str, Any]) -> str:
             f"  record       {rec['path'] or 'live only'}: {rec['ticks']} ticks, {rec['dropped_ticks']} dropped, "
             f"{rec['messages']} messages" + (f", ERROR {rec['error']}" if rec.get("error") else "")
         )
+    panel = report.get("status_panel")
+    if panel and panel["refreshes"]:
+        lines.append(
+            f"  panel        {panel['refreshes']} refreshes, drawing {panel['draw_ms_mean']:.2f} ms mean, "
+            f"{panel['draw_ms_max']:.2f} ms longest (a tick due meanwhile waits; --no-panel turns it off)"
+        )
     for fault in report["faults"]:
         lines.append(f"  FAULT        {fault['source']} in {fault['phase']} at tick {fault['tick']}: {fault['error']}")
     return "\n".join(lines)

@@ -48,6 +48,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PORT",
         help=f"serve the run live to Foxglove on localhost:PORT (default {FOXGLOVE_PORT})",
     )
+    parser.add_argument(
+        "--no-panel",
+        action="store_true",
+        help="no live status panel on the terminal (the report and the log stay); the report says what the panel cost",
+    )
 
 
 def record_path(config: Config, args: argparse.Namespace) -> Path | None:
@@ -79,10 +84,11 @@ class RunOutputs:
         self.path = record_path(port.config, args)
         self.options = port.config.record
         self.foxglove_port: int | None = args.foxglove
-        self.show_status = not args.quiet and sys.stdout.isatty()
+        self.show_status = not args.quiet and not args.no_panel and sys.stdout.isatty()
         self.recorder: Recorder | None = None
         self.live: FoxgloveServer | None = None
         self.status: StatusPanel | None = None
+        self.panel_cost: dict[str, Any] | None = None
 
     def open_live(self) -> None:
         """Bind the live view's port (before the robot starts: a port in use stops nothing)."""
@@ -110,12 +116,15 @@ class RunOutputs:
     def stop_status(self) -> None:
         if self.status is not None:
             self.status.stop()
+            self.panel_cost = self.status.cost()
             self.status = None
 
     def close(self) -> dict[str, Any]:
         """Everything stopped and written; the recording's figures for the report."""
         self.stop_status()
         out: dict[str, Any] = {}
+        if self.panel_cost is not None:
+            out["status_panel"] = self.panel_cost
         if self.recorder is not None:
             out["record"] = self.recorder.close()
         if self.live is not None:
