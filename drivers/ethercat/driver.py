@@ -770,10 +770,8 @@ class EthercatDriver(Cia402Driver):
             key = "rtt_us" if self.options.exchange == "immediate" else "receive_wait_us"
             rtt = self._rtt_ns[:n] if self.cycles < RING else self._rtt_ns
             cpu = self._cpu_ns[:n] if self.cycles < RING else self._cpu_ns
-            out[key] = [round(float(v) / 1e3, 1) for v in np.percentile(rtt, (50, 99))]
-            out["cpu_us"] = (
-                [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
-            )
+            out[key] = _p50_p99_us(rtt)
+            out["cpu_us"] = _p50_p99_us(cpu[cpu > 0]) if (cpu > 0).any() else {}
         if self._keepalive_cycles:
             out["keepalive_cycles"] = self._keepalive_cycles
         out["al_checks"] = self.al_checks
@@ -787,3 +785,8 @@ class EthercatDriver(Cia402Driver):
             out["diagnoses"] = self.diagnoses
             out["recovered"] = self.recovered
         return out
+
+
+def _p50_p99_us(samples_ns: np.ndarray) -> dict[str, float]:
+    p50, p99 = np.percentile(samples_ns, (50, 99)) / 1e3
+    return {"p50": round(float(p50), 1), "p99": round(float(p99), 1)}
