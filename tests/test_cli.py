@@ -511,3 +511,15 @@ def test_a_report_figure_with_parts_gives_each_its_unit():
     assert _item("rtt_us", {"p50": 6.1, "p99": 153.7}) == "rtt (p50 6.10 µs, p99 153.70 µs)"
     assert _item("sm_watchdog_ms", [50.0, 100.0]) == "sm watchdog 50.00 ms; 100.00 ms"
     assert _item("cycles", 12) == "cycles 12"
+
+
+def test_the_report_json_is_written_when_bring_up_fails(tmp_path):
+    config = tmp_path / "robot.toml"
+    config.write_text((ROOT / "configs" / "mock_arm.toml").read_text().replace(
+        'dynamics = "first_order"', 'dynamics = "first_order"\nfaults = { open_error = true }'))
+    report = tmp_path / "report.json"
+    proc = run_cli(config, "--duration", "1", "--clock", "virtual", "--report-json", report)
+    assert proc.returncode == 1
+    data = json.loads(report.read_text())
+    assert data["drivers"]["arm"]["status"] == "failed"
+    assert [(f["source"], f["phase"]) for f in data["faults"]] == [("driver:arm", "open")]

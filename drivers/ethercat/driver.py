@@ -208,18 +208,19 @@ class EthercatDriver(Cia402Driver):
             shift_ns=round(opts.sync0_shift_us * 1000),
             safeop_timeout_s=opts.safeop_timeout_s,
         )
-        written = self._program_watchdogs()
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
             self.infos.append(
                 SlaveInfo(
                     i, s.name, slave.name, slave.man, slave.id, slave.rev, layout, len(slave.output), len(slave.input)
                 )
             )
+        # known from here on, so that a bring-up failing after the mapping reports it
+        self._expected = expected_wkc(self.infos)
+        written = self._program_watchdogs()
         self.image = image = ProcessImage([(s.name, layout) for s, layout in zip(opts.slaves, layouts, strict=True)])
         for info in self.infos:
             image.slave(info.name).check_sizes(info.output_bytes, info.input_bytes)
         self._link_devices()
-        self._expected = expected_wkc(self.infos)
         if self._expected != self.bus.master.expected_wkc:
             log.info(
                 "ethercat %s: expected working counter %d (pysoem says %d)",
