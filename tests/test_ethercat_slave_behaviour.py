@@ -31,8 +31,8 @@ from test_ethercat_driver import (  # noqa: F401 (fixtures: this module's own se
 )
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.errors import DriverError
-from aiohal.loop import ControlLoop
 
 pytestmark = pytest.mark.root
 
