@@ -9,6 +9,7 @@ simulator's control socket from a thread, at a given tick, so the tick never wai
 from __future__ import annotations
 
 import asyncio
+import os
 import struct
 import subprocess
 import sys
@@ -36,6 +37,9 @@ def sim():
     # SM watchdog 1 s: a stall of this shared VM (hundreds of ms at times) stalls the
     # simulator too, and its watchdog would trip when it resumes
     segment = start_segment(LINE, watchdog_ms=WATCHDOG_MS)
+    # the hardware does not stall: the simulated segment answers at SCHED_FIFO (root, as it
+    # starts) beside a loaded host's other work
+    os.sched_setscheduler(segment.pid, os.SCHED_FIFO, os.sched_param(95))
     yield segment
     segment.stop()
 
