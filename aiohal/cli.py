@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("aiohal.cli")
 
-SUBCOMMANDS = ("run", "check", "schema", "plugins", "replay", "plot")
+SUBCOMMANDS = ("run", "check", "schema", "plugins", "info", "replay", "plot")
 
 
 def configure_logging(fmt: str = "auto", level: int = logging.INFO) -> None:
@@ -406,10 +406,16 @@ def cmd_plugins(argv: Sequence[str]) -> int:
     return 0
 
 
-def cmd_replay(argv: Sequence[str]) -> int:
-    from .record.reader import replay_main
+def cmd_info(argv: Sequence[str]) -> int:
+    from .record.reader import info_main
 
-    return replay_main(list(argv))
+    return info_main(list(argv))
+
+
+def cmd_replay(argv: Sequence[str]) -> int:
+    from .record.reader import info_main
+
+    return info_main(list(argv))
 
 
 def cmd_plot(argv: Sequence[str]) -> int:
@@ -428,6 +434,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "check": cmd_check,
         "schema": cmd_schema,
         "plugins": cmd_plugins,
+        "info": cmd_info,
         "replay": cmd_replay,
         "plot": cmd_plot,
     }[command]
