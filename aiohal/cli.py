@@ -413,9 +413,9 @@ def cmd_info(argv: Sequence[str]) -> int:
 
 
 def cmd_replay(argv: Sequence[str]) -> int:
-    from .record.reader import info_main
+    from .record.replay import main as replay_main
 
-    return info_main(list(argv))
+    return replay_main(list(argv))
 
 
 def cmd_plot(argv: Sequence[str]) -> int:

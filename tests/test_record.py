@@ -55,6 +55,7 @@ def run_recorded(tmp_path: Path, ticks: int, options: RecordSection, recorder_cl
         control = ControlLoop(load_config(HUMANOID), tick_source=VirtualTickSource())
         await control.activate()
         snapshots = Snapshots()
+        snapshots(control)  # tick 0: what activation read, recorded by attach()
         control.add_publisher(snapshots)
         recorder = recorder_cls(control.port, tmp_path / "run.mcap", options)
         recorder.attach()
@@ -67,7 +68,7 @@ def run_recorded(tmp_path: Path, ticks: int, options: RecordSection, recorder_cl
 
 def test_lockstep_recording_reads_back_exactly(tmp_path):
     control, snaps, _, summary, _ = run_recorded(tmp_path, 1500, RecordSection(buffer_ticks=4096))
-    assert summary["dropped_ticks"] == 0 and summary["ticks"] == 1500
+    assert summary["dropped_ticks"] == 0 and summary["ticks"] == 1501  # ticks 0..1500
     names = list(control.robot.joint_names)
     # a decoder that is not the encoder: mcap's reader with mcap-ros2-support
     positions, ticks = [], []
@@ -109,7 +110,7 @@ def test_lockstep_recording_reads_back_exactly(tmp_path):
     assert [e.event for e in rec["/safety/events"].messages] == ["activate", "deactivate"]
     # every tick's timing, the same figures as the loop's statistics
     timing = rec["/timing"]
-    assert np.array_equal(timing.tick, ticks)
+    assert np.array_equal(timing.tick, ticks[1:])  # tick 0 ran no tick: no timing
     assert np.array_equal(timing.work_ns, control.stats.work[:1500])
     assert np.array_equal(timing.publish_ns, control.stats.phases[5, :1500])
     assert rec.joint_names == names
@@ -122,7 +123,7 @@ def test_lockstep_recording_reads_back_exactly(tmp_path):
 def test_decimation_per_channel(tmp_path):
     _, snaps, _, _, _ = run_recorded(tmp_path, 400, RecordSection(decimate={"imu": 10, "joint_command": 4}))
     rec = load(tmp_path / "run.mcap")
-    assert len(rec["/joint_states"]) == 400
+    assert len(rec["/joint_states"]) == 401  # ticks 0..400
     assert list(rec["/imu/pelvis_imu"].tick) == [s["tick"] for s in snaps.rows if s["tick"] % 10 == 0]
     assert list(rec["/joint_commands"].tick) == [s["tick"] for s in snaps.rows if s["tick"] % 4 == 0]
     assert list(rec["/joint_commands/extra"].tick) == [s["tick"] for s in snaps.rows if s["tick"] % 4 == 0]
@@ -149,7 +150,7 @@ def test_writer_behind_drops_and_counts_and_never_holds_the_tick(tmp_path):
             recorder = StuckWriter(control.port, tmp_path / "run.mcap", RecordSection(buffer_ticks=64))
             recorder.attach()
             report = await asyncio.wait_for(control.run(ticks=500), 60)
-            assert recorder.ring.dropped == 500 - 64 and recorder.ticks_written == 0
+            assert recorder.ring.dropped == 501 - 64 and recorder.ticks_written == 0  # ticks 0..500
             StuckWriter.release.set()
             await control.deactivate()
             return report, recorder.close()
@@ -158,9 +159,9 @@ def test_writer_behind_drops_and_counts_and_never_holds_the_tick(tmp_path):
     finally:
         StuckWriter.release.set()
     assert report["ticks"] == 500
-    assert summary["dropped_ticks"] == 436 and summary["ticks"] == 64
+    assert summary["dropped_ticks"] == 437 and summary["ticks"] == 64
     rec = load(tmp_path / "run.mcap")
-    assert list(rec["/joint_states"].tick) == list(range(1, 65))  # the first 64, the rest counted
+    assert list(rec["/joint_states"].tick) == list(range(64))  # the first 64, the rest counted
 
 
 def test_sigkilled_recording_holds_its_flushed_ticks(tmp_path):
@@ -264,8 +265,8 @@ def test_cli_record_and_info(tmp_path):
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
-    assert summary["robot"] == "mock_arm" and summary["ticks"] == 500 and summary["missing_ticks"] == 0
-    assert summary["channels"]["/joint_states"] == 500
+    assert summary["robot"] == "mock_arm" and summary["ticks"] == 501 and summary["missing_ticks"] == 0
+    assert summary["channels"]["/joint_states"] == 501  # ticks 0 (activation) to 500
 
 
 def test_cli_record_into_a_missing_folder_exits_2(tmp_path):

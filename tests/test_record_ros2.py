@@ -90,7 +90,7 @@ def test_walkman_recording_decodes_as_joint_state_with_33_names_on_every_tick(tm
             assert schema.name == "sensor_msgs/msg/JointState"
             assert list(msg.name) == names and len(msg.position) == 33
             ticks.append(message.sequence)
-    assert ticks == list(range(1, 501))
+    assert ticks == list(range(501))  # tick 0: the state read at activation
 
 
 def test_rosbag2_directory_is_read_by_rosbags(tmp_path):
@@ -110,11 +110,11 @@ def test_rosbag2_directory_is_read_by_rosbags(tmp_path):
         states = [c for c in reader.connections if c.topic == "/joint_states"]
         decoded = [store.deserialize_cdr(raw, c.msgtype) for c, _, raw in reader.messages(connections=states)]
         assert reader.message_count == sum(c.msgcount for c in reader.connections)
-    assert len(decoded) == 300 and all(list(m.name) == names for m in decoded)
+    assert len(decoded) == 301 and all(list(m.name) == names for m in decoded)
     info = subprocess.run([sys.executable, "-m", "aiohal", "info", str(bag), "--json"],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert info.returncode == 0, info.stderr
-    assert json.loads(info.stdout)["ticks"] == 300
+    assert json.loads(info.stdout)["ticks"] == 301
 
 
 def test_record_into_an_existing_directory_exits_2(tmp_path):

@@ -154,8 +154,9 @@ class Recorder:
     # ------------------------------------------------------------ lifecycle
 
     def attach(self) -> None:
-        """Start recording: the robot's description (latched), the writer thread, the health
-        sampler (if an event loop runs) and the tick's publisher. Call before ``control.run()``."""
+        """Start recording: the robot's description (latched), tick 0 (the state the activation
+        read, when called between ``activate()`` and ``run()``), the writer thread, the health
+        sampler (if an event loop runs) and the tick's publisher."""
         if self._attached:
             return
         port = self.port
@@ -184,6 +185,8 @@ class Recorder:
         if loop is not None:
             self._health_task = loop.create_task(self._sample_health())
         self._publisher = self.publisher()
+        if not port.running and port.tick == 0:
+            self._publisher(None)  # tick 0: the state read at activation, where the controller started
         port.at_tick_end(self._publisher)
 
     def publisher(self) -> TickEnd:
