@@ -133,7 +133,8 @@ class Recording:
                 ticks=len(state),
                 first_tick=int(ticks[0]),
                 last_tick=int(ticks[-1]),
-                duration_s=round(float(state.t[-1] - state.t[0]), 4),
+                # from tick 1: tick 0 is the activation's read, stamped before the run started
+                duration_s=round(float(state.t[-1] - state.t[1 if ticks[0] == 0 and len(ticks) > 1 else 0]), 4),
                 missing_ticks=expected - len(state),
             )
         out["channels"] = {topic: len(s) for topic, s in sorted(self.series.items())}
