@@ -19,9 +19,9 @@ import pytest
 from conftest import CONFIGS, ROOT, require_root, start_segment
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.ethercat.bus import EthercatError
 from aiohal.errors import ConfigError, DriverError
-from aiohal.loop import ControlLoop
 from aiohal.robot import Fault
 
 pytestmark = pytest.mark.root
@@ -529,7 +529,15 @@ async def test_a_remapping_the_slave_refuses_fails_the_bring_up_with_the_object_
     with pytest.raises(DriverError) as err:
         await loop.activate()
     assert "slave 1 (AIOHAL-Drive): PDO remapping, SDO write 0x1601:00: abort 0x06040041" in str(err.value)
+    assert "its previous one is restored" in str(err.value)
     assert not driver_of(loop).bus.is_open
+    # the slave was given its mapping back: the next bring-up, without the remap, runs (a slave
+    # left with 0x1C12:00 = 0 would refuse SAFEOP until a power cycle)
+    async with ControlLoop(parse_config(raw_config(segment.ifname, bringup_attempts=1))) as loop:
+        runs = TicksRun()
+        loop.add_publisher(runs)
+        report = await runs.run(loop, 200)
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "7/7"
 
 
 def test_pdo_remapping_config_errors_name_the_key():

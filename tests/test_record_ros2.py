@@ -23,9 +23,9 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.rosbag2 import Reader as BagReader
 
 from aiohal import ControlLoop, load_config, ros2
+from aiohal.core.ticker import VirtualTickSource
 from aiohal.outside.recorder import Recorder
 from aiohal.record import RecordSection, load
-from aiohal.ticker import VirtualTickSource
 
 ROOT = Path(__file__).resolve().parents[1]
 HUMANOID = ROOT / "configs" / "mock_humanoid.toml"

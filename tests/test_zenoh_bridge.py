@@ -199,7 +199,7 @@ async def test_bridge_in_process_publishes_at_its_rate_and_stops_cleanly():
     raw["robot"]["name"] = f"zen_{uuid.uuid4().hex[:6]}"
     raw["loop"]["clock"] = "auto"
     raw["bridge"] = {"zenoh": {"listen": [ep(pr)], "multicast_scouting": False, "state_hz": 50}}
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     loop = ControlLoop(parse_config(raw))
     assert loop.doors is None

@@ -13,7 +13,7 @@ import logging
 import threading
 from typing import Any
 
-from ..errors import MissingDependencyError
+from ..errors import AiohalError, MissingDependencyError
 
 log = logging.getLogger(__name__)
 
@@ -40,9 +40,12 @@ class FoxgloveServer:
             def on_subscribe(self, client: Any, channel: Any) -> None:
                 resend(client, channel)
 
-        self.server = foxglove.start_server(
-            name=name, host=host, port=port, context=self.context, server_listener=Listener()
-        )
+        try:
+            self.server = foxglove.start_server(
+                name=name, host=host, port=port, context=self.context, server_listener=Listener()
+            )
+        except RuntimeError as exc:  # foxglove raises its errors as RuntimeError("FoxgloveError: ...")
+            raise AiohalError(f"--foxglove {port}: the live view cannot listen on {host}:{port} ({exc})") from None
         self.host = host
         self.port = self.server.port
 

@@ -29,10 +29,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .. import ros2
+from ..core.tick_timing import PHASES
 from ..record.options import RecordSection
 from ..ros2.fixed import FixedLayout, with_values
 from ..safety import SafetyLevel
-from ..tick_timing import PHASES
 from . import recorder_ring as R
 from . import recorder_topics as T
 from .port import LoopPort, TickEnd
@@ -95,9 +95,9 @@ class Recorder:
         self.ring = R.TickRing(
             self._arrays, self.options.buffer_ticks, [stats.lateness, stats.work, *stats.phases], stats.mask
         )
-        from .. import kernel_call
+        from ..core import compiled_entry
 
-        self._kernel = kernel_call.compiled_for(
+        self._kernel = compiled_entry.compiled_for(
             R.record_tick, (self.ring.data, self.ring.sources, self.ring.state, 0, 0, 0, 0)
         )
         self.channels = [self._channel(topic) for topic in topics]

@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 
 from .. import ros2
+from ..core.tick_timing import PHASES
 from ..record.options import Channel
 from ..robot import CommandRow, StateRow
-from ..tick_timing import PHASES
 from . import recorder_ring as R
 
 #: (meta rows, data rows) -> numbers by field path, one row per tick

@@ -30,7 +30,7 @@ class RecordSection(Options):
         description="Record every run of this config to this MCAP file, or to this rosbag2 directory if the "
         "name does not end in .mcap (the CLI's --record overrides it).",
     )
-    decimate: dict[Channel, Annotated[int, Field(ge=1)]] = Field(
+    decimate: dict[Channel, Annotated[int, Field(ge=1, le=1_000_000)]] = Field(
         default_factory=dict,
         description="Keep every n-th tick of a channel (default 1: every tick), e.g. { imu = 10 }.",
     )
@@ -53,5 +53,8 @@ class RecordSection(Options):
         10.0, gt=0, le=100, description="How often drivers' health and the controller's metrics are recorded."
     )
     live_decimate: int = Field(
-        10, ge=1, description="With --foxglove: send every n-th tick of each channel live (default: 100 Hz at 1 kHz)."
+        10,
+        ge=1,
+        le=1_000_000,
+        description="With --foxglove: send every n-th tick of each channel live (default: 100 Hz at 1 kHz).",
     )

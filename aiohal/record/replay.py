@@ -88,8 +88,8 @@ def replay_config(config_path: Path, recording: Path, rec: Recording) -> Any:
 
 async def run_replay(config: Any, rec: Recording) -> ReplayResult:
     """Run the controller on the recorded state for every recorded tick and compare commands."""
-    from ..loop import ControlLoop
-    from ..ticker import VirtualTickSource
+    from ..core.loop import ControlLoop
+    from ..core.ticker import VirtualTickSource
 
     recorded = rec["/joint_commands"]
     extra = rec.series.get("/joint_commands/extra")
