@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -26,6 +26,8 @@ from . import recorder_ring as R
 
 #: (meta rows, data rows) -> numbers by field path, one row per tick
 Fields = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
+#: (ring rows, device index, field) -> that field's values, one row per tick
+FieldOf = Callable[[np.ndarray, int, str], np.ndarray]
 AIOHAL = ros2.PACKAGE + "/msg/"
 STAMP = ("header.stamp.sec", "header.stamp.nanosec")
 
@@ -61,10 +63,9 @@ def tick_topics(robot: Any, add_array: Callable[[np.ndarray], int], ring: Callab
     zeros = np.zeros(n)
     head = ros2.header(0)
     state, command = robot.state, robot.command
-    i_state, i_sfault = add_array(state.block), add_array(state.fault)
-    i_cmd, i_mode = add_array(command.block), add_array(command.mode)
+    i_state, i_cmd = add_array(state.block), add_array(command.block)
 
-    def block_rows(index: int, rows: dict[str, int] | dict[str, StateRow] | dict[str, CommandRow]) -> Fields:
+    def block_rows(index: int, rows: Mapping[str, int]) -> Fields:
         def fields(meta: np.ndarray, data: np.ndarray) -> dict[str, np.ndarray]:
             block = ring().field(data, index)
             return {f: block[:, r] for f, r in rows.items()}
@@ -77,88 +78,64 @@ def tick_topics(robot: Any, add_array: Callable[[np.ndarray], int], ring: Callab
 
         return fields
 
+    def extra(
+        topic: str, key: Channel, msgtype: str, block: int, rows: Mapping[str, int], last: str, array: np.ndarray
+    ) -> TickTopic:
+        """The joints' rows beyond JointState: ``rows`` of a block, then the array ``last``."""
+        sample = _msg(
+            AIOHAL + msgtype,
+            header=head,
+            tick=0,
+            name=names,
+            **dict.fromkeys(rows, zeros),
+            **{last: np.zeros(n, dtype=array.dtype)},
+        )
+        return TickTopic(topic, key, sample, with_array(block_rows(block, rows), last, add_array(array)))
+
     joint_state = _msg(
         "sensor_msgs/msg/JointState", header=head, name=names, position=zeros, velocity=zeros, effort=zeros
     )
-    three = {"position": StateRow.POSITION, "velocity": StateRow.VELOCITY, "effort": StateRow.EFFORT}
-    topics = [
-        TickTopic("/joint_states", "joint_state", joint_state, block_rows(i_state, three)),
+    S, C = StateRow, CommandRow
+    return [
         TickTopic(
+            "/joint_states",
+            "joint_state",
+            joint_state,
+            block_rows(i_state, {"position": S.POSITION, "velocity": S.VELOCITY, "effort": S.EFFORT}),
+        ),
+        extra(
             "/joint_states/extra",
             "joint_state",
-            _msg(
-                AIOHAL + "JointStateExtra",
-                header=head,
-                tick=0,
-                name=names,
-                motor_position=zeros,
-                motor_velocity=zeros,
-                temperature=zeros,
-                fault=np.zeros(n, dtype=np.uint32),
-            ),
-            with_array(
-                block_rows(
-                    i_state,
-                    {
-                        "motor_position": StateRow.MOTOR_POSITION,
-                        "motor_velocity": StateRow.MOTOR_VELOCITY,
-                        "temperature": StateRow.TEMPERATURE,
-                    },
-                ),
-                "fault",
-                i_sfault,
-            ),
+            "JointStateExtra",
+            i_state,
+            {"motor_position": S.MOTOR_POSITION, "motor_velocity": S.MOTOR_VELOCITY, "temperature": S.TEMPERATURE},
+            "fault",
+            state.fault,
         ),
         TickTopic(
             "/joint_commands",
             "joint_command",
             joint_state,
-            block_rows(
-                i_cmd, {"position": CommandRow.POSITION, "velocity": CommandRow.VELOCITY, "effort": CommandRow.EFFORT}
-            ),
+            block_rows(i_cmd, {"position": C.POSITION, "velocity": C.VELOCITY, "effort": C.EFFORT}),
         ),
-        TickTopic(
+        extra(
             "/joint_commands/extra",
             "joint_command",
-            _msg(
-                AIOHAL + "JointCommandExtra",
-                header=head,
-                tick=0,
-                name=names,
-                stiffness=zeros,
-                damping=zeros,
-                feedforward=zeros,
-                mode=np.zeros(n, dtype=np.int8),
-            ),
-            with_array(
-                block_rows(
-                    i_cmd,
-                    {
-                        "stiffness": CommandRow.STIFFNESS,
-                        "damping": CommandRow.DAMPING,
-                        "feedforward": CommandRow.FEEDFORWARD,
-                    },
-                ),
-                "mode",
-                i_mode,
-            ),
+            "JointCommandExtra",
+            i_cmd,
+            {"stiffness": C.STIFFNESS, "damping": C.DAMPING, "feedforward": C.FEEDFORWARD},
+            "mode",
+            command.mode,
         ),
-    ]
-    topics += _device_topics(robot, add_array, ring)
-    topics.append(_timing_topic())
-    topics.append(
+        *_device_topics(robot, add_array, ring),
+        _timing_topic(),
         TickTopic(
             "/safety",
             "safety",
             _msg(AIOHAL + "SafetyLevel", header=head, tick=0, level=0),
             lambda meta, data: {"level": meta[:, R.LEVEL]},
-        )
-    )
-    return topics
-
-
-#: (ring rows, device index, field) -> that field's values, one row per tick
-FieldOf = Callable[[np.ndarray, int, str], np.ndarray]
+        ),
+    ]
 
 
 def _device_topics(

@@ -20,25 +20,11 @@ import numpy as np
 
 from .messages import serialize, typestore
 
-#: ROS 2 number types as numpy dtypes (CDR is little-endian here)
+#: ROS 2 number types as numpy dtypes (CDR is little-endian here); most share numpy's names
 DTYPES: dict[str, np.dtype] = {
-    name: np.dtype(dtype)
-    for name, dtype in (
-        ("bool", np.bool_),
-        ("byte", np.uint8),
-        ("char", np.uint8),
-        ("int8", np.int8),
-        ("uint8", np.uint8),
-        ("int16", np.int16),
-        ("uint16", np.uint16),
-        ("int32", np.int32),
-        ("uint32", np.uint32),
-        ("int64", np.int64),
-        ("uint64", np.uint64),
-        ("float32", np.float32),
-        ("float64", np.float64),
-    )
-}
+    name: np.dtype(name)
+    for name in ("bool", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "float32", "float64")
+} | {"byte": np.dtype(np.uint8), "char": np.dtype(np.uint8)}
 
 
 def number_fields(sample: Any, prefix: str = "") -> dict[str, tuple[np.dtype, int | None]]:
