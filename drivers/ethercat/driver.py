@@ -550,7 +550,7 @@ class EthercatDriver(Cia402Driver):
 
     def _on_drive_event(self, i: int, event: DriveEvent) -> None:
         if not self._activated:  # bring-up: open() and the activation read report what does not come up
-            log.info("ethercat %s: %s", self.name, event)
+            log.debug("ethercat %s: %s", self.name, event)  # the enable sequence: four lines a drive
             return
         if threading.get_ident() != self._loop_thread:  # the keep-alive thread: the loop's next read handles it
             self._pending.append((i, event))
