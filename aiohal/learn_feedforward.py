@@ -34,6 +34,7 @@ async def learn(config: Any, duration_s: float | None = None) -> tuple[GainLearn
             max(1, round(section.window_s * rate)),
             round(section.settle_s * rate),
             clock=loop.robot.clock,
+            delay=section.measurement_delay_ticks,
         )
         windows = (section.max_steps + 2) * (1 + LearningFeedforward.MAX_REPEATS)  # repeats: see LearningFeedforward
         limit = duration_s or section.settle_s + section.window_s * windows
