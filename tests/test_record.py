@@ -347,3 +347,25 @@ def test_a_live_view_port_in_use_exits_2_before_the_robot_starts(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert f"--foxglove {port}: the live view cannot listen" in proc.stderr and "Traceback" not in proc.stderr
     assert "starting robot" in proc.stderr and "running" not in proc.stderr  # built, never activated
+
+
+def test_a_recording_whose_messages_do_not_decode_is_refused_by_name(tmp_path):
+    """info, replay and plot on an MCAP whose JointState messages are garbage: exit 2 naming the
+    topic and the type, no traceback."""
+    from mcap.writer import Writer
+
+    bad = tmp_path / "bad.mcap"
+    with open(bad, "wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2")
+        schema = writer.register_schema(name="sensor_msgs/msg/JointState", encoding="ros2msg", data=b"@@ not a msg")
+        channel = writer.register_channel(topic="/joint_states", message_encoding="cdr", schema_id=schema)
+        writer.add_message(channel_id=channel, log_time=1, data=b"\x00\x01\x00\x00bad", publish_time=1)
+        writer.finish()
+    for args in (["info"], ["replay", "--config", str(ROOT / "configs" / "mock_arm.toml")],
+                 ["plot", "-o", str(tmp_path / "fig")]):
+        proc = subprocess.run([sys.executable, "-m", "aiohal", args[0], str(bad), *args[1:]],
+                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2, (args, proc.stderr)
+        assert "/joint_states: its messages do not decode as sensor_msgs/msg/JointState" in proc.stderr
+        assert "Traceback" not in proc.stderr

@@ -225,6 +225,10 @@ def _decode(series: Series, sequences: np.ndarray) -> None:
         first = ros2.deserialize(messages[0], series.schema)
     except KeyError:  # a type that is neither Jazzy's nor aiohal's: left undecoded
         return
+    except Exception as exc:  # rosbags' SerdeError, or whatever its generated decoder met
+        raise ValueError(
+            f"{series.topic}: its messages do not decode as {series.schema} ({type(exc).__name__}: {exc})"
+        ) from None
     size = len(messages[0])
     if all(len(m) == size for m in messages):
         try:
