@@ -24,7 +24,7 @@ from pydantic import ValidationError
 from . import __version__, plugins
 from .config import Config, describe_validation_error, json_schema, load_config
 from .errors import AiohalError, ConfigError, ConfigIssue
-from .outside import cli_outputs
+from .outside import cli_outputs, doorkeeper
 from .run_report import check_output_path, counted
 from .safety import SafetyLevel
 
@@ -332,6 +332,7 @@ def cmd_run(argv: Sequence[str]) -> int:
         config = _apply_overrides(load_config(args.config), args)
         factory = _loop_factory(args.loop)
         cli_outputs.check(config, args)
+        doorkeeper.check(config)
     except ConfigError as exc:
         _print_config_error(exc)
         return 2
