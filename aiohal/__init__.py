@@ -29,7 +29,7 @@ _EXPORTS = {
     "FiniteFloat": ".hal",
     "JointValues": ".hal",
     "Options": ".hal",
-    "ControlLoop": ".loop",
+    "ControlLoop": ".core.loop",
     "DriverView": ".robot",
     "JointSpec": ".robot",
     "Mode": ".robot",
@@ -40,6 +40,7 @@ _EXPORTS = {
 
 if TYPE_CHECKING:
     from .config import Config, load_config, parse_config
+    from .core.loop import ControlLoop
     from .errors import (
         AiohalError,
         ConfigError,
@@ -51,7 +52,6 @@ if TYPE_CHECKING:
         PluginError,
     )
     from .hal import Controller, Driver, FiniteFloat, JointValues, Options
-    from .loop import ControlLoop
     from .robot import DriverView, JointSpec, Mode, Robot, RobotView
     from .safety import SafetyLevel
 

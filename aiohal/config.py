@@ -18,17 +18,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal, cast
 
-from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
+from pydantic import AfterValidator, BaseModel, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
 
 from . import plugins
+from .core.feedforward import FeedforwardSection
+from .core.feedforward import section_issues as feedforward_issues
+from .core.realtime import RealtimeSection
 from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
-from .feedforward import FeedforwardSection
-from .feedforward import section_issues as feedforward_issues
 from .files import FileRefused, check_regular, read_regular_text
 from .hal import Controller, Driver, Options, did_you_mean
 from .outside.options import UNCONTROLLED, BridgeSection, ClientSection
 from .outside.shm_segment import segment_name
-from .realtime import RealtimeSection
 from .record.options import RecordSection
 from .robot import JointSpec, Mode, Robot
 from .safety import SafetySection
@@ -45,8 +45,22 @@ def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
 ConfigPath = Annotated[Path, AfterValidator(_resolve_relative)]
 
 
+def _name_token(name: str) -> str:
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,63}", name):
+        raise ValueError(
+            "a letter, then at most 63 letters, digits or underscores: it names the shared-memory "
+            f"segment and the ROS 2 topics (e.g. {re.sub(r'[^A-Za-z0-9_]', '_', name).strip('_') or 'robot'!r})"
+        )
+    return name
+
+
 class RobotSection(Options):
-    name: str = Field("robot", min_length=1, description="Robot name, shown in logs and reports.")
+    name: Annotated[str, AfterValidator(_name_token)] = Field(
+        "robot",
+        description="Robot name, shown in logs and reports, and part of the names others find it by: "
+        "the shared-memory segment aiohal.<name>, ROS 2 topics /<name>/...: a letter, then letters, "
+        "digits and underscores (a ROS 2 name token).",
+    )
     model: ConfigPath | None = Field(None, description="Robot model file (MJCF), relative to this config.")
 
 
@@ -231,6 +245,32 @@ class Config:
         if realtime.spin_guard_us > 1e6 / self.loop.rate_hz / 2:
             raise ValueError(f"realtime.spin_guard_us {realtime.spin_guard_us:g} is more than half the period")
         return replace(self, realtime=realtime)
+
+    def named_files(self) -> tuple[Path, ...]:
+        """The config and every input file it names (the model, gains, EDS and DBC files, a
+        zenoh config): what no output of a run may replace. Found by walking the sections'
+        values, so that a driver's own file options are included without being listed here."""
+        found: list[Path] = [self.path] if self.path is not None else []
+
+        def walk(value: Any) -> None:
+            if isinstance(value, Path):
+                found.append(value if value.is_absolute() else self.base_dir / value)
+            elif isinstance(value, BaseModel):
+                for name in type(value).model_fields:
+                    walk(getattr(value, name))
+            elif isinstance(value, (list, tuple)):
+                for item in value:
+                    walk(item)
+            elif isinstance(value, dict):
+                for item in value.values():
+                    walk(item)
+
+        for section in (self.robot, self.feedforward, self.bridge, self.client, self.safety):
+            walk(section)
+        for driver in self.drivers:
+            walk(driver.options)
+        walk(self.controller.params)
+        return tuple(found)
 
     def build_robot(self) -> Robot:
         return Robot(

@@ -1,5 +1,5 @@
 """``python -m aiohal.learn_feedforward CONFIG --out gains.toml``: learn the velocity
-feed-forward gains k_e (:mod:`aiohal.feedforward`) on the configured controller's motion and
+feed-forward gains k_e (:mod:`aiohal.core.feedforward`) on the configured controller's motion and
 write them to a file that ``[feedforward] gains`` loads.
 
 The configured gains, if any, are not used while learning: the policy starts from 0.
@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from .config import load_config
+from .core.feedforward import FeedforwardSection, GainLearner, LearningFeedforward, write_gains
+from .core.loop import ControlLoop
 from .errors import ConfigError
-from .feedforward import FeedforwardSection, GainLearner, LearningFeedforward, write_gains
-from .loop import ControlLoop
 
 
 async def learn(config: Any, duration_s: float | None = None) -> tuple[GainLearner, dict]:

@@ -176,6 +176,14 @@ class JointCommand(_Rows):
         super().__init__(n)
         self.mode = np.zeros(n, dtype=np.int8)
 
+    def rest_at(self, position: np.ndarray) -> None:
+        """Command ``position``, at rest, without effort: where a robot starts from (activation,
+        a re-arm from ``disabled``), so that nothing jumps."""
+        np.copyto(self.position, position)
+        self.velocity[:] = 0.0
+        self.effort[:] = 0.0
+        self.feedforward[:] = 0.0
+
 
 def per_joint(
     values: float | dict[str, float] | Sequence[float], names: Sequence[str], default: float = 0.0

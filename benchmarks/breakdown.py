@@ -16,7 +16,7 @@ IMU, 4 F/T sensors, 2 hands) with its controller replaced by ``hold``, and with 
 
 Both are measured after a warm-up run of ``--warmup`` seconds in the same process (first-tick
 costs, and the sine's 1 s ramp-in, are left out). The per-phase times are what the loop itself
-records (``ControlLoop.stats.phases``, rows in ``aiohal.tick_timing.PHASES`` order); "work" is the
+records (``ControlLoop.stats.phases``, rows in ``aiohal.core.tick_timing.PHASES`` order); "work" is the
 whole tick from wake-up to the end of publish, which also holds the loop's own bookkeeping
 between phases.
 
@@ -97,8 +97,8 @@ async def _run_loop(spec: dict) -> dict:
     import numpy as np
 
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
-    from aiohal.tick_timing import PHASES
+    from aiohal.core.loop import ControlLoop
+    from aiohal.core.tick_timing import PHASES
 
     config = parse_config(spec["raw"], base_dir=Path(spec["base_dir"]))
     control = ControlLoop(config)
@@ -129,8 +129,8 @@ async def _run_bare(spec: dict) -> dict:
     """A timerfd loop with no work under the given [realtime] settings: lateness and missed deadlines."""
     import numpy as np
 
-    from aiohal import realtime
-    from aiohal.ticker import Ticker, TimerfdTickSource
+    from aiohal.core import realtime
+    from aiohal.core.ticker import Ticker, TimerfdTickSource
 
     period = round(1e9 / spec["rate_hz"])
     n = spec["ticks"]
@@ -197,7 +197,7 @@ def main() -> None:
         worker_main()
         return
 
-    from aiohal.tick_timing import PHASES
+    from aiohal.core.tick_timing import PHASES
 
     base = load_raw(HUMANOID)
     started = time.monotonic()

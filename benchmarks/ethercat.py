@@ -130,8 +130,8 @@ def breakdown(n_slaves: int, ticks: int, exchange: str = "split") -> dict:
     import tomllib
 
     from aiohal.config import parse_config
+    from aiohal.core.loop import ControlLoop
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
-    from aiohal.loop import ControlLoop
 
     spent: dict[str, int] = {}
 

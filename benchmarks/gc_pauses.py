@@ -26,7 +26,7 @@ async def _run(spec: dict) -> dict:
     from pathlib import Path
 
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     control = ControlLoop(parse_config(spec["raw"], base_dir=Path(spec["base_dir"])))
     pauses: list[tuple[int, float]] = []  # collections once ticking has begun

@@ -27,7 +27,7 @@ from .common import ROOT, table, write_json
 
 
 async def _rounds(config, rounds: int, ticks: int) -> list[dict]:
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     rows = []
     async with ControlLoop(config) as control:

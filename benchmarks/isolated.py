@@ -21,7 +21,7 @@ import tomllib
 from pathlib import Path
 
 from aiohal.config import parse_config
-from aiohal.loop import ControlLoop
+from aiohal.core.loop import ControlLoop
 
 from .common import table, write_json
 

@@ -1,5 +1,5 @@
 """What numba's dispatch costs the tick's kernels: each called through its dispatcher and
-directly (:mod:`aiohal.kernel_call`), on the arrays aiohal gives them, alternating rounds in
+directly (:mod:`aiohal.core.compiled_entry`), on the arrays aiohal gives them, alternating rounds in
 one process. Warm: calls back to back. After a sleep: one call after each 0.9 ms sleep, as
 on the real clock, where a tick starts with cold caches.
 
@@ -12,14 +12,14 @@ import argparse
 import statistics
 import time
 
-from aiohal import kernel_call
+from aiohal.core import compiled_entry
 
 from .common import StealMeter, table, write_json
 
 
 def _limiter_case(joints: int):
-    from aiohal import limit_kernel as lk
-    from aiohal.limits import CommandLimiter
+    from aiohal.core import limit_kernel as lk
+    from aiohal.core.limits import CommandLimiter
     from aiohal.robot import JointSpec, Robot
 
     robot = Robot("bench", [JointSpec(f"j{i}", i, -2.0, 2.0, 2.0, 20.0, 50.0) for i in range(joints)])
@@ -67,7 +67,7 @@ def _after_sleep_us(fn, args, calls: int = 200) -> float:
 
 
 def measure(name: str, kernel, args: tuple, rounds: int) -> dict:
-    ways = {"dispatch": kernel, "direct": kernel_call.compiled_for(kernel, args)}
+    ways = {"dispatch": kernel, "direct": compiled_entry.compiled_for(kernel, args)}
     samples: dict[str, list[float]] = {f"{way}_{when}": [] for way in ways for when in ("warm", "after_sleep")}
     for _ in range(rounds):
         for way, fn in ways.items():

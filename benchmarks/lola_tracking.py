@@ -94,7 +94,7 @@ class EthercatBus:
 
 def configure(rate_hz: float, every: int, k_e: float | None, bus: EthercatBus | None = None):
     from aiohal.config import load_config
-    from aiohal.feedforward import FeedforwardSection
+    from aiohal.core.feedforward import FeedforwardSection
 
     if bus is None:
         config = load_config(CONFIG).with_loop(rate_hz=rate_hz, clock="virtual")

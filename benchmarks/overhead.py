@@ -80,7 +80,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aiohal.tick_timing import PHASES
+from aiohal.core.tick_timing import PHASES
 
 from .breakdown import load_raw, loop_spec, spawn, timeout_for, worker
 from .common import ROOT, table, write_json
@@ -375,7 +375,7 @@ async def _interleaved(spec: dict) -> dict:
     first alternates too): each round's ratio compares the two sides a few milliseconds
     apart, so a change of the host's speed between runs does not enter it."""
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     hal, bare = spec["hal"], spec["nohal"]
     chunk, rounds = spec["chunk"], spec["rounds"]

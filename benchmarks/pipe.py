@@ -104,7 +104,7 @@ def _summary(ns, prefix: str = "") -> dict:
 async def _ticks(seconds: float, warmup: float, on_tick) -> dict:
     """Run a 1 kHz Ticker for ``warmup`` s, then ``seconds`` s measured (wall time, so a starved
     loop ends too); ``on_tick(ticker, woke_ns, measured)`` runs in each tick served."""
-    from aiohal.ticker import Ticker, TimerfdTickSource
+    from aiohal.core.ticker import Ticker, TimerfdTickSource
 
     ticker = Ticker(TimerfdTickSource(), PERIOD_NS)
     mono = time.monotonic_ns
@@ -177,7 +177,7 @@ async def _round_trip(spec: dict) -> dict:
 async def _lateness(spec: dict) -> dict:
     import numpy as np
 
-    from aiohal import realtime
+    from aiohal.core import realtime
 
     n = round(spec["seconds"] * 1e9 / PERIOD_NS)
     peer = await _start_peer(spec["target"], spec["mode"])

@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 
-from aiohal import realtime
-from aiohal.ticker import Ticker, TimerfdTickSource
+from aiohal.core import realtime
+from aiohal.core.ticker import Ticker, TimerfdTickSource
 
 from .common import ROOT, run_cli, table, write_json
 

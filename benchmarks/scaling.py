@@ -93,8 +93,8 @@ async def _side_by_side(spec: dict) -> dict:
     """Work p50 per round of every joint count's loop, all in this process on the virtual
     clock, run in turn ``chunk`` ticks at a time (the order alternating each round)."""
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
-    from aiohal.ticker import VirtualTickSource
+    from aiohal.core.loop import ControlLoop
+    from aiohal.core.ticker import VirtualTickSource
 
     loops = {n: ControlLoop(parse_config(robot_raw(n)), tick_source=VirtualTickSource()) for n in spec["joints"]}
     work = {n: [] for n in loops}

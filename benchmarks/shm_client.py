@@ -48,7 +48,7 @@ def config_raw(name: str) -> dict:
 
 async def run_case(with_client: bool, seconds: float, warmup: float) -> dict:
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     name = f"bench_{uuid.uuid4().hex[:8]}"
     loop = ControlLoop(parse_config(config_raw(name)))

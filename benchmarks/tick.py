@@ -173,7 +173,7 @@ def thread_sleep(n: int, period_ns: int, s: Samples, realtime: bool) -> None:
 
 
 async def bare_ticker(n: int, period_ns: int, s: Samples, idle_wait: bool = True) -> None:
-    from aiohal.ticker import Ticker, TimerfdTickSource
+    from aiohal.core.ticker import Ticker, TimerfdTickSource
 
     mono, lat = time.monotonic_ns, s.lateness
     ticker = Ticker(TimerfdTickSource(idle_wait=idle_wait), period_ns)

@@ -5,7 +5,7 @@ milliseconds for HZ = 100, 250 and 1000. A deadline there shares the CPU with th
 interrupt. This runs aiohal's timerfd tick source (asyncio, the IdleWait path; with
 ``--guard`` in precision mode, waking that much early and spinning) with its deadlines at
 fixed phases past whole milliseconds, at a phase left to chance (how the Ticker started before
-it placed its deadlines itself), and where the Ticker places them (:func:`aiohal.ticker.
+it placed its deadlines itself), and where the Ticker places them (:func:`aiohal.core.ticker.
 off_the_kernel_tick`). The cases run in rounds, in an order that alternates, so a change of
 the host's speed falls on every case alike. Per case: the share of ticks later than 5 µs and
 the lateness percentiles over all rounds, and the range of the rounds' p99.
@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from aiohal.ticker import KERNEL_TICK_GRID_NS, TimerfdTickSource, at_phase, off_the_kernel_tick
+from aiohal.core.ticker import KERNEL_TICK_GRID_NS, TimerfdTickSource, at_phase, off_the_kernel_tick
 
 from .common import StealMeter, table, write_json
 

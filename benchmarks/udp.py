@@ -29,11 +29,11 @@ import zlib
 
 import numpy as np
 
-from aiohal import realtime
+from aiohal.core import realtime
+from aiohal.core.ticker import Ticker, TimerfdTickSource
 from aiohal.drivers.udp.driver import UdpDriver, UdpOptions
 from aiohal.drivers.udp.protocol import COMMAND_RECORD, Kind, encode, seal
 from aiohal.robot import JointSpec, Mode, Robot
-from aiohal.ticker import Ticker, TimerfdTickSource
 
 from .common import machine, table, write_json
 

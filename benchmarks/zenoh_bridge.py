@@ -32,7 +32,7 @@ def free_port() -> int:
 
 async def run_case(bridge: bool, seconds: float) -> dict:
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     name = f"zbench_{uuid.uuid4().hex[:6]}"
     raw = config_raw(name)  # the same 7-joint mock arm, under hold, without the shared-memory door

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-from aiohal import kernel_call
+from aiohal.core import compiled_entry
 
 from .mock import MockDriver
 
@@ -26,7 +26,7 @@ class FastMockDriver(MockDriver):
         command, state = self.view.command, self.view.state
         self._step_args = (command.block, command.mode, self.sim)
         self._stamp_args = (state.updated_tick, state.stamp_ns)  # not written: stamp=False
-        self._step_joints = kernel_call.compiled_for(
+        self._step_joints = compiled_entry.compiled_for(
             mock_kernels.step_joints, (*self._step_args, 0.0, False, 1.0, 0.0, False, *self._stamp_args, 0, 0)
         )
 

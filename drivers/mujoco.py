@@ -36,8 +36,8 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
-from aiohal import kernel_call
 from aiohal.config import ConfigPath
+from aiohal.core import compiled_entry
 from aiohal.hal import Driver, JointValues, Options, did_you_mean, unknown_joint_issues
 from aiohal.mjcf import actuator_for_joints, joint_addresses, load_model, model_names, sensor_slice
 
@@ -214,7 +214,7 @@ class MujocoDriver(Driver):
 
     def _bind_kernels(self) -> None:
         """The compiled read and torque law, called without numba's dispatch (it would cost more
-        than the work; ``aiohal.kernel_call``): every array they get is taken and checked here, once. MjData's arrays
+        than the work; ``aiohal.core.compiled_entry``): every array they get is taken and checked here, once. MjData's arrays
         and the robot's blocks are never reallocated while the driver is open."""
         from . import mujoco_kernels as kernels
 
@@ -222,7 +222,7 @@ class MujocoDriver(Driver):
         if data is None:
             raise RuntimeError("the kernels are bound to the MjData made in __init__")
         self._read_args = (data.qpos, data.qvel, self._index, self.tau, state.block, state.updated_tick, state.stamp_ns)
-        self._read_joints = kernel_call.compiled_for(kernels.read_joints, (*self._read_args, 0, 0))
+        self._read_joints = compiled_entry.compiled_for(kernels.read_joints, (*self._read_args, 0, 0))
         self._torque_args = (
             command.block,
             command.mode,
@@ -234,11 +234,11 @@ class MujocoDriver(Driver):
             self.tau,
             data.ctrl,
         )
-        self._drive_torque = kernel_call.compiled_for(kernels.drive_torque, self._torque_args)
+        self._drive_torque = compiled_entry.compiled_for(kernels.drive_torque, self._torque_args)
         self._sensor_runs = [(data.sensordata, *run) for run in self._gather_plan()]
         self._read_sensors: Callable[..., Any] = kernels.read_sensors  # (no run: never called)
         for run in self._sensor_runs:
-            self._read_sensors = kernel_call.compiled_for(kernels.read_sensors, (*run, 0, 0))
+            self._read_sensors = compiled_entry.compiled_for(kernels.read_sensors, (*run, 0, 0))
 
     def _gather_plan(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
         """How read() fills the devices: for each run of this driver's devices in adjacent rows

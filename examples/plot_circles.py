@@ -21,7 +21,7 @@ import mujoco
 import numpy as np
 
 from aiohal import ControlLoop, load_config
-from aiohal.ticker import VirtualTickSource
+from aiohal.core.ticker import VirtualTickSource
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOTS = [("kuka_lwr_sim", "KUKA LWR-like, 7 DOF"), ("centauro_upper_sim", "CENTAURO-like, 15 DOF"),

@@ -6,8 +6,8 @@ import copy
 from typing import Any
 
 from aiohal.config import parse_config
-from aiohal.loop import ControlLoop
-from aiohal.ticker import VirtualTickSource
+from aiohal.core.loop import ControlLoop
+from aiohal.core.ticker import VirtualTickSource
 
 
 def arm_raw(n: int = 3, **controller: Any) -> dict[str, Any]:

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.canopen import busload  # the `can` extra, installed by `make test`
-from aiohal.loop import ControlLoop
 from aiohal.robot import Fault
 
 _channels = itertools.count()

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from aiohal.config import parse_config
-from aiohal.loop import ControlLoop
+from aiohal.core.loop import ControlLoop
 
 EDS = Path(__file__).parent / "data" / "other_drive.eds"
 NODE_ID = 9

@@ -13,9 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.canopen.sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc
 from aiohal.errors import ConfigError
-from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, Robot
 
 _channels = itertools.count()

@@ -11,13 +11,14 @@ import tomllib
 import can
 import canopen
 import pytest
+from conftest import CONFIGS
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.canopen import scan
 from aiohal.drivers.canopen.sim import SimBus
 from aiohal.drivers.canopen.sim.__main__ import main as sim_main
 from aiohal.drivers.canopen.sim.__main__ import node_ids
-from aiohal.loop import ControlLoop
 
 _channels = itertools.count()
 
@@ -96,3 +97,22 @@ def test_node_ids_are_parsed_and_checked():
     for bad in ("0", "1-200", "a", "1,1"):
         with pytest.raises(Exception, match="node ids"):
             node_ids(bad)
+
+
+@pytest.mark.parametrize("content, reason", [
+    (b"[FileInfo]\nFileName=x\n[1000]\nParameterName=Dev\n[unclosed\n", "not a readable EDS/DCF (ParsingError"),
+    (b"\xff\xfe\x00binary", "not UTF-8 text"),
+])
+def test_a_malformed_eds_is_a_config_error_naming_the_key_and_the_file(tmp_path, content, reason):
+    from aiohal.errors import ConfigError
+
+    eds = tmp_path / "drive.eds"
+    eds.write_bytes(content)
+    raw = tomllib.loads((CONFIGS / "canopen_arm_sim.toml").read_text())
+    raw["driver"][0]["options"]["simulate"] = False
+    raw["driver"][0]["options"]["nodes"][0]["eds"] = str(eds)
+    with pytest.raises(ConfigError) as info:
+        parse_config(raw, base_dir=CONFIGS)
+    lines = [str(issue) for issue in info.value.issues]
+    assert any(line.startswith("driver[0].options.nodes[0].eds: ") and str(eds) in line and reason in line
+               for line in lines), lines

@@ -18,8 +18,8 @@ from aiohal import plugins
 from aiohal.config import parse_config
 from aiohal.controllers.circle import CircleController
 from aiohal.controllers.circle_fast import FastCircleController
-from aiohal.loop import ControlLoop
-from aiohal.ticker import VirtualTickSource
+from aiohal.core.loop import ControlLoop
+from aiohal.core.ticker import VirtualTickSource
 
 
 def plain_step(c, q_all: np.ndarray, elapsed: float, dt: float) -> tuple[np.ndarray, np.ndarray]:

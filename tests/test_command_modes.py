@@ -11,7 +11,7 @@ from pydantic import Field
 
 from aiohal import ConfigError, Controller, Mode, Options
 from aiohal.config import from_parts, parse_config
-from aiohal.loop import ControlLoop
+from aiohal.core.loop import ControlLoop
 from aiohal.plugins import load
 
 LWR = {f"a{i}": {"position": [-2.9, 2.9], "velocity": 1.9} for i in range(1, 8)}

@@ -198,7 +198,7 @@ def _raw(ifname: str, **options) -> dict:
 @pytest.mark.parametrize("divider", [2498, 0], ids=["divider-100us", "divider-80ns"])
 async def test_the_watchdog_time_is_written_to_every_slave_with_outputs_and_read_back(segment, divider):
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     segment.control({"cmd": "watchdog", "divider": divider})  # the slaves' divider at power-on
     # 1 s, not the default: a stall of this process alone must not trip the slaves mid-test
@@ -229,8 +229,8 @@ async def test_a_slave_that_does_not_arm_its_watchdog_is_refused_unless_it_is_tu
     segment, caplog, esc, read_back
 ):
     from aiohal.config import parse_config
+    from aiohal.core.loop import ControlLoop
     from aiohal.errors import DriverError
-    from aiohal.loop import ControlLoop
 
     segment.control({"cmd": "watchdog", "slave": 2, **esc})
     raw = _raw(segment.ifname)

@@ -19,9 +19,9 @@ import pytest
 from conftest import CONFIGS, ROOT, require_root, start_segment
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.ethercat.bus import EthercatError
 from aiohal.errors import ConfigError, DriverError
-from aiohal.loop import ControlLoop
 from aiohal.robot import Fault
 
 pytestmark = pytest.mark.root

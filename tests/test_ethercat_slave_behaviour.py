@@ -22,8 +22,8 @@ from conftest import ROOT, start_segment
 from test_ethercat_driver import CONFIG, TicksRun, driver_of, one_drive_and, raw_config, segment, sim  # noqa: F401 (fixtures: this module's own segment of the same line)
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.errors import DriverError
-from aiohal.loop import ControlLoop
 
 pytestmark = pytest.mark.root
 

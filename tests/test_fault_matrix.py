@@ -34,10 +34,10 @@ from test_watchdog import SLACK_MS, WATCHDOG_MS, Board, board, start_robot  # no
 from udp_helpers import wait_for
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.fri.protocol import State
 from aiohal.errors import DriverError
 from aiohal.hal import Controller
-from aiohal.loop import ControlLoop
 from aiohal.robot import Fault
 
 AT = 200  # the tick a fault is injected at
@@ -444,7 +444,7 @@ async def test_fri_quality_drop_holds_the_robot_on_the_tick_it_is_measured():
 ROBOT_SCRIPT = """
 import asyncio, json, sys
 from aiohal.config import parse_config
-from aiohal.loop import ControlLoop
+from aiohal.core.loop import ControlLoop
 
 async def main():
     loop = ControlLoop(parse_config(json.loads(sys.argv[1])))

@@ -12,11 +12,11 @@ import pytest
 from helpers import arm_raw, virtual_loop
 
 from aiohal.config import load_config, parse_config
+from aiohal.core.feedforward import GainLearner, LearningFeedforward, VelocityFeedforward, read_gains, write_gains
+from aiohal.core.loop import ControlLoop
 from aiohal.errors import ConfigError
-from aiohal.feedforward import GainLearner, LearningFeedforward, VelocityFeedforward, read_gains, write_gains
 from aiohal.hal import Controller
 from aiohal.learn_feedforward import main as learn_main
-from aiohal.loop import ControlLoop
 from aiohal.robot import JointCommand, JointState, Mode
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "lola_hip_sim.toml"

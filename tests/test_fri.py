@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from udp_helpers import wait_for
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.fri.driver import FriDriver, FriDriverError, FriOptions
 from aiohal.drivers.fri.protocol import (
     CMD,
@@ -32,7 +33,6 @@ from aiohal.drivers.fri.protocol import (
     new_msr,
 )
 from aiohal.drivers.fri.sim import KrcOptions, KrcSimulator
-from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, JointSpec, Mode, Robot
 from aiohal.simulation.servo import ServoParams
 

@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.fri.protocol import MAX_STEP
 from aiohal.drivers.fri.sim import STEP_ROUNDING
-from aiohal.loop import ControlLoop
 from aiohal.safety import SafetyLevel, SafetyRequestRefused
 
 START = 0.3  # rad, every joint of the simulated arm at the start

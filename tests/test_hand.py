@@ -14,14 +14,14 @@ from conftest import require_module
 from helpers import arm_raw
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
+from aiohal.core.run_report import format_report
 from aiohal.drivers.hands.base import FAULT_BACKEND, HandError
 from aiohal.drivers.hands.messages import HandCommandMsg, HandStateMsg
 from aiohal.drivers.hands.sim import SimHand
 from aiohal.errors import ConfigError, DriverError
-from aiohal.loop import ControlLoop
 from aiohal.pipe import NrtPeer
 from aiohal.robot import Fault
-from aiohal.run_report import format_report
 
 SERVICE = "aiohal.drivers.hands.service:serve"
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from numba import njit, types
 
-from aiohal import kernel_call
-from aiohal import limit_kernel as lk
-from aiohal.limits import CommandLimiter
+from aiohal.core import compiled_entry
+from aiohal.core import limit_kernel as lk
+from aiohal.core.limits import CommandLimiter
 from aiohal.robot import JointSpec, Robot
 
 
@@ -22,7 +22,7 @@ def _scale_first(out, rows):
 def test_a_direct_call_computes_what_the_dispatched_call_does():
     a, b = np.array([1.5, 2.0]), np.array([1.5, 2.0])
     rows = np.full((2, 2), 3, dtype=np.int64)
-    direct = kernel_call.compiled_for(_scale_first, (a, rows))
+    direct = compiled_entry.compiled_for(_scale_first, (a, rows))
     assert direct(a, rows) == _scale_first(b, rows) == 4.5
     assert np.array_equal(a, b)
 
@@ -39,7 +39,7 @@ def test_a_direct_call_computes_what_the_dispatched_call_does():
 ])
 def test_check_refuses_an_array_numbas_dispatch_would_refuse(out, rows, why):
     with pytest.raises(TypeError, match=why):
-        kernel_call.check(_scale_first, (out, rows))
+        compiled_entry.check(_scale_first, (out, rows))
 
 
 def test_check_refuses_a_read_only_array_the_kernel_writes_and_takes_one_it_only_reads():
@@ -47,24 +47,24 @@ def test_check_refuses_a_read_only_array_the_kernel_writes_and_takes_one_it_only
     read_only.flags.writeable = False
     rows = np.zeros((1, 1), dtype=np.int64)
     with pytest.raises(TypeError, match="argument 0: read-only, and the kernel writes it"):
-        kernel_call.check(_scale_first, (read_only, rows))
+        compiled_entry.check(_scale_first, (read_only, rows))
     rows.flags.writeable = False
-    kernel_call.check(_scale_first, (np.zeros(3), rows))
-    kernel_call.check(_scale_first, (np.zeros(3), np.zeros((4, 4), dtype=np.int64)[::2, ::2]))  # strided: "A"
+    compiled_entry.check(_scale_first, (np.zeros(3), rows))
+    compiled_entry.check(_scale_first, (np.zeros(3), np.zeros((4, 4), dtype=np.int64)[::2, ::2]))  # strided: "A"
 
 
 def test_the_entry_point_is_given_only_for_checked_arrays_and_one_signature():
     with pytest.raises(TypeError, match="argument 0: not C-contiguous"):
-        kernel_call.compiled_for(_scale_first, (np.zeros(6)[::2], np.zeros((1, 1), dtype=np.int64)))
+        compiled_entry.compiled_for(_scale_first, (np.zeros(6)[::2], np.zeros((1, 1), dtype=np.int64)))
     with pytest.raises(TypeError, match="takes 2 arguments, got 1"):
-        kernel_call.check(_scale_first, (np.zeros(3),))
+        compiled_entry.check(_scale_first, (np.zeros(3),))
 
     @njit(["float64(float64)", "int64(int64)"])
     def twice(x):
         return 2 * x
 
     with pytest.raises(TypeError, match=r"one explicit signature is needed.*it has 2"):
-        kernel_call.compiled_for(twice, (1.0,))
+        compiled_entry.compiled_for(twice, (1.0,))
 
 
 def _robot(n=3):

@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal.limits import CommandLimiter
+from aiohal.core.limits import CommandLimiter
 from aiohal.robot import JointSpec, Mode, Robot
 
 DT = 0.001

@@ -228,7 +228,7 @@ async def test_a_stall_past_the_last_deadline_counts_only_the_runs_own_deadlines
     import time
 
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     raw = arm_raw(2)
     raw["loop"]["clock"] = "auto"  # a real clock, where a stall skips deadlines
@@ -254,7 +254,7 @@ async def test_the_report_counts_how_the_real_clock_waited(idle_wait):
     if not sys.platform.startswith("linux"):
         pytest.skip("timerfd is Linux only")
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     raw = arm_raw(2)
     raw["loop"].update(clock="timerfd", idle_wait=idle_wait)
@@ -277,7 +277,7 @@ async def test_the_deadlines_sit_where_the_config_puts_them():
     if not sys.platform.startswith("linux"):
         pytest.skip("timerfd is Linux only")
     from aiohal.config import parse_config
-    from aiohal.loop import ControlLoop
+    from aiohal.core.loop import ControlLoop
 
     for phase_us, expected_ns in ((None, 500_000), (250.0, 250_000), (0.0, 0)):
         raw = arm_raw(2)
@@ -329,7 +329,7 @@ async def test_the_full_collection_runs_before_any_driver_opens():
     a driver is open, the loop collects only the young generations."""
     import gc
 
-    from aiohal import realtime
+    from aiohal.core import realtime
 
     holders = realtime._freeze_holders
     loop = virtual_loop(arm_raw(3))
@@ -366,7 +366,7 @@ async def test_the_heap_thaws_when_the_last_loop_closes():
     """The freeze is process-wide: one loop closing must not thaw another one's run."""
     import gc
 
-    from aiohal import realtime
+    from aiohal.core import realtime
 
     holders = realtime._freeze_holders
     first, second = virtual_loop(arm_raw(2)), virtual_loop(arm_raw(2))
@@ -381,7 +381,7 @@ async def test_the_heap_thaws_when_the_last_loop_closes():
 
 @pytest.mark.asyncio
 async def test_a_failed_activation_thaws_the_heap():
-    from aiohal import realtime
+    from aiohal.core import realtime
 
     holders = realtime._freeze_holders
     raw = arm_raw(2)

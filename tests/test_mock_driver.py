@@ -11,7 +11,7 @@ from helpers import arm_raw, virtual_loop
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal import kernel_call
+from aiohal.core import compiled_entry
 from aiohal.drivers import mock_kernels
 from aiohal.hal import Controller
 from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, CommandRow, Mode, StateRow
@@ -235,7 +235,7 @@ def test_the_compiled_step_matches_the_numpy_formulation(data, n, dt, first_orde
 
     ticks, stamps = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
     args = (command, mode, sim, dt, first_order, alpha, 1.0 / dt, True, ticks, stamps, 5, 77)
-    kernel_call.compiled_for(mock_kernels.step_joints, args)(*args)
+    compiled_entry.compiled_for(mock_kernels.step_joints, args)(*args)
     nan = np.isnan(expected)  # equal bits elsewhere (0.0 is not -0.0), NaN where NaN
     np.testing.assert_array_equal(np.isnan(sim), nan)
     np.testing.assert_array_equal(sim[~nan].view(np.uint64), expected[~nan].view(np.uint64))

@@ -16,9 +16,9 @@ from conftest import CONFIGS, require_module
 mujoco = require_module("mujoco")
 
 from aiohal.config import load_config, parse_config
+from aiohal.core.loop import ControlLoop
+from aiohal.core.ticker import VirtualTickSource
 from aiohal.errors import ConfigError
-from aiohal.loop import ControlLoop
-from aiohal.ticker import VirtualTickSource
 
 ROBOTS = ["kuka_lwr_sim", "centauro_upper_sim", "coman_sim", "walkman_sim"]
 

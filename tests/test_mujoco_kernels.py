@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from aiohal import kernel_call
+from aiohal.core import compiled_entry
 from aiohal.drivers import mujoco_kernels as kernels
 from aiohal.robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS, Mode
 
@@ -78,7 +78,7 @@ def test_the_compiled_torque_law_matches_the_numpy_formulation(case):
     table = np.array([kp, kd, tau_min, tau_max])
     tau, ctrl = np.zeros(n), np.full(len(bias), 7.0)
     args = (command, mode, state, table, index, bias, compensate, tau, ctrl)
-    kernel_call.compiled_for(kernels.drive_torque, args)(*args)
+    compiled_entry.compiled_for(kernels.drive_torque, args)(*args)
 
     expected = numpy_torque(command, mode, state, kp, kd, tau_min, tau_max, bias[dof], compensate)
     assert_same_bits(tau, expected)
@@ -94,7 +94,7 @@ def test_the_compiled_read_gathers_and_stamps_a_drivers_columns():
     robot_state = np.full((len(JOINT_STATE_FIELDS), 5), np.nan)  # the driver owns columns 1..3
     ticks, stamps = np.full(5, -1, dtype=np.int64), np.zeros(5, dtype=np.int64)
     args = (qpos, qvel, index, tau, robot_state[:, 1:4], ticks[1:4], stamps[1:4], 42, 123_456)
-    kernel_call.compiled_for(kernels.read_joints, args)(*args)
+    compiled_entry.compiled_for(kernels.read_joints, args)(*args)
 
     np.testing.assert_array_equal(robot_state[:3, 1:4], [[9.0, 2.0, 5.0], [-1.0, -8.0, -3.0], tau])
     assert np.isnan(robot_state[:, [0, 4]]).all() and np.isnan(robot_state[3:]).all()
@@ -107,7 +107,7 @@ def test_the_compiled_sensor_read_fills_and_stamps_adjacent_rows():
     index = np.array([[5, 6, 7], [19, 0, 3]], dtype=np.intp)
     ticks, stamps = np.full(4, -1, dtype=np.int64), np.zeros(4, dtype=np.int64)
     args = (sensordata, index, values[1:3], ticks[1:3], stamps[1:3], 7, 99)
-    kernel_call.compiled_for(kernels.read_sensors, args)(*args)
+    compiled_entry.compiled_for(kernels.read_sensors, args)(*args)
 
     np.testing.assert_array_equal(values[1:3], [[0.5, 0.6, 0.7], [1.9, 0.0, 0.3]])
     assert np.isnan(values[[0, 3]]).all()

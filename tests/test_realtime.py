@@ -8,10 +8,10 @@ import pytest
 from conftest import require_root
 from helpers import arm_raw, virtual_loop
 
-from aiohal import realtime
 from aiohal.config import parse_config
+from aiohal.core import realtime
+from aiohal.core.loop import ControlLoop
 from aiohal.errors import ConfigError
-from aiohal.loop import ControlLoop
 
 
 def test_fifo_is_applied_and_restored():

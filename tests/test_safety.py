@@ -9,10 +9,10 @@ from conftest import CONFIGS, require_module
 from helpers import arm_raw, assert_bumpless, at, record, virtual_loop
 
 from aiohal.config import load_config
+from aiohal.core.loop import ControlLoop
+from aiohal.core.ticker import VirtualTickSource
 from aiohal.hal import Controller
-from aiohal.loop import ControlLoop
 from aiohal.safety import TRANSITIONS, SafetyEvent, SafetyLevel, SafetyMachine, SafetyRequestRefused
-from aiohal.ticker import VirtualTickSource
 
 L, E = SafetyLevel, SafetyEvent
 

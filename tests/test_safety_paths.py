@@ -9,9 +9,9 @@ import pytest
 from helpers import arm_raw, register_driver, virtual_loop
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.errors import ConfigError, DriverError
 from aiohal.hal import Controller, Driver
-from aiohal.loop import ControlLoop
 from aiohal.robot import Mode
 
 

@@ -1,5 +1,5 @@
 """A controller slower than the bus: ``[controller] every = n`` and the targets extrapolated
-on the ticks in between (aiohal.target_extrapolation), in the loop and on their own."""
+on the ticks in between (aiohal.core.target_extrapolation), in the loop and on their own."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import pytest
 from helpers import arm_raw, virtual_loop
 
 from aiohal.config import parse_config
+from aiohal.core.target_extrapolation import TargetExtrapolator
 from aiohal.errors import ConfigError
 from aiohal.hal import Controller
 from aiohal.robot import JointCommand, Mode
-from aiohal.target_extrapolation import TargetExtrapolator
 
 PERIOD = 1e-3
 

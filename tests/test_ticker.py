@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from aiohal.ticker import (
+from aiohal.core.ticker import (
     KERNEL_TICK_GRID_NS,
     IdleWait,
     SleepTickSource,
@@ -236,7 +236,7 @@ async def test_timerfd_source_works_on_this_loop():
 
 @pytest.mark.skipif(sys.version_info >= (3, 13), reason="ctypes path is for Python < 3.13")
 def test_ctypes_timerfd_reports_errors():
-    from aiohal import ticker as t
+    from aiohal.core import ticker as t
 
     # an invalid period makes timerfd_settime fail with EINVAL, raised as OSError
     with pytest.raises(OSError):

@@ -14,10 +14,10 @@ from helpers import Reported
 from udp_helpers import FakeBoard, driver_for, robot, tick, wait_for
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
 from aiohal.drivers.udp.driver import UdpDriver, UdpError, UdpOptions, board_layout
 from aiohal.drivers.udp.protocol import COMMAND_RECORD, STATE_RECORD, BoardFault, Kind, encode
 from aiohal.drivers.udp.sim import BoardSimulator
-from aiohal.loop import ControlLoop
 from aiohal.robot import Fault, Mode
 
 KEY_HEX = "00112233445566778899aabbccddeeff"

@@ -12,10 +12,10 @@ from conftest import CONFIGS, require_module
 mujoco = require_module("mujoco")
 
 from aiohal.config import parse_config
+from aiohal.core.loop import ControlLoop
+from aiohal.core.ticker import VirtualTickSource
 from aiohal.errors import ConfigError
-from aiohal.loop import ControlLoop
 from aiohal.safety import SafetyRequestRefused
-from aiohal.ticker import VirtualTickSource
 
 CONFIG = CONFIGS / "kuka_lwr_sim.toml"
 MODEL = str(CONFIGS / "models" / "kuka_lwr.xml")
@@ -125,6 +125,10 @@ async def test_inside_the_workspace_nothing_happens():
      'no body "moon"'),
     ({"site": "ee"}, "safety.workspace[0]", "exactly one of box or sphere"),
     ({"site": "ee", "box": {"min": [0, 0, 0], "max": [1, -1, 1]}}, "safety.workspace[0].box", "min must be below"),
+    ({"site": "ee", "sphere": {"center": [float("nan"), 0, 0], "radius": 1}}, "safety.workspace[0].sphere.center[0]",
+     "finite"),
+    ({"site": "ee", "box": {"min": [0, 0, float("-inf")], "max": [1, 1, 1]}}, "safety.workspace[0].box.min[2]",
+     "finite"),
 ])
 def test_workspace_config_errors_name_the_key(entry, key, message):
     with pytest.raises(ConfigError) as info:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aiohal import kernel_call
+from aiohal.core import compiled_entry
 from aiohal.robot import JOINT_COMMAND_FIELDS, DriverView, Fault, JointCommand, JointState
 
 from . import drive_kernels as kernels
@@ -183,12 +183,12 @@ class DriveGroup:
         self.write_holding()
 
     def _check_decode(self, state: np.ndarray, ticks: np.ndarray, stamps: np.ndarray) -> None:
-        self._decode = kernel_call.compiled_for(
+        self._decode = compiled_entry.compiled_for(
             kernels.decode_drives, (self._inputs, self._layout, self._constants, self.ints, state, ticks, stamps, 0, 0)
         )
 
     def _check_encode(self, block: np.ndarray, mode: np.ndarray) -> None:
-        self._encode = kernel_call.compiled_for(
+        self._encode = compiled_entry.compiled_for(
             kernels.encode_drives, (self._outputs, self._layout, self._constants, self.ints, block, mode, False)
         )
 

@@ -14,16 +14,16 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-from ..lifecycle import LoopState
+from ..core.lifecycle import LoopState
 
 if TYPE_CHECKING:
     from ..config import Config
-    from ..lifecycle import DriverSlot
+    from ..core.lifecycle import DriverSlot
+    from ..core.tick_timing import TickStats
+    from ..core.ticker import Ticker, TickSource
     from ..robot import Robot
     from ..safety import FaultRecord, SafetyLevel
     from ..safety.supervisor import Supervisor
-    from ..tick_timing import TickStats
-    from ..ticker import Ticker, TickSource
 
 #: Called at the end of every tick with one argument, which it ignores (the loop's own
 #: publishers get the loop there). It must not block, log or allocate on the common path.
@@ -31,7 +31,7 @@ TickEnd = Callable[[object], None]
 
 
 class Loop(Protocol):
-    """What the port uses of :class:`aiohal.loop.ControlLoop`: its public face only."""
+    """What the port uses of :class:`aiohal.core.loop.ControlLoop`: its public face only."""
 
     config: Config
     robot: Robot

@@ -28,9 +28,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..core.tick_timing import PHASES
 from ..record.cdr import Layout
 from ..record.options import Channel, RecordSection
-from ..tick_timing import PHASES
 from . import recorder_ring as R
 from .port import LoopPort, TickEnd
 
@@ -132,9 +132,9 @@ class Recorder:
         self.ring = R.TickRing(
             self._arrays, self.options.buffer_ticks, [stats.lateness, stats.work, *stats.phases], stats.mask
         )
-        from .. import kernel_call
+        from ..core import compiled_entry
 
-        self._kernel = kernel_call.compiled_for(
+        self._kernel = compiled_entry.compiled_for(
             R.record_tick, (self.ring.data, self.ring.sources, self.ring.state, 0, 0, 0, 0)
         )
         self._file = None

@@ -32,10 +32,10 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
+from ..core.tick_timing import PHASES
 from ..logutil import RateLimitedLogger
 from ..ros2 import services
 from ..safety import SafetyRequestRefused
-from ..tick_timing import PHASES
 from . import rmw_zenoh as rmw
 from . import ros2_mapping as ros
 from .options import ZenohBridgeSection

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from ..core.tick_timing import PHASES, percentiles_us
 from ..files import open_regular
 from ..safety import SafetyLevel
-from ..tick_timing import PHASES, percentiles_us
 from .cdr import Layout
 
 #: a recording is loaded whole into memory: larger ones are refused, not read until it runs out

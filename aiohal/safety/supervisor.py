@@ -7,7 +7,7 @@ happens when a driver or the controller fails (isolated; the robot held or e-sto
 controller commands (the configured one, or ``hold``), and both watchdogs: the stall thread
 (:mod:`.stall`) and the watchdog process (:mod:`.watchdog`), which it watches in turn.
 
-The loop (:mod:`aiohal.loop`) keeps the lifecycle and the tick; the tick reads two attributes
+The loop (:mod:`aiohal.core.loop`) keeps the lifecycle and the tick; the tick reads two attributes
 of the supervisor, :attr:`Supervisor.level` and :attr:`Supervisor.controller`, and calls it
 only when something is wrong.
 """
@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING, Protocol, cast
 
 import numpy as np
 
+from ..core.lifecycle import DriverStatus
 from ..hal import Controller
-from ..lifecycle import DriverStatus
 from ..logutil import RateLimitedLogger
 from ..robot import DriverEvents, Fault, Mode
 from .levels import FaultRecord, SafetyEvent, SafetyLevel, SafetyMachine, SafetyRequestRefused
@@ -30,19 +30,19 @@ from .watchdog import WORDS, WatchdogProcess
 
 if TYPE_CHECKING:
     from ..config import Config
-    from ..lifecycle import DriverSlot, LoopState
-    from ..limits import CommandLimiter
+    from ..core.lifecycle import DriverSlot, LoopState
+    from ..core.limits import CommandLimiter
+    from ..core.target_extrapolation import TargetExtrapolator
+    from ..core.tick_timing import TickStats
+    from ..core.ticker import TickSource
     from ..robot import Robot
-    from ..target_extrapolation import TargetExtrapolator
-    from ..tick_timing import TickStats
-    from ..ticker import TickSource
     from .workspace import WorkspaceMonitor
 
-log = logging.getLogger("aiohal.loop")  # the robot's one voice in the log, as before the split
+log = logging.getLogger("aiohal.core.loop")  # the robot's one voice in the log, as before the split
 
 
 class Owner(Protocol):
-    """What the supervisor uses of the loop it keeps safe (:class:`aiohal.loop.ControlLoop`)."""
+    """What the supervisor uses of the loop it keeps safe (:class:`aiohal.core.loop.ControlLoop`)."""
 
     config: Config
     robot: Robot
@@ -62,7 +62,7 @@ class Owner(Protocol):
 
 
 class Supervisor:
-    """The safety side of one :class:`~aiohal.loop.ControlLoop` (see the module)."""
+    """The safety side of one :class:`~aiohal.core.loop.ControlLoop` (see the module)."""
 
     def __init__(self, loop: Owner) -> None:
         config = loop.config
@@ -249,10 +249,7 @@ class Supervisor:
             raise SafetyRequestRefused("rearm() before configure()")
         cmd, measured = self.robot.command, self.robot.state.position
         if self.level == SafetyLevel.DISABLED:
-            np.copyto(cmd.position, measured)
-            cmd.velocity[:] = 0.0
-            cmd.effort[:] = 0.0
-            cmd.feedforward[:] = 0.0
+            cmd.rest_at(measured)
             self.limiter.reset(measured)
         controller, controller_type = self._configured
         self.controller, self.controller_type = controller, controller_type

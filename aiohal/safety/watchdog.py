@@ -1,6 +1,6 @@
 """The watchdog process: makes the hardware safe when the whole control process stops.
 
-The stall watchdog of :mod:`aiohal.loop` is a thread: it covers an event loop stuck in an
+The stall watchdog of :mod:`aiohal.core.loop` is a thread: it covers an event loop stuck in an
 ``await``, not a process frozen whole (SIGSTOP, the GIL held by a stuck extension, a debugger,
 swapped out). This one is a separate OS process, as in LOLA. The tick stores its index and
 its CLOCK_MONOTONIC time into a shared page (two item stores, no system call); when that time

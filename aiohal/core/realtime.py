@@ -20,7 +20,7 @@ from typing import Annotated, Any
 
 from pydantic import Field
 
-from .hal import Options
+from ..hal import Options
 
 log = logging.getLogger(__name__)
 

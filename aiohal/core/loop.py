@@ -4,7 +4,7 @@ One tick, in order::
 
     wake (absolute deadline k) -> read every driver -> check feedback -> controller.update
     (or, with ``[controller] every = n``, on the ticks between two updates: the last command
-    with its position targets extrapolated, see :mod:`aiohal.target_extrapolation`)
+    with its position targets extrapolated, see :mod:`aiohal.core.target_extrapolation`)
     -> clamp commands to limits -> write every driver -> publish -> statistics
 
 Lifecycle: ``configure`` (build drivers and controller, nothing touches hardware) ->
@@ -27,24 +27,23 @@ from typing import Any, cast
 
 import numpy as np
 
-from . import plugins
-from .config import Config, mode_issues
-from .config import from_parts as config_from_parts
-from .errors import ConfigError, ControllerError, DriverError, LifecycleError
+from ..config import Config
+from ..config import from_parts as config_from_parts
+from ..errors import LifecycleError
+from ..hal import Controller
+from ..outside.doorkeeper import Doorkeeper
+from ..outside.port import LoopPort
+from ..robot import Mode
+from ..safety import FaultRecord, SafetyEvent, SafetyLevel
+from ..safety.stall import StallWatchdog
+from ..safety.supervisor import Supervisor
+from ..safety.watchdog import FIRED, STAMP, TICK, WatchdogProcess
 from .feedforward import VelocityFeedforward, gains_of
-from .hal import Controller
-from .lifecycle import DriverSlot, LoopState, close_drivers, open_drivers
+from .lifecycle import DriverSlot, LoopState, build_controllers, build_slots, close_drivers, open_drivers
 from .limits import CommandLimiter
-from .outside.doorkeeper import Doorkeeper
-from .outside.port import LoopPort
 from .realtime import RealtimeState, apply_for_clock, freeze_heap, freeze_young, thaw_heap
 from .realtime import restore as restore_realtime
-from .robot import Mode
 from .run_report import build as build_report
-from .safety import FaultRecord, SafetyEvent, SafetyLevel
-from .safety.stall import StallWatchdog
-from .safety.supervisor import Supervisor
-from .safety.watchdog import FIRED, STAMP, TICK, WatchdogProcess
 from .target_extrapolation import TargetExtrapolator
 from .tick_timing import TickStats
 from .ticker import Ticker, TickSource, make_source
@@ -155,38 +154,10 @@ class ControlLoop:
         """Instantiate drivers and controllers from the config; touches no hardware."""
         if self.state != LoopState.CREATED:
             raise LifecycleError(f"configure() in state {self.state.value!r}")
-        if self._given_controller is not None:  # the config checked its own controller, not this one
-            given = type(self._given_controller)
-            params = self._given_params if self._given_params is not None else given.Params()
-            issues = mode_issues(given, params, self.config.drivers)
-            if issues:
-                raise ConfigError(issues, str(self.config.path) if self.config.path else None)
-        for dc in self.config.drivers:
-            view = self.robot.driver_view(dc.joints, dc.devices)
-            view.attach(self.supervisor.events_of(dc.name, view.rows))
-            view.every = dc.every
-            try:
-                driver = dc.cls(dc.name, view, dc.options)
-            except Exception as exc:
-                raise DriverError(dc.name, "configure", f"{type(exc).__name__}: {exc}") from exc
-            self.slots.append(DriverSlot(driver, dc.type, dc.every, self.config.loop.max_feedback_age * dc.every))
-        controller_view = self.robot.controller_view()
-        hold_cls = cast(type[Controller], plugins.load("controller", "hold"))
-        hold = hold_cls()
-        hold.configure(controller_view, hold_cls.Params())
-        controller: Controller
-        if self._given_controller is not None:
-            controller = self._given_controller
-            controller_type = type(controller).__name__
-            params = self._given_params if self._given_params is not None else type(controller).Params()
-        else:
-            controller = self.config.controller.cls()
-            controller_type = self.config.controller.type
-            params = self.config.controller.params
-        try:
-            controller.configure(controller_view, params)
-        except Exception as exc:
-            raise ControllerError(controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
+        self.slots = build_slots(self.config, self.robot, self.supervisor.events_of)
+        controller, controller_type, hold = build_controllers(
+            self.config, self.robot, self._given_controller, self._given_params
+        )
         self.supervisor.attach(controller, controller_type, hold)
         self.doors = Doorkeeper(self.port)  # shared memory and bridges, as configured
         self.state = LoopState.CONFIGURED
@@ -213,21 +184,9 @@ class ControlLoop:
             self.state = LoopState.CLOSED
             raise
         state = self.robot.state
-        for slot in self.slots:
-            rows = slot.driver.view.rows
-            if not np.isfinite(state.block[:3, rows]).all():
-                reason = "measured position, velocity or effort is not finite after the first read"
-                self.record_fault(f"driver:{slot.name}", "read", reason)
-                self.estop(reason, source=f"driver:{slot.name}")
-                await self._close_drivers()
-                self.state = LoopState.CLOSED
-                raise DriverError(slot.name, "read", reason)
         self.active = list(self.slots)
         cmd = self.robot.command
-        np.copyto(cmd.position, state.position)
-        cmd.velocity[:] = 0.0
-        cmd.effort[:] = 0.0
-        cmd.feedforward[:] = 0.0
+        cmd.rest_at(state.position)
         cmd.mode[cmd.mode == Mode.NONE] = Mode.POSITION
         self.limiter.reset(state.position)
         self.supervisor.event(SafetyEvent.ACTIVATE, "loop", "drivers open, controller started")
@@ -567,5 +526,5 @@ class ControlLoop:
 
     def report(self) -> dict:
         """Timing, faults, drivers and the controller's own metrics of the run so far
-        (:func:`aiohal.run_report.build`)."""
+        (:func:`aiohal.core.run_report.build`)."""
         return build_report(self)

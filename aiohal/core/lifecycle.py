@@ -1,16 +1,24 @@
 """The lifecycle's words and steps: the loop's states, each driver's status, the slot that holds
 a driver with its status and timing counters (shared by the loop and the safety supervisor),
-and bringing the drivers up and down."""
+building the drivers and controllers a config names, and bringing the drivers up and down."""
 
 from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
 from enum import StrEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
-from .errors import DriverError
-from .hal import Driver
+import numpy as np
+
+from .. import plugins
+from ..config import mode_issues
+from ..errors import ConfigError, ControllerError, DriverError
+from ..hal import Controller, Driver
+
+if TYPE_CHECKING:
+    from ..config import Config
+    from ..robot import DriverEvents, Robot
 
 #: ``record_fault(source, phase, error)``: the loop's (its supervisor's) record of faults
 RecordFault = Callable[[str, str, Any], object]
@@ -86,14 +94,61 @@ class DriverSlot:
         }
 
 
+def build_slots(config: Config, robot: Robot, events_of: Callable[[str, slice], DriverEvents]) -> list[DriverSlot]:
+    """One slot per configured driver, built on a view of its joints and devices whose events
+    go to ``events_of(name, rows)``; a constructor that raises is a :class:`DriverError`."""
+    slots = []
+    for dc in config.drivers:
+        view = robot.driver_view(dc.joints, dc.devices)
+        view.attach(events_of(dc.name, view.rows))
+        view.every = dc.every
+        try:
+            driver = dc.cls(dc.name, view, dc.options)
+        except Exception as exc:
+            raise DriverError(dc.name, "configure", f"{type(exc).__name__}: {exc}") from exc
+        slots.append(DriverSlot(driver, dc.type, dc.every, config.loop.max_feedback_age * dc.every))
+    return slots
+
+
+def build_controllers(
+    config: Config, robot: Robot, given: Controller | None = None, given_params: Any = None
+) -> tuple[Controller, str, Controller]:
+    """The controller (``given``, or the configured one) and ``hold``, configured on the
+    robot's controller view: ``(controller, its type name, hold)``. A given controller's
+    command modes are checked against the drivers' here (the config checked its own)."""
+    view = robot.controller_view()
+    hold_cls = cast(type[Controller], plugins.load("controller", "hold"))
+    hold = hold_cls()
+    hold.configure(view, hold_cls.Params())
+    controller: Controller
+    if given is not None:
+        controller, controller_type = given, type(given).__name__
+        params = given_params if given_params is not None else type(given).Params()
+        issues = mode_issues(type(given), params, config.drivers)
+        if issues:
+            raise ConfigError(issues, str(config.path) if config.path else None)
+    else:
+        controller, controller_type = config.controller.cls(), config.controller.type
+        params = config.controller.params
+    try:
+        controller.configure(view, params)
+    except Exception as exc:
+        raise ControllerError(controller_type, "configure", f"{type(exc).__name__}: {exc}") from exc
+    return controller, controller_type, hold
+
+
 async def open_drivers(slots: list[DriverSlot], record_fault: RecordFault) -> None:
-    """Open every driver, then read each once; the first that raises is recorded, marked
-    failed and raised again as a :class:`DriverError` naming it and the phase."""
+    """Open every driver, then read each once; the first that raises, or whose first reading
+    of position, velocity or effort is not finite, is recorded, marked failed and raised
+    again as a :class:`DriverError` naming it and the phase."""
     for phase in ("open", "read"):
         for slot in slots:
             step = slot.driver.open if phase == "open" else slot.driver.read
             try:
                 await step()
+                view = slot.driver.view
+                if phase == "read" and not np.isfinite(view.state.block[:3]).all():
+                    raise ValueError("measured position, velocity or effort is not finite after the first read")
             except Exception as exc:
                 record_fault(f"driver:{slot.name}", phase, exc)
                 slot.status = DriverStatus.FAILED

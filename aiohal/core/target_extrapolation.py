@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .robot import CommandRow, JointCommand, Mode
+from ..robot import CommandRow, JointCommand, Mode
 
 POS, VEL = CommandRow.POSITION, CommandRow.VELOCITY
 

@@ -26,12 +26,15 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import AfterValidator, Field, ValidationInfo
 
-from .files import read_regular_text
-from .hal import JointValues, Options
-from .robot import JointCommand, JointState, Mode
+from ..files import read_regular_text
+from ..hal import JointValues, Options
+from ..robot import JointCommand, JointState, Mode
 
 #: a gains file has one line per joint
 MAX_GAINS_BYTES = 1 << 20
+#: k_e per joint: below -1 the feed-forward pushes against the motion; LOLA learned 1.0, and
+#: a gain ten times that multiplies the target velocity by 11 (a typo, not a tuning)
+K_E_RANGE = (-1.0, 10.0)
 
 
 def _relative(value: Path | None, info: ValidationInfo) -> Path | None:
@@ -45,7 +48,7 @@ class FeedforwardSection(Options):
     """``[feedforward]``: learned velocity feed-forward gains, and how to learn them."""
 
     gains: Annotated[Path | None, AfterValidator(_relative)] = Field(
-        None, description="A gains file written by `python -m aiohal.feedforward learn` (relative to this config)."
+        None, description="A gains file written by `python -m aiohal.learn_feedforward` (relative to this config)."
     )
     k_e: JointValues | None = Field(
         None, description="k_e given here, scalar or per joint (k_vel,ff = 1 + k_e); added to the file's, if both."
@@ -88,6 +91,18 @@ def section_issues(section: FeedforwardSection, joint_names: list[str]) -> list[
             issues.append(("feedforward.gains", str(exc)))
     if isinstance(section.k_e, dict):
         issues += [(f"feedforward.k_e.{name}", "unknown joint") for name in section.k_e if name not in joint_names]
+    if not issues:
+        low, high = K_E_RANGE
+        key = "feedforward.k_e" if section.k_e is not None else "feedforward.gains"
+        for name, value in zip(joint_names, gains_of(section, joint_names), strict=True):
+            if not low <= value <= high:
+                issues.append(
+                    (
+                        key,
+                        f"k_e of {name} is {value:g} (file and inline summed): it must be within "
+                        f"[{low:g}, {high:g}] (k_vel,ff = 1 + k_e; LOLA learned 1.0)",
+                    )
+                )
     return issues
 
 

@@ -1,6 +1,6 @@
 """Clamp commands to the configured joint limits before any driver writes them.
 
-One compiled call per tick (:mod:`aiohal.limit_kernel`) over all joints, whatever their
+One compiled call per tick (:mod:`aiohal.core.limit_kernel`) over all joints, whatever their
 number. The bounds are fixed for every command quantity (range, velocity, effort, stiffness and
 damping >= 0, feed-forward) and, for position and velocity, also move with the last command
 sent.
@@ -22,15 +22,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kernel_call
-from .robot import CommandRow, Robot
+from ..robot import CommandRow, Robot
+from . import compiled_entry
 
 #: Stiffness and damping have no configured limit; this cap keeps every sum finite.
 GAIN_CAP = 1e12
 
 
 class CommandLimiter:
-    """Per tick, one compiled call (:mod:`aiohal.limit_kernel`) clamps the command block to the
+    """Per tick, one compiled call (:mod:`aiohal.core.limit_kernel`) clamps the command block to the
     bounds: fixed ones, and for position and velocity a step from the last command sent."""
 
     def __init__(self, robot: Robot, period_s: float) -> None:
@@ -68,7 +68,7 @@ class CommandLimiter:
     def _rebind(self) -> None:
         """Check the robot's arrays for the kernel, which is called directly (no numba dispatch)."""
         args = (self.cmd.block, self.cmd.mode, self.state.position, self._table)
-        self._kernel = kernel_call.compiled_for(self._dispatcher, (*args, False))
+        self._kernel = compiled_entry.compiled_for(self._dispatcher, (*args, False))
         n = self._table.shape[1]
         if args[0].shape != (len(CommandRow), n) or args[1].shape != (n,) or args[2].shape != (n,):
             raise ValueError(

@@ -1,4 +1,4 @@
-"""The command limiter's per-tick work, compiled with numba (see :mod:`aiohal.limits`).
+"""The command limiter's per-tick work, compiled with numba (see :mod:`aiohal.core.limits`).
 
 Why compiled: as numpy the limiter's rules are 9 calls per tick, and on the real clock every
 tick starts with the caches and branch predictors cold after the wait, where each call costs
@@ -18,7 +18,7 @@ import math
 
 from numba import njit, types
 
-from .robot import CommandRow, Mode
+from ..robot import CommandRow, Mode
 
 # table rows: the [position, velocity] sent last tick, the same one tick earlier, how far each
 # may move in one tick (velocity and acceleration limit × period), then the fixed lower and
@@ -54,7 +54,7 @@ def limit_commands(block, mode, position, table, outside):
     """Clamp ``block`` (command rows × joints) in place; move LAST to BEFORE and the limited
     position and velocity to LAST. ``outside``: some joint's last position command lies
     outside its range (its rate limit then wins over the range). Returns REFUSED if an entry
-    was not finite after clamping (replaced as in :mod:`aiohal.limits`), OUTSIDE if a limited
+    was not finite after clamping (replaced as in :mod:`aiohal.core.limits`), OUTSIDE if a limited
     position still lies outside its range."""
     rows, n = block.shape
     refused = False
