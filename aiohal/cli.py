@@ -19,7 +19,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 
@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("aiohal.cli")
 
-SUBCOMMANDS = ("run", "check", "schema", "plugins", "replay", "plot")
+SUBCOMMANDS = ("run", "check", "schema", "plugins", "info", "replay", "plot")
 #: a second SIGINT/SIGTERM this soon after the first is its echo, not a person's second Ctrl-C:
 #: GNU timeout and a terminal's job control signal both the process and its group at once
 SIGNAL_ECHO_S = 0.05
@@ -46,7 +46,9 @@ COMMANDS_HELP = """commands:
   check CONFIG        validate a config and exit: 0 ok, 2 not (nothing is started)
   schema              print the config's JSON Schema (for editors)
   plugins             list the drivers and controllers this installation has
-  replay RECORDING    a recorded run (MCAP): see python -m aiohal replay --help
+  info RECORDING      a recorded run's summary: see python -m aiohal info --help
+  replay RECORDING --config CONFIG
+                      the config's controller on a recorded run, its commands compared
   plot RECORDING      PNG figures of a recorded run: see python -m aiohal plot --help
 """
 
@@ -284,7 +286,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
     try:
         from .core.lifecycle import DriverStatus
         from .core.loop import ControlLoop
-        from .core.run_report import format_report, write_json
+        from .core.run_report import format_report
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, on_signal, sig.name)
@@ -310,14 +312,16 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
             return 2
         try:
             await control.activate()
-        except AiohalError as exc:
-            log.error("bring-up failed: %s", exc)
-            print(f"error: {exc}", file=sys.stderr)
+        except (AiohalError, asyncio.CancelledError) as exc:
+            if isinstance(exc, asyncio.CancelledError):  # a second signal while a driver was still opening
+                print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
+            else:
+                log.error("bring-up failed: %s", exc)
+                print(f"error: {exc}", file=sys.stderr)
             outputs.close()
-            return 1
-        except asyncio.CancelledError:  # a second signal while a driver was still opening
-            print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
-            outputs.close()
+            # the report JSON is written whatever way the run ends: here, the faults of bring-up
+            if args.report_json is not None:
+                _write_report_json(control.report(), args, config)
             return 1
         outputs.start()
         log.info(
@@ -345,18 +349,26 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         if not args.quiet:
             print(format_report(report), flush=True)
         status = 1 if control.faults or control.worst_level <= SafetyLevel.ESTOP else 0
-        if args.report_json is not None:
-            try:
-                write_json(report, args.report_json, protect=(args.config, *config.named_files()))
-            except (OSError, ValueError) as exc:  # the path changed during the run
-                log.error("report not written: %s", exc)
-                print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
-                status = 1
+        if args.report_json is not None and not _write_report_json(report, args, config):
+            status = 1
         log.info("stopped: %s", control.stop_reason)
         return status
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM, *SAFETY_SIGNALS):
             loop.remove_signal_handler(sig)
+
+
+def _write_report_json(report: dict[str, Any], args: argparse.Namespace, config: Config) -> bool:
+    """Write ``--report-json``; False (said on stderr) if it could not be written."""
+    from .core.run_report import write_json
+
+    try:
+        write_json(report, args.report_json, protect=(args.config, *config.named_files()))
+    except (OSError, ValueError) as exc:  # the path changed during the run
+        log.error("report not written: %s", exc)
+        print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
+        return False
+    return True
 
 
 def cmd_run(argv: Sequence[str]) -> int:
@@ -440,8 +452,14 @@ def cmd_plugins(argv: Sequence[str]) -> int:
     return 0
 
 
+def cmd_info(argv: Sequence[str]) -> int:
+    from .record.reader import info_main
+
+    return info_main(list(argv))
+
+
 def cmd_replay(argv: Sequence[str]) -> int:
-    from .record.reader import replay_main
+    from .record.replay import main as replay_main
 
     return replay_main(list(argv))
 
@@ -478,6 +496,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "check": cmd_check,
         "schema": cmd_schema,
         "plugins": cmd_plugins,
+        "info": cmd_info,
         "replay": cmd_replay,
         "plot": cmd_plot,
     }[command]

@@ -675,7 +675,11 @@ def _parse_drivers(
             doc.add(f"{where}.name", f'"{name}" is already the name of driver[{names_seen[name]}]')
         names_seen.setdefault(name, i)
 
+        known_before = len(doc.issues)
         joints = _expand(section.joints, joint_names, f"{where}.joints", doc.issues)
+        # a joint list with an unknown name is not what the user meant: the driver's own checks
+        # against it would only repeat that error (its options naming joints "not its own")
+        joints_wrong = len(doc.issues) > known_before
         for j in joints:
             if j in joint_owner:
                 doc.add(f"{where}.joints", f'joint "{j}" is already owned by driver[{joint_owner[j]}]')
@@ -705,7 +709,7 @@ def _parse_drivers(
         if cls is None:
             continue
         options = doc.validate(cls.Options, section.options, f"{where}.options")
-        if options is None:
+        if options is None or joints_wrong:
             continue
         for rel, msg in _plugin_checks(cls, where, options, joints, dev_kinds, robot):
             doc.add(_plugin_path(where, rel), msg)
@@ -718,8 +722,11 @@ def _parse_drivers(
         )
 
     if isinstance(doc.raw.get("driver"), list) and not incomplete:  # raw_drivers is [] after a malformed section
-        for j in joint_names:
-            if j not in joint_owner:
+        unowned = [j for j in joint_names if j not in joint_owner]
+        if len(unowned) > 3:  # one line, not one per joint of a robot that lost a driver
+            doc.add("joints", f"no driver owns {len(unowned)} joints: {', '.join(unowned)}")
+        else:
+            for j in unowned:
                 doc.add(f"joints.{j}", "no driver owns this joint")
         for dev_name in devices:
             if dev_name not in device_owner:

@@ -141,7 +141,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "unknown-driver-type",
         _replace('type = "mock"', 'type = "mok"'),
-        ('driver[0].type: unknown driver "mok" (available: canopen, ethercat, fri, mock, mujoco, nrt_hand, udp)',),
+        ('driver[0].type: unknown driver "mok" (available: canopen, ethercat, fri, mock, mujoco, nrt_hand, replay, udp)',),
     ),
     BadConfig(
         "unknown-driver-option",
@@ -290,6 +290,14 @@ CASES: list[BadConfig] = [
         "driver-joint-one-letter-off",
         _replace('joints = ["j0", "j1", "j2"]', 'joints = ["j0", "j1", "j8"]'),
         ('driver[0].joints: unknown joint "j8" (did you mean "j0"?)', "joints.j2: no driver owns this joint"),
+    ),
+    BadConfig(
+        # the driver's options name joints of the robot it no longer has: not repeated as errors
+        "driver-joint-unknown-beside-its-options",
+        _replace('joints = ["j0", "j1", "j2"]', 'joints = ["j0", "j8"]\n[driver.options]\n'
+                 'initial_position = { j1 = 0.5, j2 = -0.5 }'),
+        ('driver[0].joints: unknown joint "j8" (did you mean "j0"?)', "joints.j1: no driver owns this joint",
+         "joints.j2: no driver owns this joint"),
     ),
     BadConfig(
         "hand-on-a-joint-in-another-case",

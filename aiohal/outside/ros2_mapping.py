@@ -12,6 +12,8 @@ import numpy as np
 from .. import ros2
 from ..ros2 import services
 from ..safety import SafetyLevel
+from . import recorder_topics
+from .recorder_topics import ERROR, OK, WARN
 from .rmw_zenoh import LATCHED, VOLATILE, Qos
 
 if TYPE_CHECKING:
@@ -42,8 +44,6 @@ TRAJECTORY = Endpoint("joint_trajectory", "trajectory_msgs/msg/JointTrajectory")
 #: the safety requests, each a std_srvs/srv/Trigger service of the same name
 REQUESTS = ("estop", "hold", "reset_faults", "rearm")
 TRIGGER = services.TRIGGER
-
-_OK, _WARN, _ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels (byte)
 
 
 def joint_state(names: list[str], stamp_ns: int, rows: np.ndarray) -> bytes:
@@ -76,27 +76,9 @@ def tick_timing(stamp_ns: int, tick: int, lateness_ns: int, work_ns: int, phases
     return ros2.serialize(msg)
 
 
-def _no_limit_nan(values: np.ndarray) -> np.ndarray:
-    return np.where(np.isfinite(values), values, np.nan)
-
-
 def robot_description(robot: Robot, rate_hz: float, clock: str) -> bytes:
-    """``aiohal_msgs/msg/Robot``: what does not change during a run (limits NaN where none)."""
-    msg = ros2.message_type(ROBOT.ros_type)(
-        name=robot.name,
-        rate_hz=float(rate_hz),
-        clock=clock,
-        joint_names=list(robot.joint_names),
-        position_min=_no_limit_nan(robot.position_min),
-        position_max=_no_limit_nan(robot.position_max),
-        velocity_max=_no_limit_nan(robot.velocity_limit),
-        effort_max=_no_limit_nan(robot.effort_limit),
-        imu_names=list(robot.imu.names),
-        force_torque_names=list(robot.force_torque.names),
-        hand_names=list(robot.hand.names),
-        description="",
-    )
-    return ros2.serialize(msg)
+    """``aiohal_msgs/msg/Robot`` as the recording has it (inf: no limit), without the config text."""
+    return ros2.serialize(recorder_topics.robot_message(robot, rate_hz, clock, ""))
 
 
 def diagnostics(
@@ -108,9 +90,9 @@ def diagnostics(
     status_t = ros2.message_type("diagnostic_msgs/msg/DiagnosticStatus")
     key_value = ros2.message_type("diagnostic_msgs/msg/KeyValue")
     if new_faults or level <= SafetyLevel.ESTOP:
-        severity = _ERROR
+        severity = ERROR
     else:
-        severity = _OK if level == SafetyLevel.RUN else _WARN
+        severity = OK if level == SafetyLevel.RUN else WARN
     statuses = [
         status_t(
             level=severity,
@@ -123,7 +105,7 @@ def diagnostics(
     for fault in new_faults:
         statuses.append(
             status_t(
-                level=_ERROR,
+                level=ERROR,
                 name=f"aiohal: {robot}: {fault.source}",
                 message=str(fault),
                 hardware_id=robot,
