@@ -115,7 +115,7 @@ class Recording:
         return out
 
     def summary(self) -> dict[str, Any]:
-        """What ``aiohal replay`` prints: ticks per channel, gaps, timing, safety, faults."""
+        """What ``aiohal info`` prints: ticks per channel, gaps, timing, safety, faults."""
         info = self.info
         out: dict[str, Any] = {
             "path": str(self.path),
