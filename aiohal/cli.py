@@ -28,7 +28,7 @@ from .config import Config, describe_validation_error, json_schema, load_config
 from .core.run_report import counted
 from .errors import AiohalError, ConfigError, ConfigIssue
 from .files import check_output_path
-from .outside import cli_outputs
+from .outside import cli_outputs, doorkeeper
 from .safety import SafetyLevel
 
 if TYPE_CHECKING:
@@ -377,6 +377,7 @@ def cmd_run(argv: Sequence[str]) -> int:
         config = _apply_overrides(load_config(args.config), args)
         factory = _loop_factory(args.loop)
         cli_outputs.check(config, args)
+        doorkeeper.check(config)
     except ConfigError as exc:
         _print_config_error(exc)
         return 2
