@@ -48,6 +48,7 @@ FAULT_SCHEMA = {
         "source": {"type": "string"},
         "phase": {"type": "string"},
         "error": {"type": "string"},
+        "condition": {"type": "boolean"},
     },
 }
 HEALTH_SCHEMA = {
