@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import difflib
 import json
 import logging
 import math
 import os
 import signal
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -23,8 +25,9 @@ from pydantic import ValidationError
 
 from . import __version__, plugins
 from .config import Config, describe_validation_error, json_schema, load_config
-from .core.run_report import check_output_path, counted
+from .core.run_report import counted
 from .errors import AiohalError, ConfigError, ConfigIssue
+from .files import check_output_path
 from .outside import cli_outputs
 from .safety import SafetyLevel
 
@@ -34,6 +37,18 @@ if TYPE_CHECKING:
 log = logging.getLogger("aiohal.cli")
 
 SUBCOMMANDS = ("run", "check", "schema", "plugins", "replay", "plot")
+#: a second SIGINT/SIGTERM this soon after the first is its echo, not a person's second Ctrl-C:
+#: GNU timeout and a terminal's job control signal both the process and its group at once
+SIGNAL_ECHO_S = 0.05
+#: what ``--help`` says of each command
+COMMANDS_HELP = """commands:
+  [run] CONFIG        run a robot (the default command; its options are above)
+  check CONFIG        validate a config and exit: 0 ok, 2 not (nothing is started)
+  schema              print the config's JSON Schema (for editors)
+  plugins             list the drivers and controllers this installation has
+  replay RECORDING    a recorded run (MCAP): see python -m aiohal replay --help
+  plot RECORDING      PNG figures of a recorded run: see python -m aiohal plot --help
+"""
 
 
 def configure_logging(fmt: str = "auto", level: int = logging.INFO) -> None:
@@ -123,7 +138,9 @@ def _spin_guard(text: str) -> float:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m aiohal",
-        description="Run a robot from its TOML configuration. Other commands: check CONFIG, schema, plugins.",
+        description="Run a robot from its TOML configuration.",
+        epilog=COMMANDS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("config", type=Path, help="robot configuration (TOML)")
     p.add_argument("--duration", type=_duration, default=None, help="seconds to run (default: until Ctrl-C/SIGTERM)")
@@ -231,6 +248,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
     stage = "starting"  # -> running -> closing -> reporting: what a second signal interrupts
     control = None
     early: list[signal.Signals] = []  # signals before the robot was built: nothing to stop yet
+    first_stop: list[float] = []  # when the first stop signal was handled
 
     def on_signal(name: str) -> None:
         if control is None:
@@ -239,9 +257,17 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         if not control.stop_requested:
             log.info("%s received: stopping", name)
             control.request_stop(name)
+            first_stop.append(time.monotonic())
             return
         if outcome.leave_now:
             return  # the emergency stop is done and reported once
+        if first_stop and time.monotonic() - first_stop[0] < SIGNAL_ECHO_S:
+            log.debug(
+                "%s again within %g s: the same request (a signal sent to the process and its group)",
+                name,
+                SIGNAL_ECHO_S,
+            )
+            return
         # a second signal: stop the hardware now, abandon what is pending
         log.warning("%s received again: emergency stop", name)
         outcome.leave_now = True
@@ -276,16 +302,23 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
             config.controller.type,
             config.loop.rate_hz,
         )
+        outputs = cli_outputs.RunOutputs(control.port, args)
+        try:
+            outputs.open_live()  # a port in use is refused here, before any driver opens
+        except AiohalError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         try:
             await control.activate()
         except AiohalError as exc:
             log.error("bring-up failed: %s", exc)
             print(f"error: {exc}", file=sys.stderr)
+            outputs.close()
             return 1
         except asyncio.CancelledError:  # a second signal while a driver was still opening
             print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
+            outputs.close()
             return 1
-        outputs = cli_outputs.RunOutputs(control.port, args)
         outputs.start()
         log.info(
             "running%s; Ctrl-C or SIGTERM stops safely",
@@ -314,7 +347,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         status = 1 if control.faults or control.worst_level <= SafetyLevel.ESTOP else 0
         if args.report_json is not None:
             try:
-                write_json(report, args.report_json, protect=(args.config,))
+                write_json(report, args.report_json, protect=(args.config, *config.named_files()))
             except (OSError, ValueError) as exc:  # the path changed during the run
                 log.error("report not written: %s", exc)
                 print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
@@ -340,7 +373,7 @@ def cmd_run(argv: Sequence[str]) -> int:
         return 2
     if args.report_json is not None:
         try:
-            check_output_path(args.report_json, protect=(args.config,))
+            check_output_path(args.report_json, protect=(args.config, *config.named_files()))
         except ValueError as exc:
             print(f"error: --report-json: {exc}", file=sys.stderr)
             return 2
@@ -418,8 +451,24 @@ def cmd_plot(argv: Sequence[str]) -> int:
     return plot_main(list(argv))
 
 
+def _unknown_command(word: str) -> bool:
+    """A first word that is no command, no option and no file, and does not look like a path:
+    a mistyped command (``chek``), rather than a config that is missing."""
+    return (
+        word not in SUBCOMMANDS
+        and not word.startswith("-")
+        and not any(c in word for c in "./")
+        and not Path(word).exists()
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and _unknown_command(argv[0]):
+        close = difflib.get_close_matches(argv[0], SUBCOMMANDS, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        print(f"error: unknown command {argv[0]!r}{hint}, and no file of that name\n{COMMANDS_HELP}", file=sys.stderr)
+        return 2
     command = argv[0] if argv and argv[0] in SUBCOMMANDS else "run"
     if argv and argv[0] in SUBCOMMANDS:
         argv = argv[1:]

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated, Any, Literal, cast
 
-from pydantic import AfterValidator, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
+from pydantic import AfterValidator, BaseModel, Field, TypeAdapter, ValidationError, ValidationInfo, field_validator
 
 from . import plugins
 from .core.feedforward import FeedforwardSection
@@ -45,8 +45,22 @@ def _resolve_relative(value: Path, info: ValidationInfo) -> Path:
 ConfigPath = Annotated[Path, AfterValidator(_resolve_relative)]
 
 
+def _name_token(name: str) -> str:
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,63}", name):
+        raise ValueError(
+            "a letter, then at most 63 letters, digits or underscores: it names the shared-memory "
+            f"segment and the ROS 2 topics (e.g. {re.sub(r'[^A-Za-z0-9_]', '_', name).strip('_') or 'robot'!r})"
+        )
+    return name
+
+
 class RobotSection(Options):
-    name: str = Field("robot", min_length=1, description="Robot name, shown in logs and reports.")
+    name: Annotated[str, AfterValidator(_name_token)] = Field(
+        "robot",
+        description="Robot name, shown in logs and reports, and part of the names others find it by: "
+        "the shared-memory segment aiohal.<name>, ROS 2 topics /<name>/...: a letter, then letters, "
+        "digits and underscores (a ROS 2 name token).",
+    )
     model: ConfigPath | None = Field(None, description="Robot model file (MJCF), relative to this config.")
 
 
@@ -231,6 +245,32 @@ class Config:
         if realtime.spin_guard_us > 1e6 / self.loop.rate_hz / 2:
             raise ValueError(f"realtime.spin_guard_us {realtime.spin_guard_us:g} is more than half the period")
         return replace(self, realtime=realtime)
+
+    def named_files(self) -> tuple[Path, ...]:
+        """The config and every input file it names (the model, gains, EDS and DBC files, a
+        zenoh config): what no output of a run may replace. Found by walking the sections'
+        values, so that a driver's own file options are included without being listed here."""
+        found: list[Path] = [self.path] if self.path is not None else []
+
+        def walk(value: Any) -> None:
+            if isinstance(value, Path):
+                found.append(value if value.is_absolute() else self.base_dir / value)
+            elif isinstance(value, BaseModel):
+                for name in type(value).model_fields:
+                    walk(getattr(value, name))
+            elif isinstance(value, (list, tuple)):
+                for item in value:
+                    walk(item)
+            elif isinstance(value, dict):
+                for item in value.values():
+                    walk(item)
+
+        for section in (self.robot, self.feedforward, self.bridge, self.client, self.safety):
+            walk(section)
+        for driver in self.drivers:
+            walk(driver.options)
+        walk(self.controller.params)
+        return tuple(found)
 
     def build_robot(self) -> Robot:
         return Robot(
@@ -635,7 +675,11 @@ def _parse_drivers(
             doc.add(f"{where}.name", f'"{name}" is already the name of driver[{names_seen[name]}]')
         names_seen.setdefault(name, i)
 
+        known_before = len(doc.issues)
         joints = _expand(section.joints, joint_names, f"{where}.joints", doc.issues)
+        # a joint list with an unknown name is not what the user meant: the driver's own checks
+        # against it would only repeat that error (its options naming joints "not its own")
+        joints_wrong = len(doc.issues) > known_before
         for j in joints:
             if j in joint_owner:
                 doc.add(f"{where}.joints", f'joint "{j}" is already owned by driver[{joint_owner[j]}]')
@@ -665,7 +709,7 @@ def _parse_drivers(
         if cls is None:
             continue
         options = doc.validate(cls.Options, section.options, f"{where}.options")
-        if options is None:
+        if options is None or joints_wrong:
             continue
         for rel, msg in _plugin_checks(cls, where, options, joints, dev_kinds, robot):
             doc.add(_plugin_path(where, rel), msg)
@@ -678,8 +722,11 @@ def _parse_drivers(
         )
 
     if isinstance(doc.raw.get("driver"), list) and not incomplete:  # raw_drivers is [] after a malformed section
-        for j in joint_names:
-            if j not in joint_owner:
+        unowned = [j for j in joint_names if j not in joint_owner]
+        if len(unowned) > 3:  # one line, not one per joint of a robot that lost a driver
+            doc.add("joints", f"no driver owns {len(unowned)} joints: {', '.join(unowned)}")
+        else:
+            for j in unowned:
                 doc.add(f"joints.{j}", "no driver owns this joint")
         for dev_name in devices:
             if dev_name not in device_owner:

@@ -1,15 +1,20 @@
-"""Reading a file named in a config or on the command line, without hanging or filling memory.
+"""Files named in a config or on the command line: read without hanging or filling memory,
+written without destroying anything but the file named.
 
 A FIFO blocks ``open()`` until a writer comes, a device such as ``/dev/zero`` never ends, and
 either would stop aiohal before anything checks it. :func:`read_regular` opens without waiting
 (``O_NONBLOCK``), looks at what it opened (``fstat``, so the answer is about that very file) and
-reads only a regular file, up to a size cap.
+reads only a regular file, up to a size cap. An output (:func:`check_output_path`,
+:func:`write_atomically`) replaces only a regular file, never through a symbolic link, never the
+config or a file it names, and is written whole or not at all.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
+import tempfile
 from pathlib import Path
 from typing import BinaryIO
 
@@ -106,3 +111,63 @@ def read_regular_text(path: str | Path, key: str = "", limit: int = MAX_FILE_BYT
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise _refused(key, f"not UTF-8 text ({exc.reason} at byte {exc.start})", path) from None
+
+
+def check_output_path(path: str | Path, *, protect: tuple[Path, ...] = ()) -> Path:
+    """Where an output (a report, a recording, a figure) may go, checked before anything
+    starts; ValueError says why not.
+
+    An output only ever replaces a regular file: a device, FIFO, symlink or directory at
+    ``path`` is left alone, and so is any file in ``protect`` (the config it came from and the
+    files the config names).
+    """
+    path = Path(path)
+    if path.name in ("", ".", ".."):
+        raise ValueError(f"{path} is a directory, not a file name")
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        st = None
+    except OSError as exc:
+        raise ValueError(f"cannot use {path}: {exc.strerror}") from None
+    if st is not None:
+        if stat.S_ISLNK(st.st_mode):
+            raise ValueError(f"{path} is a symbolic link; give the file it points to, or a new name")
+        if stat.S_ISDIR(st.st_mode):
+            raise ValueError(f"{path} is a directory, not a file name")
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path} exists and is not a regular file (a device, FIFO or socket)")
+        for other in protect:
+            try:
+                if os.path.samefile(path, other):
+                    raise ValueError(f"{path} is {other} (the config or a file it names); it would be replaced")
+            except OSError:
+                continue
+    parent = path.parent
+    if not parent.is_dir():
+        raise ValueError(f"the directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"the directory {parent} is not writable")
+    return path
+
+
+def write_atomically(path: str | Path, data: bytes, *, protect: tuple[Path, ...] = ()) -> None:
+    """Write ``data`` to ``path`` through a temporary file in its own directory, renamed over it
+    (the rename replaces a name, never the file a link points to) after ``path`` is checked
+    again (:func:`check_output_path`): nothing else took the name meanwhile."""
+    path = check_output_path(path, protect=protect)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for the temporary file, not the output
+        check_output_path(path, protect=protect)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise

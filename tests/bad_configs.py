@@ -292,6 +292,14 @@ CASES: list[BadConfig] = [
         ('driver[0].joints: unknown joint "j8" (did you mean "j0"?)', "joints.j2: no driver owns this joint"),
     ),
     BadConfig(
+        # the driver's options name joints of the robot it no longer has: not repeated as errors
+        "driver-joint-unknown-beside-its-options",
+        _replace('joints = ["j0", "j1", "j2"]', 'joints = ["j0", "j8"]\n[driver.options]\n'
+                 'initial_position = { j1 = 0.5, j2 = -0.5 }'),
+        ('driver[0].joints: unknown joint "j8" (did you mean "j0"?)', "joints.j1: no driver owns this joint",
+         "joints.j2: no driver owns this joint"),
+    ),
+    BadConfig(
         "hand-on-a-joint-in-another-case",
         _replace('joints = ["j0", "j1", "j2"]', 'joints = ["j0", "j1", "j2"]\ndevices = ["gripper"]')
         + '\n[devices.gripper]\ntype = "hand"\njoint = "J2"\n',
@@ -301,6 +309,38 @@ CASES: list[BadConfig] = [
         "empty-joint-name",
         GOOD.replace('[joints.j2]', '[joints.""]').replace('"j2"]', '"*"]'),
         ('joints."": a joint name must not be empty nor contain * ? [ (drivers name their joints with those patterns)',),
+    ),
+    # names others find the robot by: the shared-memory segment, ROS 2 topics
+    BadConfig(
+        "robot-name-with-a-wildcard",
+        _replace('name = "bad"', 'name = "arm*"'),
+        (re.compile(r"robot\.name: a letter, then at most 63 letters, digits or underscores: .*\(e\.g\. 'arm'\)"),),
+    ),
+    BadConfig(
+        "feedforward-gain-out-of-range",
+        GOOD + "\n[feedforward]\nk_e = { j0 = 1e300, j1 = -50.0 }\n",
+        (
+            re.compile(r"feedforward\.k_e: k_e of j0 is 1e\+300 .* within \[-1, 10\].*"),
+            re.compile(r"feedforward\.k_e: k_e of j1 is -50 .* within \[-1, 10\].*"),
+        ),
+    ),
+    BadConfig(
+        "decimate-beyond-int64",
+        GOOD + "\n[record]\ndecimate = { joint_state = 99999999999999999999 }\n",
+        (re.compile(r"record\.decimate\.joint_state: input should be less than or equal to 1000000 .*"),),
+    ),
+    BadConfig(
+        "udp-boards-sharing-a-port",
+        _replace('type = "mock"', 'type = "udp"')
+        + '[[driver.options.boards]]\nid = 1\njoints = ["j0"]\nport = 9000\n'
+        + '[[driver.options.boards]]\nid = 2\njoints = ["j1", "j2"]\nport = 9000\n',
+        ("driver[0].options.boards: board 2: 127.0.0.1:9000 is board 1's too; each board needs its own address and port",),
+    ),
+    BadConfig(
+        "udp-board-ipv6",
+        _replace('type = "mock"', 'type = "udp"')
+        + '[[driver.options.boards]]\nid = 1\njoints = ["j0", "j1", "j2"]\naddress = "::1"\nport = 9000\n',
+        (re.compile(r"driver\[0\]\.options\.boards\[0\]\.address: ::1 is an IPv6 address: .*IPv4.*"),),
     ),
 ]
 

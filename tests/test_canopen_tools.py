@@ -13,6 +13,7 @@ import can
 import canopen
 import numpy as np
 import pytest
+from conftest import CONFIGS
 
 from aiohal.config import parse_config
 from aiohal.core.loop import ControlLoop
@@ -172,3 +173,22 @@ def test_rpdo_types_are_parsed_and_checked():
     for bad in ("241", "253", "-1", "x"):
         with pytest.raises(Exception, match=r"transmission type is 0\.\.240, 254 or 255"):
             rpdo_type(bad)
+
+
+@pytest.mark.parametrize("content, reason", [
+    (b"[FileInfo]\nFileName=x\n[1000]\nParameterName=Dev\n[unclosed\n", "not a readable EDS/DCF (ParsingError"),
+    (b"\xff\xfe\x00binary", "not UTF-8 text"),
+])
+def test_a_malformed_eds_is_a_config_error_naming_the_key_and_the_file(tmp_path, content, reason):
+    from aiohal.errors import ConfigError
+
+    eds = tmp_path / "drive.eds"
+    eds.write_bytes(content)
+    raw = tomllib.loads((CONFIGS / "canopen_arm_sim.toml").read_text())
+    raw["driver"][0]["options"]["simulate"] = False
+    raw["driver"][0]["options"]["nodes"][0]["eds"] = str(eds)
+    with pytest.raises(ConfigError) as info:
+        parse_config(raw, base_dir=CONFIGS)
+    lines = [str(issue) for issue in info.value.issues]
+    assert any(line.startswith("driver[0].options.nodes[0].eds: ") and str(eds) in line and reason in line
+               for line in lines), lines

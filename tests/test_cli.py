@@ -5,9 +5,11 @@ from __future__ import annotations
 import json
 import os
 import re
+import select
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -253,7 +255,7 @@ def _report_targets(tmp_path: Path) -> dict[str, tuple[Path, str]]:
         "symlink": (link, "symbolic link"),
         "directory": (tmp_path, "directory"),
         "directory-with-slash": (Path(f"{tmp_path}/"), "directory"),
-        "config": (config, "configuration file"),
+        "config": (config, "the config or a file it names"),
         "missing-directory": (tmp_path / "nowhere" / "report.json", "does not exist"),
         "device": (tmp_path / "null", "not a regular file"),
     }
@@ -446,3 +448,58 @@ def test_make_bench_quick_exists_and_the_readme_says_how_long_bench_takes():
     readme = (ROOT / "README.md").read_text()
     assert "`make bench-quick`" in readme
     assert re.search(r"`make bench` runs .* takes about half an\s+hour \(31 min", readme, re.S)
+
+
+@pytest.mark.parametrize("flag", [None, "--no-panel"])
+def test_the_live_panel_reports_its_cost_and_no_panel_turns_only_it_off(tmp_path, flag):
+    """On a terminal the panel is drawn, and the report says how long drawing took;
+    ``--no-panel`` leaves it out and keeps the report."""
+    import pty
+
+    report = tmp_path / "report.json"
+    main, terminal = pty.openpty()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "aiohal", str(ROOT / "configs" / "mock_arm.toml"), "--duration", "1.2",
+         "--report-json", str(report), *([flag] if flag else [])],
+        cwd=ROOT, stdout=terminal, stderr=subprocess.PIPE, text=True,
+    )
+    os.close(terminal)
+    shown = b""
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline:  # bounded: read the terminal while the run writes to it
+            ready, _, _ = select.select([main], [], [], 0.5)
+            if ready:
+                try:
+                    chunk = os.read(main, 1 << 16)
+                except OSError:  # EIO: the run ended and closed its side
+                    break
+                if not chunk:
+                    break
+                shown += chunk
+            elif proc.poll() is not None:
+                break
+        _, err = proc.communicate(timeout=60)
+    finally:
+        os.close(main)
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    data = json.loads(report.read_text())
+    assert b"aiohal run report" in shown  # the report is printed either way
+    if flag:
+        assert "status_panel" not in data
+    else:
+        panel = data["status_panel"]
+        assert panel["refreshes"] >= 1 and 0 < panel["draw_ms_mean"] <= panel["draw_ms_max"]
+        assert b"panel        " in shown
+
+
+def test_help_lists_every_command_and_a_mistyped_one_is_named():
+    helped = run_cli("--help")
+    assert helped.returncode == 0
+    for command in ("run", "check", "schema", "plugins", "replay", "plot"):
+        assert re.search(rf"^\s+(\[run\]|{command}) ", helped.stdout, re.M), command
+    typo = run_cli("chek", ROOT / "configs" / "mock_arm.toml")
+    assert typo.returncode == 2
+    assert "unknown command 'chek' (did you mean 'check'?)" in typo.stderr and "Traceback" not in typo.stderr

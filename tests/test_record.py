@@ -260,3 +260,57 @@ def test_plot_writes_its_pngs(tmp_path):
     for name in ("joints.png", "timing.png", "safety.png"):
         data = (tmp_path / "fig" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+
+
+def test_plot_refuses_outputs_it_would_destroy_before_drawing(tmp_path):
+    """A symlink where a figure goes is refused (its target is left as it was), and so is an
+    output "folder" that is a file or a device."""
+    pytest.importorskip("matplotlib")
+    run_recorded(tmp_path, 100, RecordSection())
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    (tmp_path / "fig").mkdir()
+    (tmp_path / "fig" / "timing.png").symlink_to(target)
+    plain_file = tmp_path / "a_file"
+    plain_file.write_text("not a folder")
+    for out, message in ((tmp_path / "fig", "symbolic link"), (plain_file, "not a folder"),
+                         (Path("/dev/null"), "not a folder")):
+        proc = subprocess.run([sys.executable, "-m", "aiohal", "plot", str(tmp_path / "run.mcap"), "-o", str(out)],
+                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2 and message in proc.stderr, (out, proc.stderr)
+        assert "Traceback" not in proc.stderr
+    assert target.read_text() == "keep me" and plain_file.read_text() == "not a folder"
+    assert not (tmp_path / "fig" / "joints.png").exists()  # refused before any figure was drawn
+
+
+def test_record_never_replaces_a_file_the_config_names(tmp_path):
+    """``--record`` on the config's own MJCF model (or the config itself) exits 2 before the
+    robot starts, and the file is unchanged."""
+    import shutil
+
+    shutil.copytree(ROOT / "configs", tmp_path / "configs")
+    config = tmp_path / "configs" / "walkman_sim.toml"
+    model = tmp_path / "configs" / "models" / "walkman.xml"
+    before = model.read_bytes()
+    for victim in (model, config):
+        proc = subprocess.run([sys.executable, "-m", "aiohal", str(config), "--duration", "0.1", "--record",
+                               str(victim)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2, proc.stderr
+        assert "the config or a file it names" in proc.stderr
+    assert model.read_bytes() == before
+
+
+def test_a_live_view_port_in_use_exits_2_before_the_robot_starts(tmp_path):
+    pytest.importorskip("foxglove")
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "aiohal", "configs/mock_arm.toml", "--clock", "virtual",
+                               "--duration", "0.1", "--foxglove", str(port)],
+                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert f"--foxglove {port}: the live view cannot listen" in proc.stderr and "Traceback" not in proc.stderr
+    assert "starting robot" in proc.stderr and "running" not in proc.stderr  # built, never activated

@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 import uuid
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -528,6 +529,28 @@ async def test_a_segment_left_by_a_killed_process_is_replaced():
             await loop.run(ticks=3)
             assert client.read().tick == 3
     assert not os.path.exists(f"/dev/shm/aiohal.{name}")
+
+
+@pytest.mark.parametrize("squatter", ["symlink", "foreign-file"])
+def test_what_is_not_an_aiohal_segment_at_its_name_is_refused_and_left_alone(tmp_path, squatter):
+    """A link at /dev/shm/aiohal.<robot> (shm_open would fail with ELOOP) or another program's
+    file there: the loop refuses to configure, names the path, and deletes nothing."""
+    name = unique(squatter.replace("-", "_"))
+    path = Path(f"/dev/shm/aiohal.{name}")
+    target = tmp_path / "precious"
+    target.write_bytes(b"not aiohal's" * 100)
+    if squatter == "symlink":
+        path.symlink_to(target)
+    else:
+        path.write_bytes(target.read_bytes())
+    try:
+        loop = virtual_loop(stream_raw(name))
+        with pytest.raises(shm_segment.ShmError, match=rf"/dev/shm/aiohal\.{name} exists and is not"):
+            loop.configure()
+        assert path.is_symlink() if squatter == "symlink" else path.read_bytes() == target.read_bytes()
+        assert target.read_bytes() == b"not aiohal's" * 100
+    finally:
+        path.unlink()
 
 
 @pytest.mark.asyncio

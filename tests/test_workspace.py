@@ -125,6 +125,10 @@ async def test_inside_the_workspace_nothing_happens():
      'no body "moon"'),
     ({"site": "ee"}, "safety.workspace[0]", "exactly one of box or sphere"),
     ({"site": "ee", "box": {"min": [0, 0, 0], "max": [1, -1, 1]}}, "safety.workspace[0].box", "min must be below"),
+    ({"site": "ee", "sphere": {"center": [float("nan"), 0, 0], "radius": 1}}, "safety.workspace[0].sphere.center[0]",
+     "finite"),
+    ({"site": "ee", "box": {"min": [0, 0, float("-inf")], "max": [1, 1, 1]}}, "safety.workspace[0].box.min[2]",
+     "finite"),
 ])
 def test_workspace_config_errors_name_the_key(entry, key, message):
     with pytest.raises(ConfigError) as info:

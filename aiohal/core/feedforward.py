@@ -32,6 +32,9 @@ from ..robot import JointCommand, JointState, Mode
 
 #: a gains file has one line per joint
 MAX_GAINS_BYTES = 1 << 20
+#: k_e per joint: below -1 the feed-forward pushes against the motion; LOLA learned 1.0, and
+#: a gain ten times that multiplies the target velocity by 11 (a typo, not a tuning)
+K_E_RANGE = (-1.0, 10.0)
 
 
 def _relative(value: Path | None, info: ValidationInfo) -> Path | None:
@@ -88,6 +91,18 @@ def section_issues(section: FeedforwardSection, joint_names: list[str]) -> list[
             issues.append(("feedforward.gains", str(exc)))
     if isinstance(section.k_e, dict):
         issues += [(f"feedforward.k_e.{name}", "unknown joint") for name in section.k_e if name not in joint_names]
+    if not issues:
+        low, high = K_E_RANGE
+        key = "feedforward.k_e" if section.k_e is not None else "feedforward.gains"
+        for name, value in zip(joint_names, gains_of(section, joint_names), strict=True):
+            if not low <= value <= high:
+                issues.append(
+                    (
+                        key,
+                        f"k_e of {name} is {value:g} (file and inline summed): it must be within "
+                        f"[{low:g}, {high:g}] (k_vel,ff = 1 + k_e; LOLA learned 1.0)",
+                    )
+                )
     return issues
 
 

@@ -3,15 +3,12 @@ people (:func:`format_report`)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import os
-import stat
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from ..files import write_atomically
 from .ticker import TimerfdTickSource
 
 if TYPE_CHECKING:
@@ -215,6 +212,12 @@ def format_report(report: dict[str, Any]) -> str:
             f"  record       {rec['path'] or 'live only'}: {rec['ticks']} ticks, {rec['dropped_ticks']} dropped, "
             f"{rec['messages']} messages" + (f", ERROR {rec['error']}" if rec.get("error") else "")
         )
+    panel = report.get("status_panel")
+    if panel and panel["refreshes"]:
+        lines.append(
+            f"  panel        {panel['refreshes']} refreshes, drawing {panel['draw_ms_mean']:.2f} ms mean, "
+            f"{panel['draw_ms_max']:.2f} ms longest (a tick due meanwhile waits; --no-panel turns it off)"
+        )
     for fault in report["faults"]:
         lines.append(f"  FAULT        {fault['source']} in {fault['phase']} at tick {fault['tick']}: {fault['error']}")
     return "\n".join(lines)
@@ -230,59 +233,8 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
-def check_output_path(path: str | Path, *, protect: tuple[Path, ...] = ()) -> Path:
-    """Where the report may go, checked before anything starts; ValueError says why not.
-
-    The report only ever replaces a regular file: a device, FIFO, symlink or directory at
-    ``path`` is left alone, and so is any file in ``protect`` (the config it came from).
-    """
-    path = Path(path)
-    if path.name in ("", ".", ".."):
-        raise ValueError(f"{path} is a directory, not a file name")
-    try:
-        st = path.lstat()
-    except FileNotFoundError:
-        st = None
-    except OSError as exc:
-        raise ValueError(f"cannot use {path}: {exc.strerror}") from None
-    if st is not None:
-        if stat.S_ISLNK(st.st_mode):
-            raise ValueError(f"{path} is a symbolic link; give the file it points to, or a new name")
-        if stat.S_ISDIR(st.st_mode):
-            raise ValueError(f"{path} is a directory, not a file name")
-        if not stat.S_ISREG(st.st_mode):
-            raise ValueError(f"{path} exists and is not a regular file (a device, FIFO or socket)")
-        for other in protect:
-            try:
-                if os.path.samefile(path, other):
-                    raise ValueError(f"{path} is the configuration file; the report would replace it")
-            except OSError:
-                continue
-    parent = path.parent
-    if not parent.is_dir():
-        raise ValueError(f"the directory {parent} does not exist")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f"the directory {parent} is not writable")
-    return path
-
-
 def write_json(report: dict[str, Any], path: str | Path, *, protect: tuple[Path, ...] = ()) -> None:
-    """Write the report as strict JSON (NaN becomes null), atomically: through a temporary file
-    in the target's own directory, renamed over the target only if that is a regular file."""
-    path = check_output_path(path, protect=protect)
+    """Write the report as strict JSON (NaN becomes null), atomically
+    (:func:`aiohal.files.write_atomically`: only ever over a regular file, never ``protect``)."""
     text = json.dumps(_json_safe(report), indent=2, allow_nan=False) + "\n"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for the temporary file, not the report
-        check_output_path(path, protect=protect)  # nothing else took the name meanwhile
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    write_atomically(path, text.encode(), protect=protect)

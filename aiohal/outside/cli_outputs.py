@@ -16,8 +16,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..core.run_report import check_output_path
 from ..errors import AiohalError, MissingDependencyError
+from ..files import check_output_path
 from .port import LoopPort
 
 if TYPE_CHECKING:
@@ -48,6 +48,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PORT",
         help=f"serve the run live to Foxglove on localhost:PORT (default {FOXGLOVE_PORT})",
     )
+    parser.add_argument(
+        "--no-panel",
+        action="store_true",
+        help="no live status panel on the terminal (the report and the log stay); the report says what the panel cost",
+    )
 
 
 def record_path(config: Config, args: argparse.Namespace) -> Path | None:
@@ -59,7 +64,7 @@ def check(config: Config, args: argparse.Namespace) -> None:
     path = record_path(config, args)
     if path is not None:
         try:  # the same rule as the report: only ever replace a regular file, never the config
-            check_output_path(path, protect=(args.config,))
+            check_output_path(path, protect=(args.config, *config.named_files()))
         except ValueError as exc:
             raise AiohalError(f"--record {path}: {exc}") from None
     if (path is not None or args.foxglove is not None) and importlib.util.find_spec("mcap") is None:
@@ -79,17 +84,22 @@ class RunOutputs:
         self.path = record_path(port.config, args)
         self.options = port.config.record
         self.foxglove_port: int | None = args.foxglove
-        self.show_status = not args.quiet and sys.stdout.isatty()
+        self.show_status = not args.quiet and not args.no_panel and sys.stdout.isatty()
         self.recorder: Recorder | None = None
         self.live: FoxgloveServer | None = None
         self.status: StatusPanel | None = None
+        self.panel_cost: dict[str, Any] | None = None
 
-    def start(self) -> None:
-        if self.foxglove_port is not None:
+    def open_live(self) -> None:
+        """Bind the live view's port (before the robot starts: a port in use stops nothing)."""
+        if self.foxglove_port is not None and self.live is None:
             from .foxglove_server import FoxgloveServer
 
             self.live = FoxgloveServer(self.foxglove_port)
             log.info("live view: Foxglove on ws://%s:%d", self.live.host, self.live.port)
+
+    def start(self) -> None:
+        self.open_live()
         if self.path is not None or self.live is not None:
             from .recorder import Recorder
 
@@ -106,12 +116,15 @@ class RunOutputs:
     def stop_status(self) -> None:
         if self.status is not None:
             self.status.stop()
+            self.panel_cost = self.status.cost()
             self.status = None
 
     def close(self) -> dict[str, Any]:
         """Everything stopped and written; the recording's figures for the report."""
         self.stop_status()
         out: dict[str, Any] = {}
+        if self.panel_cost is not None:
+            out["status_panel"] = self.panel_cost
         if self.recorder is not None:
             out["record"] = self.recorder.close()
         if self.live is not None:

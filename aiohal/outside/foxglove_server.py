@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..errors import MissingDependencyError
+from ..errors import AiohalError, MissingDependencyError
 
 
 class FoxgloveServer:
@@ -24,7 +24,10 @@ class FoxgloveServer:
             ) from None
         self._foxglove = foxglove
         self.context = foxglove.Context()
-        self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context)
+        try:
+            self.server = foxglove.start_server(name=name, host=host, port=port, context=self.context)
+        except RuntimeError as exc:  # foxglove raises its errors as RuntimeError("FoxgloveError: ...")
+            raise AiohalError(f"--foxglove {port}: the live view cannot listen on {host}:{port} ({exc})") from None
         self.host = host
         self.port = self.server.port
 

@@ -26,7 +26,9 @@ import json
 import logging
 import os
 import re
+import stat
 from multiprocessing import resource_tracker, shared_memory
+from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
@@ -77,6 +79,10 @@ class RobotNotRunning(ShmError):
 
 class SegmentBusy(ShmError):
     """Another live process already serves a robot of this name."""
+
+
+#: where Linux keeps POSIX shared memory
+SHM_DIR = Path("/dev/shm")
 
 
 def segment_name(robot: str) -> str:
@@ -229,10 +235,13 @@ def create_segment(
     blob = json.dumps(meta).encode()
     layout = Layout(dof, n_imu, n_ft, capacity, len(blob))
     try:
-        shm = shared_memory.SharedMemory(name, create=True, size=layout.size)
-    except FileExistsError:
-        _remove_stale(name, robot)
-        shm = shared_memory.SharedMemory(name, create=True, size=layout.size)
+        try:
+            shm = shared_memory.SharedMemory(name, create=True, size=layout.size)
+        except FileExistsError:
+            _remove_stale(name, robot)
+            shm = shared_memory.SharedMemory(name, create=True, size=layout.size)
+    except OSError as exc:
+        raise ShmError(f"robot {robot!r}: cannot make shared memory /dev/shm/{name}: {exc.strerror or exc}") from None
     _buf(shm)[: layout.size] = bytes(layout.size)  # touch every page now, not in the tick
     _buf(shm)[layout.meta : layout.meta + len(blob)] = blob
     seg = Segment(shm, layout, owner=True)
@@ -245,11 +254,25 @@ def create_segment(
 
 
 def _remove_stale(name: str, robot: str) -> None:
+    """Remove a segment of this name that an aiohal process left when it ended; anything else
+    at that name (a link, another program's file, a segment still served) is left alone."""
+    path = SHM_DIR / name
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        return  # gone meanwhile
+    if not stat.S_ISREG(st.st_mode):
+        raise ShmError(f"robot {robot!r}: {path} exists and is not a shared-memory segment (a link?); remove it")
     old = shared_memory.SharedMemory(name)
     try:
         words = np.frombuffer(_buf(old), np.int64, HEADER_WORDS) if old.size >= HEADER_WORDS * 8 else None
-        pid = int(words[H_PID]) if words is not None and words[H_MAGIC] == MAGIC else 0
-        status = int(words[H_STATUS]) if words is not None else STATUS_CLOSED
+        if words is None or words[H_MAGIC] != MAGIC:
+            del words
+            raise ShmError(
+                f"robot {robot!r}: {path} exists and is not an aiohal segment (or one whose making was "
+                "cut short); it is left alone: remove it, or name the robot otherwise"
+            )
+        pid, status = int(words[H_PID]), int(words[H_STATUS])
         del words
         if pid_alive(pid) and status != STATUS_CLOSED:
             if pid != os.getpid():

@@ -8,6 +8,7 @@ timing and the drivers' health through the loop's port, as the report reads them
 from __future__ import annotations
 
 import asyncio
+import time
 from typing import Any
 
 import numpy as np
@@ -88,6 +89,8 @@ class StatusPanel:
         self._task: asyncio.Task | None = None
         self._live: Any = None
         self.refreshes = 0
+        self.draw_ns = 0
+        self.max_draw_ns = 0
 
     def start(self) -> None:
         from rich.console import Console
@@ -102,8 +105,21 @@ class StatusPanel:
     async def _refresh(self) -> None:
         while True:
             await asyncio.sleep(self.period)
+            start = time.perf_counter_ns()
             self._live.update(render(panel_figures(self.port)), refresh=True)
+            spent = time.perf_counter_ns() - start
             self.refreshes += 1
+            self.draw_ns += spent
+            self.max_draw_ns = max(self.max_draw_ns, spent)
+
+    def cost(self) -> dict[str, Any]:
+        """What drawing took on the event loop's thread (between ticks, but a tick due while it
+        draws waits for it): refreshes, mean and longest draw."""
+        return {
+            "refreshes": self.refreshes,
+            "draw_ms_mean": round(self.draw_ns / self.refreshes / 1e6, 3) if self.refreshes else None,
+            "draw_ms_max": round(self.max_draw_ns / 1e6, 3),
+        }
 
     def stop(self) -> None:
         if self._task is not None:

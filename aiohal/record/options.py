@@ -28,7 +28,7 @@ class RecordSection(Options):
     path: Annotated[Path | None, AfterValidator(_relative_to_config)] = Field(
         None, description="Record every run of this config to this MCAP file (the CLI's --record overrides it)."
     )
-    decimate: dict[Channel, Annotated[int, Field(ge=1)]] = Field(
+    decimate: dict[Channel, Annotated[int, Field(ge=1, le=1_000_000)]] = Field(
         default_factory=dict,
         description="Keep every n-th tick of a channel (default 1: every tick), e.g. { imu = 10 }.",
     )
@@ -51,5 +51,8 @@ class RecordSection(Options):
         10.0, gt=0, le=100, description="How often drivers' health and the controller's metrics are recorded."
     )
     live_decimate: int = Field(
-        10, ge=1, description="With --foxglove: send every n-th tick of each channel live (default: 100 Hz at 1 kHz)."
+        10,
+        ge=1,
+        le=1_000_000,
+        description="With --foxglove: send every n-th tick of each channel live (default: 100 Hz at 1 kHz).",
     )

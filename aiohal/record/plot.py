@@ -9,13 +9,18 @@ from __future__ import annotations
 
 import argparse
 import fnmatch
+import io
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from ..core.tick_timing import PHASES
+from ..files import check_output_path, write_atomically
 from ..safety import SafetyLevel
+
+#: the files ``plot`` writes in its folder
+FIGURES = ("joints.png", "timing.png", "safety.png")
 
 
 def _pyplot():
@@ -32,6 +37,7 @@ def _pyplot():
 def plot(recording, out_dir: Path, joints: list[str] | None = None) -> list[Path]:
     """Write the figures of ``recording`` (an :class:`aiohal.record.Recording`) to ``out_dir``."""
     plt = _pyplot()
+    check_out_dir(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     names = recording.joint_names
@@ -42,13 +48,14 @@ def plot(recording, out_dir: Path, joints: list[str] | None = None) -> list[Path
         t = state.t[si]
         fig, (ax, err) = plt.subplots(2, 1, sharex=True, figsize=(10, 6))
         for i in pick[:12]:
-            (line,) = ax.plot(t, state.position[si, i], label=names[i])
-            ax.plot(t, command.position[ci, i], "--", color=line.get_color(), linewidth=0.8)
+            (line,) = ax.plot(t, state.position[si, i], label=names[i], linewidth=1.5, alpha=0.6)
+            # the target on top, thin and dashed, so that it shows where it lies on the position
+            ax.plot(t, command.position[ci, i], "--", color=line.get_color(), linewidth=0.9, zorder=3)
             err.plot(t, (command.position[ci, i] - state.position[si, i]) * 1e3, color=line.get_color())
-        ax.set_ylabel("position (solid) / target (dashed)")
-        err.set_ylabel("target − position (mrad or mm)")
+        ax.set_ylabel("position (solid), target (dashed)\n(rad; m for a prismatic joint)", fontsize="small")
+        err.set_ylabel("target − position\n(mrad; mm for a prismatic joint)", fontsize="small")
         err.set_xlabel("time (s)")
-        ax.legend(fontsize="small", ncol=4)
+        ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside, not over, the curves
         ax.set_title(f"{recording.info.get('robot', '')}: joints")
         written.append(_save(fig, out_dir / "joints.png", plt))
     if "/timing" in recording and len(recording["/timing"]):
@@ -60,9 +67,15 @@ def plot(recording, out_dir: Path, joints: list[str] | None = None) -> list[Path
         axes[1].hist(timing.lateness_ns / 1e3, bins=100, log=True)
         axes[1].set_xlabel("lateness (µs)")
         axes[1].set_ylabel("ticks")
+        top = 0.0
         for p in PHASES:
-            axes[2].plot(timing.t, timing[f"{p}_ns"] / 1e3, linewidth=0.5, label=p)
-        axes[2].set_ylabel("phase work (µs)")
+            work_us = timing[f"{p}_ns"] / 1e3
+            axes[2].plot(timing.t, work_us, linewidth=0.5, label=p)
+            top = max(top, float(np.percentile(work_us, 99.5)))
+        # a few spikes would squash every phase flat: the axis ends above their 99.5th
+        # percentile (the spikes are in the lateness plot and the run's report)
+        axes[2].set_ylim(0, top * 1.5 or 1.0)
+        axes[2].set_ylabel("phase work (µs)\n(to 1.5 × p99.5)", fontsize="small")
         axes[2].set_xlabel("time (s)")
         axes[2].legend(fontsize="small", ncol=len(PHASES))
         written.append(_save(fig, out_dir / "timing.png", plt))
@@ -84,9 +97,21 @@ def plot(recording, out_dir: Path, joints: list[str] | None = None) -> list[Path
 
 def _save(fig, path: Path, plt) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    image = io.BytesIO()
+    fig.savefig(image, dpi=100, format="png")
     plt.close(fig)
+    write_atomically(path, image.getvalue())
     return path
+
+
+def check_out_dir(out_dir: Path) -> None:
+    """The figures' folder: a folder (or a name free for one) in which each figure's name is free
+    or a regular file; ValueError says why not, before anything is drawn."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"-o {out_dir}: not a folder (the figures are {', '.join(FIGURES)} in it)")
+    if out_dir.is_dir():
+        for name in FIGURES:
+            check_output_path(out_dir / name)
 
 
 def main(argv: list[str]) -> int:
@@ -98,10 +123,12 @@ def main(argv: list[str]) -> int:
     from .reader import load
 
     try:
+        check_out_dir(args.out)
         recording = load(args.recording)
+        written = plot(recording, args.out, args.joints)
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    for path in plot(recording, args.out, args.joints):
+    for path in written:
         print(path)
     return 0

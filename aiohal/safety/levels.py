@@ -41,7 +41,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from ..hal import Options
+from ..hal import FiniteFloat, Options
 
 
 class SafetyLevel(IntEnum):
@@ -132,7 +132,7 @@ class SafetyMachine:
         return True
 
 
-Vector3 = tuple[float, float, float]
+Vector3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
 
 
 class BoxSection(Options):

@@ -48,7 +48,7 @@ from aiohal.fieldbus.cia402_driver import Cia402Driver
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec
 from aiohal.fieldbus.error_codes import describe_error_code, describe_error_register
 from aiohal.fieldbus.pdo_options import DriveUnitOptions, parse_number, parse_pdo_entry, pdo_issues
-from aiohal.files import FileRefused, check_regular, read_regular_text
+from aiohal.files import FileRefused, read_regular_text
 from aiohal.hal import FiniteFloat, JointValues, Options, unknown_joint_issues
 from aiohal.logutil import RateLimitedLogger
 from aiohal.robot import Fault
@@ -338,9 +338,11 @@ class CanopenDriver(Cia402Driver):
             moved.setdefault(node.joint, i)
             if node.eds is not None:
                 try:
-                    check_regular(node.eds)
+                    load_od(node.eds, node.node_id, key="")
                 except FileRefused as exc:
                     issues.append((f"{where}.eds", str(exc)))
+                except Exception as exc:  # canopen's parser raises what its parsing met
+                    issues.append((f"{where}.eds", f"{node.eds}: not a readable EDS/DCF ({type(exc).__name__}: {exc})"))
             issues += pdo_issues(f"{where}.rx_pdos", node.rx_pdos, 0x1600, 0x17FF)
             issues += pdo_issues(f"{where}.tx_pdos", node.tx_pdos, 0x1A00, 0x1BFF)
         for joint in joints:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import fnmatch
+import ipaddress
 import logging
 import socket
 import struct
@@ -73,8 +74,21 @@ class UdpError(AiohalError, OSError):
 class BoardOptions(Options):
     id: int = Field(ge=0, le=0xFFFF, description="The board's id (in every datagram's header).")
     joints: list[str] = Field(min_length=1, description="Its joints, names or glob patterns, in the driver's order.")
-    address: str = Field("127.0.0.1", description="The board's IPv4 address.")
+    address: str = Field("127.0.0.1", min_length=1, description="The board's IPv4 address (or a name it resolves to).")
     port: int = Field(ge=1, le=0xFFFF, description="The board's UDP port.")
+
+    @field_validator("address")
+    @classmethod
+    def _ipv4(cls, value: str) -> str:
+        try:
+            version = ipaddress.ip_address(value).version
+        except ValueError:
+            return value  # a host name, resolved to IPv4 at open
+        if version != 4:
+            raise ValueError(
+                f"{value} is an IPv6 address: the boards are reached over IPv4 (AF_INET); give its IPv4 address"
+            )
+        return value
 
 
 class SimulationOptions(SimulatedJoints):
@@ -132,11 +146,19 @@ def board_layout(options: UdpOptions, joints: list[str]) -> tuple[list[tuple[int
     layout: list[tuple[int, int, int]] = []
     problems: list[str] = []
     row, ids = 0, set()
+    places: dict[tuple[str, int], int] = {}
     for b in options.boards:
         names = [j for pattern in b.joints for j in joints if fnmatch.fnmatchcase(j, pattern)]
         if b.id in ids:
             problems.append(f"board {b.id}: the id is used twice")
         ids.add(b.id)
+        where = (b.address, b.port)
+        if where in places:  # the replies are told apart by their source address
+            problems.append(
+                f"board {b.id}: {b.address}:{b.port} is board {places[where]}'s too; each board needs "
+                "its own address and port"
+            )
+        places.setdefault(where, b.id)
         if names != joints[row : row + len(names)] or not names:
             problems.append(
                 f"board {b.id}: its joints {names} are not the next run of the driver's joints "
