@@ -3,10 +3,12 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-dev
+RUN_STAMP := $(VENV)/.installed-run
 CONFIG ?= configs/kuka_lwr_sim.toml
 ARGS ?= --duration 10
 # the extras `make test` installs (.ci/run installs the same in its other Pythons' venvs)
 EXTRAS := dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh,docs
+RUN_EXTRAS := sim,record
 
 .PHONY: run lint test check docs figures bench bench-quick clean
 
@@ -18,7 +20,12 @@ $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install -q -e '.[$(EXTRAS)]'
 	touch $@
 
-run: $(STAMP)
+# `make run` needs only the simulator and the recorder; a venv `make test` set up has them
+$(RUN_STAMP): $(PY) pyproject.toml
+	@if [ -f $(STAMP) ] && [ $(STAMP) -nt pyproject.toml ]; then :; else $(PY) -m pip install -q -e '.[$(RUN_EXTRAS)]'; fi
+	touch $@
+
+run: $(RUN_STAMP)
 	$(PY) -m aiohal $(CONFIG) $(ARGS)
 
 # ruff checks every Python file; ruff format and mypy cover the three packages
@@ -70,7 +77,6 @@ docs: $(STAMP)
 	$(VENV)/bin/mkdocs build --strict
 
 figures: $(STAMP)
-	$(PY) -m pip install -q -e '.[plot]'
 	$(PY) examples/plot_circles.py docs/img/circles.png
 
 clean:

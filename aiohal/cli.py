@@ -19,7 +19,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 
@@ -284,7 +284,7 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
     try:
         from .core.lifecycle import DriverStatus
         from .core.loop import ControlLoop
-        from .core.run_report import format_report, write_json
+        from .core.run_report import format_report
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, on_signal, sig.name)
@@ -310,14 +310,16 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
             return 2
         try:
             await control.activate()
-        except AiohalError as exc:
-            log.error("bring-up failed: %s", exc)
-            print(f"error: {exc}", file=sys.stderr)
+        except (AiohalError, asyncio.CancelledError) as exc:
+            if isinstance(exc, asyncio.CancelledError):  # a second signal while a driver was still opening
+                print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
+            else:
+                log.error("bring-up failed: %s", exc)
+                print(f"error: {exc}", file=sys.stderr)
             outputs.close()
-            return 1
-        except asyncio.CancelledError:  # a second signal while a driver was still opening
-            print("error: bring-up interrupted by a second signal; drivers emergency-stopped", file=sys.stderr)
-            outputs.close()
+            # the report JSON is written whatever way the run ends: here, the faults of bring-up
+            if args.report_json is not None:
+                _write_report_json(control.report(), args, config)
             return 1
         outputs.start()
         log.info(
@@ -345,18 +347,26 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
         if not args.quiet:
             print(format_report(report), flush=True)
         status = 1 if control.faults or control.worst_level <= SafetyLevel.ESTOP else 0
-        if args.report_json is not None:
-            try:
-                write_json(report, args.report_json, protect=(args.config, *config.named_files()))
-            except (OSError, ValueError) as exc:  # the path changed during the run
-                log.error("report not written: %s", exc)
-                print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
-                status = 1
+        if args.report_json is not None and not _write_report_json(report, args, config):
+            status = 1
         log.info("stopped: %s", control.stop_reason)
         return status
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM, *SAFETY_SIGNALS):
             loop.remove_signal_handler(sig)
+
+
+def _write_report_json(report: dict[str, Any], args: argparse.Namespace, config: Config) -> bool:
+    """Write ``--report-json``; False (said on stderr) if it could not be written."""
+    from .core.run_report import write_json
+
+    try:
+        write_json(report, args.report_json, protect=(args.config, *config.named_files()))
+    except (OSError, ValueError) as exc:  # the path changed during the run
+        log.error("report not written: %s", exc)
+        print(f"error: --report-json: report not written: {exc}", file=sys.stderr)
+        return False
+    return True
 
 
 def cmd_run(argv: Sequence[str]) -> int:

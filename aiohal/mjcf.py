@@ -6,6 +6,7 @@ anything starts; the driver and controllers load their own copies to simulate or
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -14,12 +15,23 @@ import mujoco
 import numpy as np
 
 from .files import check_regular
+from .logutil import RateLimitedLogger
+
+log = logging.getLogger(__name__)
+_warnings = RateLimitedLogger(log)
+
+
+def _mujoco_warning(text: str) -> None:
+    """MuJoCo's warnings (an unstable simulation, a full contact buffer) into the log, rate
+    limited per kind: by default MuJoCo appends them to MUJOCO_LOG.TXT in the current folder."""
+    _warnings.warning(text.split(" at ")[0].split(". ")[0], "MuJoCo: %s", text.strip())
 
 
 def load_model(path: str | Path) -> mujoco.MjModel:
     """The model at ``path``; MuJoCo reads the file itself, so it is checked to be a regular
     file first (a FIFO would hang MuJoCo's read, a device fill memory)."""
     check_regular(path)
+    mujoco.set_mju_user_warning(_mujoco_warning)
     return mujoco.MjModel.from_xml_path(str(path))
 
 

@@ -101,9 +101,9 @@ def run_case(n_slaves: int, rate_hz: int, exchange: str, seconds: float, spin_gu
                          timeout=seconds + 120)
         steal_percent = steal.percent()
     bus = report["drivers"]["bus"]
-    cpu_p50, cpu_p99 = bus.get("cpu_us") or [None, None]
+    cpu_p50, cpu_p99 = (bus.get("cpu_us") or {}).get("p50"), (bus.get("cpu_us") or {}).get("p99")
     key = "rtt_us" if exchange == "immediate" else "receive_wait_us"
-    wait_p50, wait_p99 = bus.get(key, [None, None])
+    wait_p50, wait_p99 = bus.get(key, {}).get("p50"), bus.get(key, {}).get("p99")
     return {
         "slaves": n_slaves, "loop": loop, "rate_hz": rate_hz, "exchange": exchange, "seconds": seconds, "spin_guard_us": spin_guard_us,
         "process_data_bytes": bus.get("process_data_bytes"), "ticks": report["ticks"], "missed": report["missed_ticks"],
@@ -162,7 +162,7 @@ def breakdown(n_slaves: int, ticks: int, exchange: str = "split") -> dict:
             spent.clear()
             report = await loop.run(ticks=ticks)
             out = {f"{k}_us": round(v / report["ticks"] / 1e3, 1) for k, v in spent.items()}
-            out["cpu_us_p50"] = report["drivers"]["bus"]["cpu_us"][0]
+            out["cpu_us_p50"] = report["drivers"]["bus"]["cpu_us"]["p50"]
         # the decode alone, once the driver is closed: nothing else (the keep-alive thread)
         # cycles the bus on this CPU between the samples; the decode only reads the image
         for label, pause in (("warm", 0.0), ("after_sleep", 0.0009)):

@@ -118,14 +118,15 @@ class SineController(Controller):
         np.add(swing, self.q0, out=command.position)
 
     def metrics(self) -> dict:
+        """Tracking error over the run, in the joints' own units (rad, or m for a prismatic joint)."""
         sum_sq, largest, samples = (
             getattr(self, "_sum_sq", 0.0),
             getattr(self, "_largest", 0.0),
             getattr(self, "_samples", 0),
         )
         if not samples:
-            return {"tracking_rms_rad_or_m": float("nan"), "tracking_max_rad_or_m": float("nan")}
+            return {"tracking_rms": float("nan"), "tracking_max": float("nan")}
         return {
-            "tracking_rms_rad_or_m": round(math.sqrt(sum_sq / samples), 6),
-            "tracking_max_rad_or_m": round(float(largest), 6),
+            "tracking_rms": round(math.sqrt(sum_sq / samples), 6),
+            "tracking_max": round(float(largest), 6),
         }

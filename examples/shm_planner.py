@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from aiohal.client import RobotClient
+from aiohal.client import RobotClient, RobotNotRunning
 
 
 def plan(robot: str, duration: float, step: float, lead: float, amplitude: float, frequency: float) -> dict:
@@ -62,7 +62,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--amplitude", type=float, default=0.2, help="rad")
     p.add_argument("--frequency", type=float, default=0.5, help="Hz")
     args = p.parse_args(argv)
-    summary = plan(args.robot, args.duration, args.step, args.lead, args.amplitude, args.frequency)
+    try:
+        summary = plan(args.robot, args.duration, args.step, args.lead, args.amplitude, args.frequency)
+    except RobotNotRunning as exc:  # start the robot first: python -m aiohal configs/mock_arm_stream.toml
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     print(json.dumps(summary))
     return 0
 

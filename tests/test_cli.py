@@ -358,7 +358,7 @@ def test_the_report_reads_as_plain_words_with_units(tmp_path, event_loop):
     assert "deadlines missed 0 (passed while a tick was late), ticks over the period" in out
     assert "  safety       ran normally; at the end: drivers closed  (stop: duration reached)" in out
     assert "WARNING" not in out  # nothing is wrong with a chosen virtual clock
-    assert re.search(r"controller   sine: tracking rms \S+ rad or m, tracking max \S+ rad or m$", out, re.M), out
+    assert re.search(r"controller   sine: tracking rms \S+, tracking max \S+$", out, re.M), out
     assert "[mock] closed, 1 joint," in out
     for repr_text in ("None", "[]", "{", "True", "False", "_"):  # no Python reprs, no raw keys
         assert repr_text not in out.split("aiohal run report:")[1].replace("p99.9", ""), (repr_text, out)
@@ -503,3 +503,23 @@ def test_help_lists_every_command_and_a_mistyped_one_is_named():
     typo = run_cli("chek", ROOT / "configs" / "mock_arm.toml")
     assert typo.returncode == 2
     assert "unknown command 'chek' (did you mean 'check'?)" in typo.stderr and "Traceback" not in typo.stderr
+
+
+def test_a_report_figure_with_parts_gives_each_its_unit():
+    from aiohal.core.run_report import _item
+
+    assert _item("rtt_us", {"p50": 6.1, "p99": 153.7}) == "rtt (p50 6.10 µs, p99 153.70 µs)"
+    assert _item("sm_watchdog_ms", [50.0, 100.0]) == "sm watchdog 50.00 ms; 100.00 ms"
+    assert _item("cycles", 12) == "cycles 12"
+
+
+def test_the_report_json_is_written_when_bring_up_fails(tmp_path):
+    config = tmp_path / "robot.toml"
+    config.write_text((ROOT / "configs" / "mock_arm.toml").read_text().replace(
+        'dynamics = "first_order"', 'dynamics = "first_order"\nfaults = { open_error = true }'))
+    report = tmp_path / "report.json"
+    proc = run_cli(config, "--duration", "1", "--clock", "virtual", "--report-json", report)
+    assert proc.returncode == 1
+    data = json.loads(report.read_text())
+    assert data["drivers"]["arm"]["status"] == "failed"
+    assert [(f["source"], f["phase"]) for f in data["faults"]] == [("driver:arm", "open")]

@@ -68,7 +68,7 @@ async def test_sine_amplitude_frequency_phase_per_joint():
     assert np.allclose(q[:, 2], 1.0)  # amplitude 0 for joints not named
     assert np.allclose(v[:, 0], 0.5 * 2 * np.pi * np.cos(2 * np.pi * t), atol=1e-9)
     # mirror dynamics: each tick measures exactly what the tick before commanded
-    assert report["controller"]["tracking_max_rad_or_m"] == 0.0
+    assert report["controller"]["tracking_max"] == 0.0
 
 
 @pytest.mark.asyncio
@@ -97,4 +97,4 @@ async def test_sine_tracking_error_reflects_the_dynamics():
         r_fast = await fast.run(ticks=2000)
     async with slow:
         r_slow = await slow.run(ticks=2000)
-    assert r_slow["controller"]["tracking_rms_rad_or_m"] > 5 * r_fast["controller"]["tracking_rms_rad_or_m"] > 0
+    assert r_slow["controller"]["tracking_rms"] > 5 * r_fast["controller"]["tracking_rms"] > 0

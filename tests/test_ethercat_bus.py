@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 
 import pytest
@@ -397,3 +398,28 @@ def test_a_held_interface_is_refused_naming_the_holder(lock_dir):
     second = Bus(ScanPysoem(0), "ah1m")
     second._hold_interface()  # released with the bus
     second._release_interface()
+
+
+def test_the_interface_lock_file_is_removed_with_the_bus_and_a_removed_one_is_not_trusted(lock_dir, monkeypatch):
+    from aiohal.drivers.ethercat import bus as bus_module
+
+    first = Bus(ScanPysoem(0), "ah3m")
+    first._hold_interface()
+    path = lock_dir / "aiohal-ethercat-ah3m.lock"
+    assert path.read_text().strip() == str(os.getpid())
+    first._release_interface()
+    assert not path.exists()  # nothing left under the lock directory
+    # a lock file that another program removes between open and lock each time is refused,
+    # after a bounded number of tries, rather than trusted
+    real_flock = bus_module.fcntl.flock
+    tries = []
+
+    def flock_then_remove(fd, op):
+        real_flock(fd, op)
+        tries.append(fd)
+        path.unlink()
+
+    monkeypatch.setattr(bus_module.fcntl, "flock", flock_then_remove)
+    with pytest.raises(BringUpError, match="keeps being removed"):
+        Bus(ScanPysoem(0), "ah3m")._hold_interface()
+    assert len(tries) == 5

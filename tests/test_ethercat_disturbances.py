@@ -242,12 +242,15 @@ async def test_a_slave_that_does_not_arm_its_watchdog_is_refused_unless_it_is_tu
     assert "options.sm_watchdog_ms = 0" in str(err.value)
     assert "trying again" not in caplog.text  # a configuration error: not retried
     assert not loop.slots[0].driver.bus.is_open
+    # the report of the failed bring-up gives the working counter the slaves were mapped for
+    refused_wkc = loop.report()["drivers"]["bus"]["expected_wkc"]
     caplog.clear()
     # turned off explicitly: the same slave is brought up, and a warning names what is unwatched
     with caplog.at_level("WARNING", logger="aiohal.drivers.ethercat.driver"):
         async with ControlLoop(parse_config(_raw(segment.ifname, sm_watchdog_ms=0))) as loop:
             assert loop.slots[0].driver.drives.all_enabled()
             assert loop.slots[0].driver.sm_watchdogs == {}
+            assert loop.report()["drivers"]["bus"]["expected_wkc"] == refused_wkc > 0
     assert "sm_watchdog_ms = 0: the SM watchdogs of slave(s) 0 (drive1), 1 (drive2), 2 (drive3)" in caplog.text
 
 

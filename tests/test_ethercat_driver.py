@@ -522,14 +522,26 @@ async def test_the_commands_feedforward_reaches_the_simulated_drive_as_0x60b1_an
 
 
 @pytest.mark.asyncio
-async def test_a_remapping_the_slave_refuses_fails_the_bring_up_with_the_object_and_abort_code(segment):
+async def test_a_remapping_the_slave_refuses_fails_the_bring_up_with_the_object_and_abort_code(segment, caplog):
     raw = raw_config(segment.ifname, bringup_attempts=1)
     raw["driver"][0]["options"]["slaves"][1]["rx_pdos"] = {"0x1601": ["0x6040:0:16", "0x6041:0:16"]}  # statusword out
     loop = ControlLoop(parse_config(raw))
     with pytest.raises(DriverError) as err:
         await loop.activate()
     assert "slave 1 (AIOHAL-Drive): PDO remapping, SDO write 0x1601:00: abort 0x06040041" in str(err.value)
+    assert "its previous one is restored" in str(err.value)
     assert not driver_of(loop).bus.is_open
+    # the slave was given its mapping back: the next bring-up, without the remap, runs (a slave
+    # left with 0x1C12:00 = 0 would refuse SAFEOP until a power cycle)
+    with caplog.at_level("INFO", logger="aiohal.drivers.ethercat"):
+        async with ControlLoop(parse_config(raw_config(segment.ifname, bringup_attempts=1))) as loop:
+            runs = TicksRun()
+            loop.add_publisher(runs)
+            report = await runs.run(loop, 200)
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "7/7"
+    # a bring-up that goes as planned says so in a line, not four state changes per drive
+    infos = [r.getMessage() for r in caplog.records if r.levelname == "INFO" and "drive" in r.getMessage()]
+    assert not [m for m in infos if " -> " in m or "became_enabled" in m], infos
 
 
 def test_pdo_remapping_config_errors_name_the_key():

@@ -16,7 +16,14 @@ from udp_helpers import wait_for
 
 from aiohal.config import parse_config
 from aiohal.core.loop import ControlLoop
-from aiohal.drivers.fri.driver import FriDriver, FriDriverError, FriOptions
+from aiohal.drivers.fri.driver import (
+    HANDSHAKE_CYCLES,
+    MIN_SILENT_MS,
+    SILENT_CYCLES,
+    FriDriver,
+    FriDriverError,
+    FriOptions,
+)
 from aiohal.drivers.fri.protocol import (
     CMD,
     CMD_ID,
@@ -348,3 +355,20 @@ async def test_a_loop_on_a_simulated_krc_with_servo_dynamics():
     health = loop.report()["drivers"]["krc"]
     assert report["faults"] == [] and report["safety_level"] == "run"
     assert health["simulated_krc"]["starts"] == 1 and health["received"] >= 150
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("cycle_ms", [1, 10, 100])
+async def test_the_defaults_bring_up_a_krc_at_every_cycle_it_offers(cycle_ms):
+    """friOpen(1) to friOpen(100): with the driver's defaults (open_timeout_s 10, silent_ms from
+    the KRC's cycle), the handshake reaches command mode and the silence that fails the driver
+    is longer than a few of the KRC's cycles. At 100 ms the handshake's cycles take about 10 s:
+    the bound follows the cycle, not a fixed 10 s."""
+    krc = Krc(KrcOptions(cycle_s=cycle_ms / 1e3))
+    krc.driver.options = krc.driver.options.model_copy(update={"open_timeout_s": 10.0})  # the default
+    try:
+        await asyncio.wait_for(krc.open(), 10.0 + HANDSHAKE_CYCLES * cycle_ms / 1e3 + 30.0)
+        assert krc.driver.running and int(krc.driver.msr["state"]) == State.CMD
+        assert krc.driver._silent_ns / 1e6 == pytest.approx(max(MIN_SILENT_MS, SILENT_CYCLES * cycle_ms))  # float32
+    finally:
+        await krc.close()

@@ -435,3 +435,24 @@ async def test_a_keyframe_start_is_the_models_pose():
         parse_config(raw, base_dir=CONFIGS)
     assert [str(i) for i in info.value.issues] == [
         'driver[0].options.keyframe: no keyframe "hom" in the model kuka_lwr.xml (did you mean "home"?)']
+
+
+def test_mujoco_warnings_go_to_the_log_not_to_a_file_in_the_current_folder(tmp_path, monkeypatch, caplog):
+    from aiohal import mjcf
+    from aiohal.logutil import RateLimitedLogger
+    from aiohal.mjcf import load_model
+
+    monkeypatch.setattr(mjcf, "_warnings", RateLimitedLogger(mjcf.log))  # none logged yet by this test's limiter
+    model_file = tmp_path / "one.xml"
+    model_file.write_text('<mujoco><worldbody><body><joint/><geom size="0.1"/></body></worldbody></mujoco>')
+    monkeypatch.chdir(tmp_path)
+    model = load_model(model_file)
+    data = mujoco.MjData(model)
+    with caplog.at_level("WARNING", logger="aiohal.mjcf"):
+        for _ in range(3):  # unstable every step: logged once (rate limited)
+            data.qvel[0] = float("nan")
+            mujoco.mj_step(model, data)
+    assert data.warning[mujoco.mjtWarning.mjWARN_BADQVEL].number >= 1
+    lines = [r.getMessage() for r in caplog.records if r.name == "aiohal.mjcf"]
+    assert len(lines) == 1 and "MuJoCo: Nan, Inf or huge value in QVEL" in lines[0], lines
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()

@@ -126,7 +126,6 @@ def _fmt(value: Any) -> str:
 
 #: key suffixes that carry a unit: ``sim_time_s`` reads "sim time 1.00 s"
 _UNITS = (
-    ("_rad_or_m", " rad or m"),
     ("_per_s", "/s"),
     ("_percent", " %"),
     ("_us", " µs"),
@@ -140,11 +139,16 @@ _UNITS = (
 
 
 def _item(key: str, value: Any) -> str:
-    unit = ""
-    for suffix, name in _UNITS:
-        if key.endswith(suffix) and len(key) > len(suffix):
-            key, unit = key[: -len(suffix)], name
+    unit = suffix = ""
+    for ending, name in _UNITS:
+        if key.endswith(ending) and len(key) > len(ending):
+            key, unit, suffix = key[: -len(ending)], name, ending
             break
+    if unit and isinstance(value, dict) and value:  # each figure with its unit: "rtt (p50 6.1 µs, p99 153.7 µs)"
+        shown = "(" + ", ".join(_item(f"{k}{suffix}", v) for k, v in value.items()) + ")"
+        return f"{key.replace('_', ' ')} {shown}"
+    if unit and isinstance(value, (list, tuple)) and value:
+        return f"{key.replace('_', ' ')} " + "; ".join(f"{_fmt(v)}{unit}" for v in value)
     shown = _fmt(value)
     return f"{key.replace('_', ' ')} {shown}{unit if shown != '-' else ''}"
 

@@ -912,8 +912,8 @@ class CanopenDriver(Cia402Driver):
             )
 
     def _on_drive_event(self, i: int, event: DriveEvent) -> None:
-        if not self._active:
-            log.info("canopen %s: %s", self.name, event)
+        if not self._active:  # bring-up: what does not come up is reported by open()
+            log.debug("canopen %s: %s", self.name, event)  # the enable sequence: four lines a drive
             return
         drives = cast(DriveGroup, self.drives)  # its own drives' state machines report events
         detail = ""

@@ -14,6 +14,7 @@ loop included. They are used at bring-up, shutdown and after a bus error only.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import functools
 import logging
@@ -112,6 +113,7 @@ class Bus:
         self.overlap = overlap
         self.take_over = take_over  # bring up a bus whose slaves another master runs in OP
         self._lock_fd: int | None = None
+        self._lock_path = LOCK_DIR
         self.sii_mapped: set[int] = set()  # CoE slaves without 0x1C12/0x1C13: PDOs from their SII
         self.master: Any = None
         self.slaves: list[Any] = []  # pysoem slave objects, made once (each access makes a new one)
@@ -163,30 +165,42 @@ class Bus:
 
     def _hold_interface(self) -> None:
         """An exclusive lock on the interface for as long as the bus is open: a second master
-        on it would reset every slave (``config_init``) under the first one's feet."""
+        on it would reset every slave (``config_init``) under the first one's feet. The lock
+        file is removed when the bus closes; a lock taken on a file another process removed
+        meanwhile is no lock, so the file locked must still be the one at the path."""
         path = LOCK_DIR / f"aiohal-ethercat-{self.ifname}.lock"
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as exc:
-            raise BringUpError(
-                f"cannot create the interface lock {path} ({exc}); AIOHAL_LOCK_DIR names another directory"
-            ) from exc
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        for _ in range(5):  # bounded: a file removed between open and lock is opened again
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as exc:
+                raise BringUpError(
+                    f"cannot create the interface lock {path} ({exc}); AIOHAL_LOCK_DIR names another directory"
+                ) from exc
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+                os.close(fd)
+                raise BringUpError(
+                    f"interface {self.ifname!r} is held by another aiohal process (pid {holder}, lock "
+                    f"{path}): a second master would knock it off the bus; stop that one first"
+                ) from None
+            if _same_file(fd, path):
+                break
             os.close(fd)
-            raise BringUpError(
-                f"interface {self.ifname!r} is held by another aiohal process (pid {holder}, lock "
-                f"{path}): a second master would knock it off the bus; stop that one first"
-            ) from None
+        else:
+            raise BringUpError(f"the interface lock {path} keeps being removed: another program is at it")
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         self._lock_fd = fd
+        self._lock_path = path
 
     def _release_interface(self) -> None:
         fd, self._lock_fd = self._lock_fd, None
         if fd is not None:
+            with contextlib.suppress(OSError):  # removed while still held: nobody else can hold it now
+                if _same_file(fd, self._lock_path):
+                    os.unlink(self._lock_path)
             os.close(fd)  # (releases the lock)
 
     def _refuse_a_running_bus(self) -> None:
@@ -324,16 +338,37 @@ class Bus:
             ):
                 self._sdo_write_again_if_lost(slave, index, subindex, data)
 
-        write(assign, 0, b"\0")
-        for pdo, entries in pdos:
-            if entries:
-                write(pdo, 0, b"\0")
-                for k, entry in enumerate(entries, 1):
-                    write(pdo, k, struct.pack("<I", entry))
-                write(pdo, 0, bytes([len(entries)]))
-        for k, (pdo, _) in enumerate(pdos, 1):
-            write(assign, k, struct.pack("<H", pdo))
-        write(assign, 0, bytes([len(pdos)]))
+        # what the slave has now, to put back if it refuses the new mapping half-way: a slave
+        # left with 0x1C12:00 = 0 refuses SAFEOP (AL status 0x001D) until it is power-cycled
+        where = f"slave {position} ({slave.name})"
+        try:
+            before = self._assignment(slave, where, assign)
+            before_maps = {pdo: self._mapping(slave, where, pdo) for pdo, entries in pdos if entries}
+        except Exception as exc:
+            before, before_maps = None, {}
+            log.info("ethercat %s: %s: its PDO mapping could not be read before remapping: %s", self.ifname, where, exc)
+        try:
+            _write_assignment(write, assign, pdos)
+        except Exception as exc:
+            if before is None:
+                raise BringUpError(
+                    f"{exc}; the slave's previous mapping was not readable, so it was not restored: it may "
+                    "refuse SAFEOP until it is power-cycled"
+                ) from exc
+            try:
+                old = {pdo: before_maps.get(pdo, []) for pdo in before}
+                _write_assignment(
+                    write,
+                    assign,
+                    [(pdo, before_maps.get(pdo, [])) for pdo, _ in pdos if pdo not in old] + list(old.items()),
+                    count=len(before),
+                )
+            except Exception as undo:
+                raise BringUpError(
+                    f"{exc}; putting its previous mapping back failed too ({undo}): it is left half-mapped "
+                    "and may refuse SAFEOP (AL status 0x001D) until it is power-cycled"
+                ) from exc
+            raise BringUpError(f"{exc}; the slave refused this mapping, and its previous one is restored") from exc
         log.info(
             "ethercat %s: slave %d (%s) 0x%04X = %s",
             self.ifname,
@@ -688,6 +723,35 @@ def check_identity(
                 f"slave {position} ({device_name}): {what} 0x{got:08X}, "
                 f"but the config expects 0x{want:08X} for {name!r}{why}"
             )
+
+
+def _write_assignment(
+    write: Callable[[int, int, bytes], None], assign: int, pdos: list[tuple[int, list[int]]], count: int | None = None
+) -> None:
+    """CiA 301's sequence: the assignment's count to 0, each PDO given entries mapped (its count
+    0, the entries, the count), the PDOs assigned in order, the count. ``count``: how many of
+    ``pdos`` are assigned (the rest only have their mapping written back)."""
+    write(assign, 0, b"\0")
+    for pdo, entries in pdos:
+        if entries:
+            write(pdo, 0, b"\0")
+            for k, entry in enumerate(entries, 1):
+                write(pdo, k, struct.pack("<I", entry))
+            write(pdo, 0, bytes([len(entries)]))
+    assigned = pdos if count is None else pdos[len(pdos) - count :]
+    for k, (pdo, _) in enumerate(assigned, 1):
+        write(assign, k, struct.pack("<H", pdo))
+    write(assign, 0, bytes([len(assigned)]))
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    """``fd`` is open on the file now at ``path``."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return False
+    mine = os.fstat(fd)
+    return (mine.st_dev, mine.st_ino) == (st.st_dev, st.st_ino)
 
 
 def expected_wkc(infos: Sequence[SlaveInfo]) -> int:

@@ -208,18 +208,19 @@ class EthercatDriver(Cia402Driver):
             shift_ns=round(opts.sync0_shift_us * 1000),
             safeop_timeout_s=opts.safeop_timeout_s,
         )
-        written = self._program_watchdogs()
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
             self.infos.append(
                 SlaveInfo(
                     i, s.name, slave.name, slave.man, slave.id, slave.rev, layout, len(slave.output), len(slave.input)
                 )
             )
+        # known from here on, so that a bring-up failing after the mapping reports it
+        self._expected = expected_wkc(self.infos)
+        written = self._program_watchdogs()
         self.image = image = ProcessImage([(s.name, layout) for s, layout in zip(opts.slaves, layouts, strict=True)])
         for info in self.infos:
             image.slave(info.name).check_sizes(info.output_bytes, info.input_bytes)
         self._link_devices()
-        self._expected = expected_wkc(self.infos)
         if self._expected != self.bus.master.expected_wkc:
             log.info(
                 "ethercat %s: expected working counter %d (pysoem says %d)",
@@ -549,7 +550,7 @@ class EthercatDriver(Cia402Driver):
 
     def _on_drive_event(self, i: int, event: DriveEvent) -> None:
         if not self._activated:  # bring-up: open() and the activation read report what does not come up
-            log.info("ethercat %s: %s", self.name, event)
+            log.debug("ethercat %s: %s", self.name, event)  # the enable sequence: four lines a drive
             return
         if threading.get_ident() != self._loop_thread:  # the keep-alive thread: the loop's next read handles it
             self._pending.append((i, event))
@@ -770,10 +771,8 @@ class EthercatDriver(Cia402Driver):
             key = "rtt_us" if self.options.exchange == "immediate" else "receive_wait_us"
             rtt = self._rtt_ns[:n] if self.cycles < RING else self._rtt_ns
             cpu = self._cpu_ns[:n] if self.cycles < RING else self._cpu_ns
-            out[key] = [round(float(v) / 1e3, 1) for v in np.percentile(rtt, (50, 99))]
-            out["cpu_us"] = (
-                [round(float(v) / 1e3, 1) for v in np.percentile(cpu[cpu > 0], (50, 99))] if (cpu > 0).any() else []
-            )
+            out[key] = _p50_p99_us(rtt)
+            out["cpu_us"] = _p50_p99_us(cpu[cpu > 0]) if (cpu > 0).any() else {}
         if self._keepalive_cycles:
             out["keepalive_cycles"] = self._keepalive_cycles
         out["al_checks"] = self.al_checks
@@ -787,3 +786,8 @@ class EthercatDriver(Cia402Driver):
             out["diagnoses"] = self.diagnoses
             out["recovered"] = self.recovered
         return out
+
+
+def _p50_p99_us(samples_ns: np.ndarray) -> dict[str, float]:
+    p50, p99 = np.percentile(samples_ns, (50, 99)) / 1e3
+    return {"p50": round(float(p50), 1), "p99": round(float(p99), 1)}

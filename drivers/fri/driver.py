@@ -70,6 +70,13 @@ STATE_CMD = int(State.CMD)
 RESTART_SILENCE_CYCLES = 3
 
 
+#: KRL's handshake at open is paced by the KRC: quality climbs over its first packets, then the
+#: program answers the start request; at a 100 ms cycle it took about 100 cycles
+HANDSHAKE_CYCLES = 200
+#: the default silence that fails the driver: this many KRC cycles, and never less than
+SILENT_CYCLES, MIN_SILENT_MS = 5, 100.0
+
+
 class FriDriverError(AiohalError, OSError):
     """The KRC cannot be reached, refused command mode, or went silent."""
 
@@ -111,8 +118,18 @@ class FriOptions(Options):
     )
     krl: KrlOptions = Field(default_factory=KrlOptions)
     start: bool = Field(True, description="Request command mode at open (else stay in monitor mode: read only).")
-    open_timeout_s: FiniteFloat = Field(10.0, gt=0, description="The KRC must reach command mode within this.")
-    silent_ms: FiniteFloat = Field(100.0, gt=0, description="No measurement for this long fails the driver.")
+    open_timeout_s: FiniteFloat = Field(
+        10.0,
+        gt=0,
+        description=f"Each bring-up step (first measurement, monitor mode, command mode) within this, or "
+        f"{HANDSHAKE_CYCLES} of the KRC's cycles if that is longer (KRL's handshake counts cycles).",
+    )
+    silent_ms: FiniteFloat | None = Field(
+        None,
+        gt=0,
+        description=f"No measurement for this long fails the driver; default {SILENT_CYCLES} of the KRC's "
+        f"cycles, at least {MIN_SILENT_MS:g} ms.",
+    )
     simulate: bool = Field(False, description="Start `python -m aiohal.drivers.fri.sim` on loopback.")
     simulation: KrcSimulation = Field(default_factory=KrcSimulation)
     initial_position: JointValues = Field(0.0, description="With simulate: where the simulated arm starts.")
@@ -145,6 +162,15 @@ class FriDriver(Driver):
             issues += unknown_joint_issues(f"options.{key}", getattr(options, key), joints)
         if len(joints) != JOINTS:
             issues.append(("joints", f"an LWR 4+ has {JOINTS} joints; {len(joints)} given"))
+        cycle_ms = options.simulation.cycle_ms
+        if options.simulate and options.silent_ms is not None and options.silent_ms < 2 * cycle_ms:
+            issues.append(
+                (
+                    "options.silent_ms",
+                    f"{options.silent_ms:g} ms is less than two of the simulated KRC's "
+                    f"{cycle_ms} ms cycles: leave it out for {SILENT_CYCLES} cycles",
+                )
+            )
         return issues
 
     def __init__(self, name, view, options) -> None:
@@ -182,6 +208,7 @@ class FriDriver(Driver):
         self._new = False  # a measurement arrived since the last read
         self._last_seq: int | None = None
         self._last_msr_ns = 0
+        self._silent_ns = float(MIN_SILENT_MS * 1e6)  # from the KRC's cycle at open
         self._previous_position = np.zeros(JOINTS)
         self._previous_stamp = 0.0
         self._fault = ""  # the KRC-side fault being held, "" when none
@@ -353,6 +380,16 @@ class FriDriver(Driver):
             self._krc_host = cast(str, (await loop.getaddrinfo(opts.krc_address, None, family=socket.AF_INET))[0][4][0])
         await self._wait(lambda: self._new, "no measurement from the KRC")
         self._take_measurement()
+        self._silent_ns = self.silent_ns()
+        cycle_ms = self._krc_cycle_s() * 1e3
+        if self._silent_ns < 2 * cycle_ms * 1e6:
+            log.warning(
+                "fri %s: silent_ms = %g is less than two of the KRC's %g ms cycles: one late measurement "
+                "will fail the driver",
+                self.name,
+                self._silent_ns / 1e6,
+                cycle_ms,
+            )
         if opts.start:
             await self._wait(lambda: self.msr["state"] == State.MON, "the KRC is not in monitor mode")
             self.cmd["krl_int"][opts.krl.command_int - 1] = opts.krl.start
@@ -369,14 +406,26 @@ class FriDriver(Driver):
         np.copyto(self.target, self.view.state.position, casting="same_kind")
 
     async def _wait(self, condition, what: str) -> None:
-        deadline = time.monotonic() + self.options.open_timeout_s
+        start = time.monotonic()
         while not condition():
-            if time.monotonic() > deadline:
+            timeout_s = max(self.options.open_timeout_s, HANDSHAKE_CYCLES * self._krc_cycle_s())
+            if time.monotonic() - start > timeout_s:
                 raise FriDriverError(
-                    f"{what} within {self.options.open_timeout_s:g} s "
+                    f"{what} within {timeout_s:g} s "
                     f"(state {int(self.msr['state'])}, quality {int(self.msr['quality'])})"
                 )
             await asyncio.sleep(0.005)
+
+    def _krc_cycle_s(self) -> float:
+        """The KRC's cycle as its measurements give it (0 before the first)."""
+        return float(self.msr["desired_msr_sample_time"])
+
+    def silent_ns(self) -> float:
+        """How long without a measurement fails the driver: ``silent_ms``, or the default from
+        the KRC's cycle."""
+        if self.options.silent_ms is not None:
+            return self.options.silent_ms * 1e6
+        return max(MIN_SILENT_MS * 1e6, SILENT_CYCLES * self._krc_cycle_s() * 1e9)
 
     async def _start_simulation(self, remote: tuple[str, int]) -> int:
         sim = self.options.simulation
@@ -435,9 +484,9 @@ class FriDriver(Driver):
         if self._new:
             self._take_measurement()
             view.mark_fresh()
-        elif time.monotonic_ns() - self._last_msr_ns > self.options.silent_ms * 1e6:
+        elif time.monotonic_ns() - self._last_msr_ns > self._silent_ns:
             view.state.fault |= np.uint32(Fault.HARDWARE)
-            raise FriDriverError(f"no measurement from the KRC for {self.options.silent_ms:g} ms")
+            raise FriDriverError(f"no measurement from the KRC for {self._silent_ns / 1e6:g} ms")
         if self.running:
             msr = self.msr
             if msr["state"] != State.CMD or msr["power"] == 0 or msr["error"] != 0 or msr["quality"] < self.min_quality:
