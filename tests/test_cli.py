@@ -498,7 +498,7 @@ def test_the_live_panel_reports_its_cost_and_no_panel_turns_only_it_off(tmp_path
 def test_help_lists_every_command_and_a_mistyped_one_is_named():
     helped = run_cli("--help")
     assert helped.returncode == 0
-    for command in ("run", "check", "schema", "plugins", "replay", "plot"):
+    for command in ("run", "check", "schema", "plugins", "info", "replay", "plot"):
         assert re.search(rf"^\s+(\[run\]|{command}) ", helped.stdout, re.M), command
     typo = run_cli("chek", ROOT / "configs" / "mock_arm.toml")
     assert typo.returncode == 2
@@ -523,3 +523,10 @@ def test_the_report_json_is_written_when_bring_up_fails(tmp_path):
     data = json.loads(report.read_text())
     assert data["drivers"]["arm"]["status"] == "failed"
     assert [(f["source"], f["phase"]) for f in data["faults"]] == [("driver:arm", "open")]
+
+
+def test_every_shipped_config_checks():
+    configs = sorted((ROOT / "configs").glob("*.toml"))
+    proc = run_cli("check", *configs)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count(": ok: robot ") == len(configs)
