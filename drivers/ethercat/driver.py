@@ -207,6 +207,7 @@ class EthercatDriver(Cia402Driver):
             cycle_ns=self.view.clock.period_ns,
             shift_ns=round(opts.sync0_shift_us * 1000),
             safeop_timeout_s=opts.safeop_timeout_s,
+            static_frames=opts.dc_static_frames,
         )
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
             self.infos.append(

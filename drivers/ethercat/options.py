@@ -80,6 +80,14 @@ class EthercatOptions(Options):
     )
     overlap_map: bool = Field(False, description="config_overlap_map (inputs and outputs share logical addresses).")
     dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
+    dc_static_frames: int = Field(
+        3000,
+        ge=0,
+        le=1_000_000,
+        description="Static drift compensation: frames carrying the reference clock's time to every "
+        "slave, back to back after config_dc and before SYNC0 and SAFEOP (the simulated ESCs lock "
+        "within 3000; the ETG recommends about 15000 for hardware).",
+    )
     sync0: bool = Field(
         False,
         description="Activate SYNC0 at the loop's period on every cia402 drive (DC-synchronous "
