@@ -24,7 +24,7 @@ from __future__ import annotations
 PHASE_GAIN = 0.25  # part of the filtered difference slewed away after each write
 MAX_SLEW = 1e-3  # phase correction: at most 1 us per ms
 MAX_SPEED = 1e-3  # the speed correction's range (+-1000 ppm)
-SPEED_SCALE_NS = 1 << 17  # integral gain = 1 / (speed counter start * this), per ns of difference
+SPEED_SCALE_NS = 1 << 16  # integral gain = 1 / (speed counter start * this), per ns of difference
 SPEED_COUNTER_START = 0x1000  # 0x0930 at power-on
 
 
@@ -54,6 +54,8 @@ class DcClock:
         return (1.0 + self.drift) * (1.0 + self.speed)
 
     def _slewed(self, dt: int) -> float:
+        if dt <= 0:  # (a time before the last anchor: a slave further along the line)
+            return 0.0
         p = self._pending
         most = MAX_SLEW * dt
         return p if -most <= p <= most else (most if p > 0 else -most)
@@ -108,6 +110,9 @@ class DcClock:
         self._anchor(now)
         self.speed_start = value
         self.restart()
+
+    def summary(self) -> dict[str, float]:
+        return {"speed_ppm": self.speed * 1e6, "difference_ns": self.diff, "writes": self._samples}
 
 
 def register_difference(diff: float) -> int:

@@ -120,9 +120,14 @@ class Esc:
         watchdog_ms: float = 100.0,
         boot_offset_ns: int = 0,
         drift_ppm: float = 0.0,
+        frame_clock: Callable[[], int] | None = None,
     ) -> None:
         self.device = device
         self.clock = clock
+        #: the distributed clock's time source: the time of the frame being handled (as the
+        #: frame passes every slave within microseconds on hardware, not as this process walks
+        #: them), else the clock
+        self.dc_clock = frame_clock or clock
         self.watchdog_ms = watchdog_ms
         self.boot_offset_ns = boot_offset_ns
         #: how much faster this slave's crystal runs than the host's clock (kept over power cycles)
@@ -197,7 +202,7 @@ class Esc:
         self.al_state = INIT
         self.al_error = False
         self.al_code = 0
-        self.dc = DcClock(self.clock(), self.boot_offset_ns, self.drift_ppm)
+        self.dc = DcClock(self.dc_clock(), self.boot_offset_ns, self.drift_ppm)
         self.dc.compensating = self.dc_compensation
         self.sync0_start = 0
         self._set_al_status()
@@ -268,7 +273,7 @@ class Esc:
                 b = self.read(REG_END, end - REG_END)
                 return None if a is None or b is None else a + b
             if ado < 0x0918 and end > 0x0910 and self.has_dc:
-                U64.pack_into(self.mem, 0x0910, self.system_time(self.clock()))
+                U64.pack_into(self.mem, 0x0910, self.system_time(self.dc_clock() + HOP_NS * self.position))
             if ado < 0x0998 and end > 0x0990:
                 self._refresh_next_sync0()
             return bytes(self.mem[ado:end])
@@ -299,7 +304,7 @@ class Esc:
                 k = 0x0910 - ado
                 wide = end >= 0x0918
                 self.system_time_written(
-                    self.clock(), int.from_bytes(data[k : k + (8 if wide else 4)], "little"), 64 if wide else 32
+                    self.dc_clock(), int.from_bytes(data[k : k + (8 if wide else 4)], "little"), 64 if wide else 32
                 )
             return True
         rx = self.mbx_rx
@@ -435,7 +440,7 @@ class Esc:
         self._sm_changed()
 
     def _h_latch(self, a: int, b: int) -> None:
-        now = self.clock()
+        now = self.dc_clock()
         t0 = self.local_time(now + HOP_NS * self.position)
         mem = self.mem
         U32.pack_into(mem, 0x0900, t0 & 0xFFFFFFFF)
@@ -446,7 +451,7 @@ class Esc:
         U64.pack_into(mem, 0x0918, t0 & MASK64)
 
     def _h_dc_offset(self, a: int, b: int) -> None:
-        self.dc.set_offset(self.clock(), U64.unpack_from(self.mem, 0x0920)[0])
+        self.dc.set_offset(self.dc_clock() + HOP_NS * self.position, U64.unpack_from(self.mem, 0x0920)[0])
 
     def _h_dc_delay(self, a: int, b: int) -> None:
         self.dc.delay = U32.unpack_from(self.mem, 0x0928)[0]
@@ -454,7 +459,7 @@ class Esc:
     def _h_dc_loop(self, a: int, b: int) -> None:
         self.dc.depth = self.mem[0x0934]
         if a < 0x0932 and b > 0x0930:  # a write of the speed counter start restarts the loop
-            self.dc.set_speed_start(self.clock(), U16.unpack_from(self.mem, 0x0930)[0])
+            self.dc.set_speed_start(self.dc_clock() + HOP_NS * self.position, U16.unpack_from(self.mem, 0x0930)[0])
             U32.pack_into(self.mem, 0x092C, 0)
 
     def _h_sync0_start(self, a: int, b: int) -> None:
@@ -465,7 +470,7 @@ class Esc:
         cycle = U32.unpack_from(mem, 0x09A0)[0]
         start = self.sync0_start
         if mem[0x0981] & 0x03 == 0x03 and cycle:
-            now = self.system_time(self.clock())
+            now = self.system_time(self.dc_clock() + HOP_NS * self.position)
             if now > start:
                 start += -(-(now - start) // cycle) * cycle
         U64.pack_into(mem, 0x0990, start & MASK64)
@@ -879,6 +884,7 @@ class Esc:
             "dc": self.has_dc,
             "drift_ppm": self.drift_ppm,
             "dc_compensation": self.dc_compensation,
+            "dc_loop": self.dc.summary(),
             "sync0": {"active": self.mem[0x0981] & 0x03 == 0x03, "cycle_ns": U32.unpack_from(self.mem, 0x09A0)[0]},
         }
 

@@ -101,6 +101,7 @@ class Segment:
         self.rng = random.Random(seed)
         self.slaves: list[Esc] = []
         self.dc_trace = DcTrace()
+        self._frame_now: int | None = None  # the time of the frame being handled
         self.start_drifts = drifts(len(devices), drift_ppm, seed)  # (control command clear: back to these)
         for i, (dev, drift) in enumerate(zip(devices, self.start_drifts, strict=True)):
             esc = Esc(
@@ -109,6 +110,7 @@ class Segment:
                 watchdog_ms=watchdog_ms,
                 boot_offset_ns=1_000_000_000 + 7_919_000 * i,
                 drift_ppm=drift,
+                frame_clock=self._frame_time,
             )
             esc.on_change = self._on_change
             self.slaves.append(esc)
@@ -197,9 +199,19 @@ class Segment:
         return self._addr
 
     # ------------------------------------------------------------------ frames
+    def _frame_time(self) -> int:
+        now = self._frame_now
+        return self.clock() if now is None else now
+
     def handle_frame(self, frame: bytes) -> bytes | None:
         """Process one Ethernet frame; the reply (same length) or None if it is lost."""
-        now = self.clock()
+        self._frame_now = now = self.clock()
+        try:
+            return self._handle_frame(frame, now)
+        finally:
+            self._frame_now = None
+
+    def _handle_frame(self, frame: bytes, now: int) -> bytes | None:
         c = self.counters
         c["frames"] += 1
         self.last_delay_ns = 0
