@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -19,9 +20,12 @@ from .core.loop import ControlLoop
 from .errors import ConfigError
 
 
-async def learn(config: Any, duration_s: float | None = None) -> tuple[GainLearner, dict]:
+async def learn(
+    config: Any, duration_s: float | None = None, on_tick: Callable[[ControlLoop], None] | None = None
+) -> tuple[GainLearner, dict]:
     """Run ``config``'s robot and controller with the learner until it is done (or
-    ``duration_s``); the learner and the run's report."""
+    ``duration_s``); the learner and the run's report. ``on_tick`` is called after each tick
+    (to record the run)."""
     section: FeedforwardSection = config.feedforward
     rate = config.loop.rate_hz
     learner = GainLearner(section.step, section.max_steps)
@@ -34,6 +38,7 @@ async def learn(config: Any, duration_s: float | None = None) -> tuple[GainLearn
             max(1, round(section.window_s * rate)),
             round(section.settle_s * rate),
             clock=loop.robot.clock,
+            delay=section.measurement_delay_ticks,
         )
         windows = (section.max_steps + 2) * (1 + LearningFeedforward.MAX_REPEATS)  # repeats: see LearningFeedforward
         limit = duration_s or section.settle_s + section.window_s * windows
@@ -45,6 +50,8 @@ async def learn(config: Any, duration_s: float | None = None) -> tuple[GainLearn
         # one run: on a real clock, stopping and starting again between windows would hold the
         # drives for a moment, an error in the next window that has nothing to do with k_e
         loop.add_publisher(stop_when_learned)
+        if on_tick is not None:
+            loop.add_publisher(on_tick)
         report = await loop.run(duration=limit)
     return learner, report
 

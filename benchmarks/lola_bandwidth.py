@@ -8,16 +8,17 @@ end would sit on the Nyquist frequency. Runs:
 
 * ``position``: position targets only (zero target velocity, so no velocity feed-forward);
 * ``velocity_ff``: with the sweep's target velocity as the drives' velocity feed-forward;
-* ``learned``: the same with the learned gain ``k_e`` (0.1, what ``benchmarks.lola_tracking``
-  learns at 2 kHz: ``K_p·T``).
+* ``learned``: the same with the learned gain ``k_e`` (0.2, what ``benchmarks.lola_tracking``
+  learns at 2 kHz).
 
-The transfer function is measured position over commanded position: ``u`` the target sent at
-tick k, ``y`` the position measured at tick k + 1 (the first a target can show in), estimated
-as Welch's H1 = S_uy / S_uu (Hann segments of 1 s, half overlapping), numpy only. The
-bandwidth is the lowest frequency where the gain falls below -3 dB (1/√2: a position loop's
-gain at rest is 1), interpolated on log f.
+The transfer function is measured position over desired position with LOLA's error
+definition (``aiohal.core.tracking_error``): ``u`` the target of tick k, ``y`` the link
+position measured at the same tick, estimated as Welch's H1 = S_uy / S_uu (Hann segments of
+1 s, half overlapping), numpy only. Reported: the -3 dB bandwidth (the lowest frequency where
+the gain falls below 1/√2, interpolated on log f), and, as LOLA's Fig. 10 draws it (100-300 Hz,
+in dB), the frequency where the gain last falls through 0 dB in the band the sweep crosses.
 
-    python -m benchmarks.lola_bandwidth [--json out.json] [--figures DIR]
+    python -m benchmarks.lola_bandwidth [--json out.json] [--out DIR]
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from .common import ROOT, write_json
 
 CONFIG = ROOT / "configs" / "lola_hip_sim.toml"
 RATE_HZ = 2000.0
+FIG10_BAND = (100.0, 300.0)  # LOLA's Fig. 10: 100-300 Hz, -10 to +20 dB
 
 
 def transfer_function(u: np.ndarray, y: np.ndarray, fs: float, segment: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -73,6 +75,19 @@ def bandwidth_3db(f: np.ndarray, gain: np.ndarray, f_min: float, f_max: float) -
     return float(math.exp(x0 + (x1 - x0) * (-3.0103 - db[i - 1]) / (db[i] - db[i - 1])))
 
 
+def crossing_0db(f: np.ndarray, gain: np.ndarray, f_min: float, f_max: float) -> float | None:
+    """The highest frequency in [f_min, f_max] where |gain| falls through 0 dB, interpolated in
+    dB against log f; None when it does not cross there."""
+    keep = (f >= f_min) & (f <= f_max)
+    freq, db = f[keep], 20.0 * np.log10(np.abs(gain[keep]))
+    down = np.flatnonzero((db[:-1] >= 0.0) & (db[1:] < 0.0))
+    if len(down) == 0:
+        return None
+    i = down[-1]
+    x0, x1 = math.log(freq[i]), math.log(freq[i + 1])
+    return float(math.exp(x0 + (x1 - x0) * db[i] / (db[i] - db[i + 1])))
+
+
 def chirp_config(velocity_feedforward: bool, k_e: float, chirp: dict):
     from aiohal.config import parse_config
 
@@ -107,7 +122,9 @@ async def chirp_run(velocity_feedforward: bool, k_e: float, chirp: dict) -> dict
         loop.add_publisher(record)
         report = await loop.run(duration=ticks / RATE_HZ)
     n = count[0]
-    u, y = sent[: n - 1], measured[1:n]  # the target of tick k against the position at tick k + 1
+    delay = config.feedforward.measurement_delay_ticks
+    # LOLA's definition: the target of a tick against the position measured at its instant
+    u, y = sent[: n - delay], measured[delay:n]
     f, gain, coherence = transfer_function(u, y, RATE_HZ, segment=round(RATE_HZ))
     # the band the sweep crosses at full amplitude, between its fade-in and its fade-out
     rate = math.log(params.f_end / params.f_start) / params.duration
@@ -117,6 +134,7 @@ async def chirp_run(velocity_feedforward: bool, k_e: float, chirp: dict) -> dict
     trusted = band & (coherence >= 0.5)  # as drawn (see figure)
     below = band & (f <= (bandwidth or params.f_end))
     return {"f": f[band], "gain": gain[band], "coherence": coherence[band], "bandwidth_hz": bandwidth,
+            "crossing_0db_hz": crossing_0db(f, gain, f_lo, f_hi),
             "peak_db": float(20 * np.log10(np.abs(gain[trusted]).max())),
             "min_coherence_below_bandwidth": float(coherence[below].min()),
             "faults": report["faults"], "refused": report["commands_refused"]}
@@ -129,7 +147,12 @@ def figure(path, runs: dict, labels: dict) -> str:
     import matplotlib.pyplot as plt
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig, (mag, pha, coh) = plt.subplots(3, 1, figsize=(7, 7), sharex=True, height_ratios=(3, 2, 1.2))
+    fig = plt.figure(figsize=(7, 10))
+    grid = fig.add_gridspec(4, 1, height_ratios=(3, 3, 2, 1.2))
+    lola = fig.add_subplot(grid[0])
+    mag = fig.add_subplot(grid[1])
+    pha = fig.add_subplot(grid[2], sharex=mag)
+    coh = fig.add_subplot(grid[3], sharex=mag)
     for name, run in runs.items():
         bw = run["bandwidth_hz"]
         text = f"{bw:.0f} Hz" if bw is not None else "> f_end"
@@ -142,6 +165,21 @@ def figure(path, runs: dict, labels: dict) -> str:
         coh.semilogx(run["f"], run["coherence"], lw=1.0, color=line.get_color())
         if bw is not None:
             mag.axvline(bw, color=line.get_color(), ls=":", lw=0.8)
+    for name, run in runs.items():  # LOLA's axes: 100-300 Hz, -10 to +20 dB, linear f
+        band = (run["f"] >= FIG10_BAND[0]) & (run["f"] <= FIG10_BAND[1])
+        cross = run["crossing_0db_hz"]
+        lola.plot(run["f"][band], 20 * np.log10(np.abs(run["gain"][band])), lw=1.0,
+                  label=f"{labels[name]}: 0 dB at {cross:.0f} Hz" if cross else labels[name])
+    lola.axhline(0.0, color="0.5", lw=0.8)
+    lola.set_xlim(*FIG10_BAND)
+    lowest = min(float(np.min(20 * np.log10(np.abs(run["gain"][(run["f"] >= FIG10_BAND[0]) & (run["f"] <= FIG10_BAND[1])]))))
+                 for run in runs.values())
+    lola.set_ylim(min(-10.0, lowest - 2.0), 20)  # LOLA's -10 dB, or lower where the joint's gain is
+    lola.set_xlabel("frequency (Hz)")
+    lola.set_ylabel("gain (dB)")
+    lola.set_title("As LOLA's Fig. 10 draws it (LOLA: 0 dB at 241 Hz)")
+    lola.legend(fontsize=8)
+    lola.grid(alpha=0.3)
     mag.axhline(-3.0, color="0.5", ls="--", lw=0.8)
     mag.set_ylabel("gain (dB)")
     mag.set_ylim(-40, 6)
@@ -170,6 +208,7 @@ async def main_async(args) -> dict:
         "chirp": chirp,
         "k_e": args.k_e,
         "bandwidth_hz": {name: run["bandwidth_hz"] for name, run in runs.items()},
+        "crossing_0db_hz": {name: run["crossing_0db_hz"] for name, run in runs.items()},
         "peak_db": {name: run["peak_db"] for name, run in runs.items()},
         "min_coherence_below_bandwidth": {name: run["min_coherence_below_bandwidth"] for name, run in runs.items()},
         "faults": {name: run["faults"] for name, run in runs.items()},
@@ -180,7 +219,7 @@ async def main_async(args) -> dict:
 
         labels = {"position": "position only", "velocity_ff": "velocity feed-forward",
                   "learned": f"velocity feed-forward, k_e = {args.k_e:g}"}
-        result["figures"] = [figure(Path(args.figures) / "lola_fig10_bode.png", runs, labels)]
+        result["figures"] = [figure(Path(args.out) / "lola_fig10_bode.png", runs, labels)]
     result["seconds"] = round(time.perf_counter() - start, 1)
     return result
 
@@ -188,18 +227,20 @@ async def main_async(args) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", help="write the results here")
-    parser.add_argument("--figures", default=str(ROOT / "docs" / "img"), help="folder of the PNG")
+    parser.add_argument("--out", default=str(ROOT / "bench-results" / "lola"), help="folder of the PNG")
     parser.add_argument("--no-figures", action="store_true")
     parser.add_argument("--amplitude", type=float, default=0.0002, help="of the sweep (rad)")
     parser.add_argument("--f-start", type=float, default=10.0)
     parser.add_argument("--f-end", type=float, default=500.0)
     parser.add_argument("--duration", type=float, default=4.0, help="of the sweep (s)")
-    parser.add_argument("--k-e", type=float, default=0.1, help="the learned gain of the third run")
+    parser.add_argument("--k-e", type=float, default=0.2, help="the learned gain of the third run")
     args = parser.parse_args()
     result = asyncio.run(main_async(args))
     for name, bw in result["bandwidth_hz"].items():
         text = f"{bw:.1f} Hz" if bw is not None else f"above {args.f_end:g} Hz"
-        print(f"{name}: -3 dB bandwidth {text}, peak {result['peak_db'][name]:+.2f} dB, "
+        cross = result["crossing_0db_hz"][name]
+        print(f"{name}: -3 dB bandwidth {text}, 0 dB crossing "
+              f"{f'{cross:.1f} Hz' if cross else 'none'}, peak {result['peak_db'][name]:+.2f} dB, "
               f"coherence >= {result['min_coherence_below_bandwidth'][name]:.3f} up to it")
     print(f"{result['seconds']} s")
     for path in result.get("figures", []):

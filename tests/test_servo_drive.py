@@ -12,6 +12,7 @@ from aiohal.simulation.servo import (
     CURRENT_LOOP,
     OFF,
     POSITION_LOOP,
+    QL,
     VELOCITY_LOOP,
     Q,
     ReferenceServo,
@@ -30,6 +31,10 @@ def trajectory(k: int, period: float):
     ServoParams(),
     ServoParams(position_gain=120.0, coulomb=8.0, gravity_torque=60.0, velocity_every=1, max_current=5.0),
     ServoParams(current_rate_hz=40_000.0, velocity_every=4, viscous=0.0, coulomb=0.0, load_inertia=0.0),
+    ServoParams(stiffness_k1=6.7e4, stiffness_k2=1.1e5, stiffness_k3=1.2e5, stiffness_t1=29.0, stiffness_t2=108.0,
+                gear_damping=50.0, motor_counts=131072, link_counts=524288, link_noise=2e-5,
+                velocity_estimate=True, sync_latch=True, rotor_inertia=2e-4),
+    ServoParams(stiffness_k1=4e4, gear_damping=200.0, link_counts=65536, velocity_estimate=True, link_feedback=True),
 ])
 @pytest.mark.parametrize("period", [1e-3, 5e-4, 2.5e-3])
 def test_the_compiled_servo_is_the_reference_model(params, period):
@@ -52,6 +57,7 @@ def test_the_compiled_servo_is_the_reference_model(params, period):
         assert position[j] == pytest.approx(ref.position, rel=1e-9, abs=1e-12)
         assert velocity_out[j] == pytest.approx(ref.velocity, rel=1e-9, abs=1e-10)
         assert effort[j] == pytest.approx(ref.torque, rel=1e-9, abs=1e-9)
+        assert bank.state[j, QL] == pytest.approx(ref.link_angle, rel=1e-9, abs=1e-12)
     if params == ServoParams():
         assert abs(position[0] - trajectory(399, period)[0]) < 0.01  # and it did track
 

@@ -9,7 +9,8 @@ the extrapolation of a slower controller) and before the limits, to the joints c
 position or impedance mode: no controller needs to know.
 
 ``k_e`` is learned by LOLA's policy (:class:`GainLearner`): start at 0, measure the RMS
-tracking error (target position of a tick against the position measured at it) over a window,
+tracking error (:mod:`aiohal.core.tracking_error`: the target against the link position
+measured at the same instant) over a window,
 raise ``k_e`` of every joint by one step, measure again, and keep raising while the error
 decreases; the last gain that lowered it is the result. ``python -m aiohal.learn_feedforward
 CONFIG --out gains.toml`` runs the configured controller with the learner and writes the
@@ -29,6 +30,7 @@ from pydantic import AfterValidator, Field, ValidationInfo
 from ..files import read_regular_text
 from ..hal import JointValues, Options
 from ..robot import JointCommand, JointState, Mode
+from .tracking_error import TrackingError
 
 #: a gains file has one line per joint
 MAX_GAINS_BYTES = 1 << 20
@@ -57,6 +59,13 @@ class FeedforwardSection(Options):
     window_s: float = Field(1.2, gt=0, description="Learning: the window of each RMS (one period of the motion).")
     settle_s: float = Field(1.2, ge=0, description="Learning: time before the first window (the ramp-in).")
     max_steps: int = Field(20, ge=1, le=1000, description="Learning: most raises.")
+    measurement_delay_ticks: int = Field(
+        0,
+        ge=0,
+        le=100,
+        description="Learning: the ticks between measuring a position and reading it (EtherCAT: 1), "
+        "so that a reading is compared with the target of the instant it was measured.",
+    )
 
     @property
     def active(self) -> bool:
@@ -174,8 +183,9 @@ class GainLearner:
 
 class LearningFeedforward(VelocityFeedforward):
     """The feed-forward applied while :class:`GainLearner` learns it, in the tick: the error
-    of each tick (target position against the position measured at that tick) is summed over
-    windows of ``window`` ticks, after ``settle`` ticks.
+    of each tick (:class:`TrackingError`: the target against the position measured at its
+    instant, ``delay`` ticks before it is read) is summed over windows of ``window`` ticks,
+    after ``settle`` ticks.
 
     With the robot's ``clock``, a window in which a deadline was missed is measured again
     (at most ``MAX_REPEATS`` times in a row): on a real clock a missed tick puts a spike of
@@ -192,8 +202,10 @@ class LearningFeedforward(VelocityFeedforward):
         window: int,
         settle: int,
         clock: Any = None,
+        delay: int = 0,
     ) -> None:
         super().__init__(command, np.zeros(len(command)))
+        self.tracking = TrackingError(len(command), delay)
         self.state = state
         self.learner = learner
         self.window = window
@@ -215,10 +227,10 @@ class LearningFeedforward(VelocityFeedforward):
             if self._last_tick is not None and tick != self._last_tick + 1:
                 self._spoiled = True
             self._last_tick = tick
-        if self.ticks <= self.settle or self.learner.done:
+        measured = self.tracking.update(self.command.position, self.state.position, self._error)
+        if self.ticks <= self.settle or self.learner.done or not measured:
             self._spoiled = False  # (the first window starts clean)
             return
-        np.subtract(self.command.position, self.state.position, out=self._error)
         self._sum += float(np.dot(self._error, self._error))
         self._count += len(self._error)
         if self._count >= self.window * len(self._error):

@@ -110,12 +110,22 @@ def build_slots(config: Config, robot: Robot, events_of: Callable[[str, slice], 
     return slots
 
 
+def check_given_controller(config: Config, given: Controller | None, given_params: Any = None) -> None:
+    """A controller given in code, checked as the config checked its own: its command modes
+    against the drivers' (a :class:`ConfigError`, before any driver is built)."""
+    if given is None:
+        return
+    params = given_params if given_params is not None else type(given).Params()
+    issues = mode_issues(type(given), params, config.drivers)
+    if issues:
+        raise ConfigError(issues, str(config.path) if config.path else None)
+
+
 def build_controllers(
     config: Config, robot: Robot, given: Controller | None = None, given_params: Any = None
 ) -> tuple[Controller, str, Controller]:
     """The controller (``given``, or the configured one) and ``hold``, configured on the
-    robot's controller view: ``(controller, its type name, hold)``. A given controller's
-    command modes are checked against the drivers' here (the config checked its own)."""
+    robot's controller view: ``(controller, its type name, hold)``."""
     view = robot.controller_view()
     hold_cls = cast(type[Controller], plugins.load("controller", "hold"))
     hold = hold_cls()
@@ -124,9 +134,6 @@ def build_controllers(
     if given is not None:
         controller, controller_type = given, type(given).__name__
         params = given_params if given_params is not None else type(given).Params()
-        issues = mode_issues(type(given), params, config.drivers)
-        if issues:
-            raise ConfigError(issues, str(config.path) if config.path else None)
     else:
         controller, controller_type = config.controller.cls(), config.controller.type
         params = config.controller.params

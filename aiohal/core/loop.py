@@ -38,8 +38,9 @@ from ..safety import FaultRecord, SafetyEvent, SafetyLevel
 from ..safety.stall import StallWatchdog
 from ..safety.supervisor import Supervisor
 from ..safety.watchdog import FIRED, STAMP, TICK, WatchdogProcess
+from . import lifecycle
 from .feedforward import VelocityFeedforward, gains_of
-from .lifecycle import DriverSlot, LoopState, build_controllers, build_slots, close_drivers, open_drivers
+from .lifecycle import DriverSlot, LoopState
 from .limits import CommandLimiter
 from .realtime import RealtimeState, apply_for_clock, freeze_heap, freeze_young, thaw_heap
 from .realtime import restore as restore_realtime
@@ -154,8 +155,9 @@ class ControlLoop:
         """Instantiate drivers and controllers from the config; touches no hardware."""
         if self.state != LoopState.CREATED:
             raise LifecycleError(f"configure() in state {self.state.value!r}")
-        self.slots = build_slots(self.config, self.robot, self.supervisor.events_of)
-        controller, controller_type, hold = build_controllers(
+        lifecycle.check_given_controller(self.config, self._given_controller, self._given_params)
+        self.slots = lifecycle.build_slots(self.config, self.robot, self.supervisor.events_of)
+        controller, controller_type, hold = lifecycle.build_controllers(
             self.config, self.robot, self._given_controller, self._given_params
         )
         self.supervisor.attach(controller, controller_type, hold)
@@ -177,7 +179,7 @@ class ControlLoop:
             freeze_heap()  # the one full collection, before any driver has a thread to feed
             self._heap_frozen = True
         try:
-            await open_drivers(self.slots, self.record_fault)
+            await lifecycle.open_drivers(self.slots, self.record_fault)
             self.supervisor.start_watchdog()
         except BaseException:
             self.estop("bring-up failed", source="loop")
@@ -222,7 +224,7 @@ class ControlLoop:
 
     async def _close_drivers(self) -> None:
         self.supervisor.stop_watchdog()
-        await close_drivers(self.slots, self.config.loop.close_timeout_ms / 1e3, self.record_fault)
+        await lifecycle.close_drivers(self.slots, self.config.loop.close_timeout_ms / 1e3, self.record_fault)
         if self._heap_frozen:  # every path that closes the drivers ends the loop's freeze
             thaw_heap()
             self._heap_frozen = False

@@ -545,13 +545,13 @@ class DriveModel:
         else:
             loop = sv.OFF
         if loop == sv.POSITION_LOOP and self._servo_loop != sv.POSITION_LOOP:
-            s[sv.PREV_TARGET] = s[sv.Q] / gear  # the ramp starts where the joint is
+            bank.restart(0, s[sv.QL_SAMPLE])  # the ramp starts where the drive measures the joint
         self._servo_loop = loop
         p[sv.IMAX] = min(self._servo_limit, self.e_max_torque.value * 0.001 * self._rated_nm / p[sv.KT])  # 0x6072
         bank.command(target, velocity, torque, loop)
         bank.set_external_torque(self.load * gear)  # the load is given at the motor
         bank.step(dt)
-        self.pos = s[sv.Q] * cpr
+        self.pos = s[sv.QL_SAMPLE] * gear * cpr  # the joint position it measures, in motor counts
         self.vel = s[sv.W] * cpr
         self.torque = s[sv.CURRENT] * p[sv.KT]  # the motor's
         self.saturated = loop != sv.OFF and abs(s[sv.I_CMD]) >= p[sv.IMAX]

@@ -137,7 +137,10 @@ class CascadeServoModel:
         # the position loop's ramp starts where the joint is when it comes back to it
         restart = ((loop == sv.POSITION_LOOP) & (s[rows, sv.LOOP] != sv.POSITION_LOOP)) | stops
         target = np.where(tracks, position, np.where(hold & ~stops, s[rows, sv.TARGET], here))
-        s[rows, sv.PREV_TARGET] = np.where(restart, here, s[rows, sv.PREV_TARGET])
+        restarting = np.flatnonzero(restart)
+        if len(restarting):
+            picked = np.arange(self.n)[rows][restarting]
+            self.bank.restart(picked, self.position[picked])
         s[rows, sv.TARGET] = target
         s[rows, sv.VEL_FF] = np.where(tracks | speed, velocity, 0.0)
         s[rows, sv.CUR_FF] = np.where(hold, 0.0, effort) / self._torque_per_amp[rows]
@@ -148,7 +151,8 @@ class CascadeServoModel:
         """Hold where the joints stand (mode NONE)."""
         sv, s = self._sv, self.bank.state
         self.mode[rows] = Mode.NONE
-        s[rows, sv.PREV_TARGET] = s[rows, sv.TARGET] = self.position[rows]
+        self.bank.restart(rows, self.position[rows])
+        s[rows, sv.TARGET] = self.position[rows]
         s[rows, sv.VEL_FF] = s[rows, sv.CUR_FF] = 0.0
         s[rows, sv.LOOP] = sv.POSITION_LOOP
         self._holding[rows] = True
