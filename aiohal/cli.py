@@ -28,7 +28,7 @@ from .config import Config, describe_validation_error, json_schema, load_config
 from .core.run_report import counted
 from .errors import AiohalError, ConfigError, ConfigIssue
 from .files import check_output_path
-from .outside import cli_outputs
+from .outside import cli_outputs, doorkeeper
 from .safety import SafetyLevel
 
 if TYPE_CHECKING:
@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("aiohal.cli")
 
-SUBCOMMANDS = ("run", "check", "schema", "plugins", "replay", "plot")
+SUBCOMMANDS = ("run", "check", "schema", "plugins", "info", "replay", "plot")
 #: a second SIGINT/SIGTERM this soon after the first is its echo, not a person's second Ctrl-C:
 #: GNU timeout and a terminal's job control signal both the process and its group at once
 SIGNAL_ECHO_S = 0.05
@@ -46,7 +46,9 @@ COMMANDS_HELP = """commands:
   check CONFIG        validate a config and exit: 0 ok, 2 not (nothing is started)
   schema              print the config's JSON Schema (for editors)
   plugins             list the drivers and controllers this installation has
-  replay RECORDING    a recorded run (MCAP): see python -m aiohal replay --help
+  info RECORDING      a recorded run's summary: see python -m aiohal info --help
+  replay RECORDING --config CONFIG
+                      the config's controller on a recorded run, its commands compared
   plot RECORDING      PNG figures of a recorded run: see python -m aiohal plot --help
 """
 
@@ -375,6 +377,7 @@ def cmd_run(argv: Sequence[str]) -> int:
         config = _apply_overrides(load_config(args.config), args)
         factory = _loop_factory(args.loop)
         cli_outputs.check(config, args)
+        doorkeeper.check(config)
     except ConfigError as exc:
         _print_config_error(exc)
         return 2
@@ -449,8 +452,14 @@ def cmd_plugins(argv: Sequence[str]) -> int:
     return 0
 
 
+def cmd_info(argv: Sequence[str]) -> int:
+    from .record.reader import info_main
+
+    return info_main(list(argv))
+
+
 def cmd_replay(argv: Sequence[str]) -> int:
-    from .record.reader import replay_main
+    from .record.replay import main as replay_main
 
     return replay_main(list(argv))
 
@@ -487,6 +496,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "check": cmd_check,
         "schema": cmd_schema,
         "plugins": cmd_plugins,
+        "info": cmd_info,
         "replay": cmd_replay,
         "plot": cmd_plot,
     }[command]

@@ -27,7 +27,7 @@ from .core.realtime import RealtimeSection
 from .errors import AiohalError, ConfigError, ConfigIssue, MissingDependencyError, PluginError
 from .files import FileRefused, check_regular, read_regular_text
 from .hal import Controller, Driver, Options, did_you_mean
-from .outside.options import BridgeSection, ClientSection
+from .outside.options import UNCONTROLLED, BridgeSection, ClientSection
 from .outside.shm_segment import segment_name
 from .record.options import RecordSection
 from .robot import JointSpec, Mode, Robot
@@ -820,14 +820,16 @@ def _cross_check(
             doc.add("bridge.zenoh.config_file", str(exc))
     if (
         zenoh is not None
-        and zenoh.accept_setpoints
+        and "setpoints" in zenoh.commands
         and (client is None or not client.shm or (controller is not None and controller.type != "stream"))
     ):
         doc.add(
-            "bridge.zenoh.accept_setpoints",
+            "bridge.zenoh.commands",
             "setpoints go through the shared-memory ring "
             'to the stream controller: set [client] shm = true and [controller] type = "stream"',
         )
+    if zenoh is not None and zenoh.commands and not zenoh.allow_anyone and zenoh.config_file is None:
+        doc.add("bridge.zenoh.commands", UNCONTROLLED)
     if client is not None and client.shm and robot is not None:
         try:
             segment_name(robot.name)

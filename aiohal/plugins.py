@@ -31,6 +31,7 @@ BUILTIN: dict[str, dict[str, tuple[str, str | None]]] = {
         "canopen": ("aiohal.drivers.canopen.driver:CanopenDriver", "can"),
         "udp": ("aiohal.drivers.udp.driver:UdpDriver", None),
         "fri": ("aiohal.drivers.fri.driver:FriDriver", None),
+        "replay": ("aiohal.drivers.replay:ReplayDriver", "record"),
     },
     "controller": {
         "hold": ("aiohal.controllers.hold:HoldController", None),

@@ -2,8 +2,8 @@
 
 Each round runs both cases in this process on the real clock (timerfd; SCHED_FIFO 80 and locked
 memory where permitted), 7 mock joints under ``hold`` at 1 kHz. ``on``: ``[bridge.zenoh]`` at
-100 Hz on loopback (listen on a free 127.0.0.1 port, multicast scouting off) with a subscriber
-in another process (``examples/zenoh_monitor.py``) so that every put goes out. The figure that
+100 Hz on loopback (listen on a free 127.0.0.1 port, multicast scouting off) with a ROS 2-style
+subscriber in another process (``examples/zenoh_monitor.py``) so that every put goes out. The figure that
 matters is work p50 (the tick's own time, wake to end of publish) and its publish phase.
 
     python -m benchmarks.zenoh_bridge [--seconds 5] [--rounds 3] [--json PATH]
@@ -41,8 +41,8 @@ async def run_case(bridge: bool, seconds: float) -> dict:
     monitor = None
     if bridge:
         port = free_port()
-        raw["bridge"] = {"zenoh": {"listen": [f"tcp/127.0.0.1:{port}"], "multicast_scouting": False}}
-        monitor = subprocess.Popen([sys.executable, str(ROOT / "examples" / "zenoh_monitor.py"), "--no-scouting",
+        raw["bridge"] = {"zenoh": {"listen": [f"tcp/127.0.0.1:{port}"], "connect": []}}
+        monitor = subprocess.Popen([sys.executable, str(ROOT / "examples" / "zenoh_monitor.py"),
                                     "--connect", f"tcp/127.0.0.1:{port}", "--listen", f"tcp/127.0.0.1:{free_port()}",
                                     "--seconds", str(seconds + 3), "--wait", "30"], cwd=ROOT,
                                    stdout=subprocess.PIPE, text=True)

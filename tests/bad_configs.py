@@ -141,7 +141,7 @@ CASES: list[BadConfig] = [
     BadConfig(
         "unknown-driver-type",
         _replace('type = "mock"', 'type = "mok"'),
-        ('driver[0].type: unknown driver "mok" (available: canopen, ethercat, fri, mock, mujoco, nrt_hand, udp)',),
+        ('driver[0].type: unknown driver "mok" (available: canopen, ethercat, fri, mock, mujoco, nrt_hand, replay, udp)',),
     ),
     BadConfig(
         "unknown-driver-option",

@@ -135,7 +135,7 @@ def commanded_ticks(recording) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     and the measured position."""
     from aiohal.record.reader import LEVELS
 
-    cmd, state, safety = recording["/joint_command"], recording["/joint_state"], recording["/safety"]
+    cmd, state, safety = recording["/joint_commands"], recording["/joint_states"], recording["/safety"]
     ticks = np.intersect1d(np.intersect1d(cmd["tick"], state["tick"]), safety["tick"])
     pick = lambda series: np.searchsorted(series["tick"], ticks)  # noqa: E731
     level = safety["level"][pick(safety)]

@@ -498,7 +498,7 @@ def test_the_live_panel_reports_its_cost_and_no_panel_turns_only_it_off(tmp_path
 def test_help_lists_every_command_and_a_mistyped_one_is_named():
     helped = run_cli("--help")
     assert helped.returncode == 0
-    for command in ("run", "check", "schema", "plugins", "replay", "plot"):
+    for command in ("run", "check", "schema", "plugins", "info", "replay", "plot"):
         assert re.search(rf"^\s+(\[run\]|{command}) ", helped.stdout, re.M), command
     typo = run_cli("chek", ROOT / "configs" / "mock_arm.toml")
     assert typo.returncode == 2

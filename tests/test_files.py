@@ -152,14 +152,15 @@ def test_a_fifo_as_the_config_file_is_refused(fifo, command):
     assert f"not a regular file (a FIFO): {fifo}" in proc.stderr
 
 
-@pytest.mark.parametrize("command", ["replay", "plot"])
+@pytest.mark.parametrize("command", ["info", "replay", "plot"])
 @pytest.mark.parametrize("kind", ["fifo", "dev-zero"])
 def test_a_recording_that_is_not_a_regular_file_is_refused(fifo, tmp_path, command, kind):
     if command == "plot":
         pytest.importorskip("matplotlib")
     pytest.importorskip("mcap")
     path = fifo if kind == "fifo" else Path("/dev/zero")
-    extra = ["-o", str(tmp_path)] if command == "plot" else []
+    extra = {"plot": ["-o", str(tmp_path)], "replay": ["--config", str(ROOT / "configs" / "kuka_lwr_mock.toml")]}
+    extra = extra.get(command, [])
     proc = run_capped(command, path, *extra)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr

@@ -160,7 +160,7 @@ def test_plugins_without_entry_points_lists_only_builtins(tmp_path):
     proc = run_cli("plugins", pythonpath=tmp_path)
     assert proc.returncode == 0
     names = [line.split()[0] for line in proc.stdout.splitlines() if line.startswith("  ")]
-    assert names == ["canopen", "ethercat", "fri", "mock", "mujoco", "nrt_hand", "udp", "chirp", "circle", "gait", "hold", "homing", "sequence",
+    assert names == ["canopen", "ethercat", "fri", "mock", "mujoco", "nrt_hand", "replay", "udp", "chirp", "circle", "gait", "hold", "homing", "sequence",
                      "sine", "stream"]
 
 

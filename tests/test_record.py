@@ -1,5 +1,6 @@
-"""Recording: exact read-back in lockstep, a SIGKILLed file, a writer that falls behind, the
-live server seen by a WebSocket client, the replay summary."""
+"""Recording: exact read-back in lockstep (in ROS 2 messages, decoded by mcap-ros2-support),
+a rosbag2 directory that rosbags reads, a SIGKILLed file, a writer that falls behind, the live
+server seen by a WebSocket client (with the latched /robot), the summary."""
 
 from __future__ import annotations
 
@@ -18,9 +19,13 @@ import numpy as np
 import pytest
 
 pytest.importorskip("mcap")
+pytest.importorskip("rosbags")
+pytest.importorskip("mcap_ros2")
 
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
+from mcap_ros2._dynamic import generate_dynamic
+from mcap_ros2.decoder import DecoderFactory
 
 from aiohal import ControlLoop, load_config
 from aiohal.core.ticker import VirtualTickSource
@@ -50,6 +55,7 @@ def run_recorded(tmp_path: Path, ticks: int, options: RecordSection, recorder_cl
         control = ControlLoop(load_config(HUMANOID), tick_source=VirtualTickSource())
         await control.activate()
         snapshots = Snapshots()
+        snapshots(control)  # tick 0: what activation read, recorded by attach()
         control.add_publisher(snapshots)
         recorder = recorder_cls(control.port, tmp_path / "run.mcap", options)
         recorder.attach()
@@ -62,52 +68,65 @@ def run_recorded(tmp_path: Path, ticks: int, options: RecordSection, recorder_cl
 
 def test_lockstep_recording_reads_back_exactly(tmp_path):
     control, snaps, _, summary, _ = run_recorded(tmp_path, 1500, RecordSection(buffer_ticks=4096))
-    assert summary["dropped_ticks"] == 0 and summary["ticks"] == 1500
-    n = control.robot.dof
-    # the mcap library's own reader, and the CDR layout decoded by hand: tick (int64) after the
-    # 4-byte header, then a uint32 length and the float64 positions at body offset 16
+    assert summary["dropped_ticks"] == 0 and summary["ticks"] == 1501  # ticks 0..1500
+    names = list(control.robot.joint_names)
+    # a decoder that is not the encoder: mcap's reader with mcap-ros2-support
     positions, ticks = [], []
     with open(tmp_path / "run.mcap", "rb") as f:
-        for schema, channel, message in make_reader(f).iter_messages(topics=["/joint_state"]):
-            assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
-            data = message.data
-            assert data[:4] == b"\x00\x01\x00\x00"
-            ticks.append(struct.unpack_from("<q", data, 4)[0])
-            assert struct.unpack_from("<I", data, 12)[0] == n
-            positions.append(np.frombuffer(data, dtype="<f8", count=n, offset=20))
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        for schema, channel, message, msg in reader.iter_decoded_messages(topics=["/joint_states"]):
+            assert schema.name == "sensor_msgs/msg/JointState" and schema.encoding == "ros2msg"
+            assert channel.message_encoding == "cdr" and message.data[:4] == b"\x00\x01\x00\x00"
+            assert msg.name == names
+            ticks.append(message.sequence)
+            positions.append(msg.position)
     assert ticks == [s["tick"] for s in snaps.rows]
     assert np.array_equal(np.array(positions), np.array([s["state"][0] for s in snaps.rows]))
 
     rec = load(tmp_path / "run.mcap")
     assert not rec.truncated
-    state, command = rec["/joint_state"], rec["/joint_command"]
-    for r, name in enumerate(("position", "velocity", "effort", "motor_position", "motor_velocity")):
-        assert np.array_equal(state[name], np.array([s["state"][r] for s in snaps.rows]))
-    for r, name in enumerate(("position", "velocity", "effort", "stiffness", "damping", "feedforward")):
-        assert np.array_equal(command[name], np.array([s["command"][r] for s in snaps.rows]))
-    assert np.array_equal(command.mode, np.array([s["mode"] for s in snaps.rows]))
+    state, extra = rec["/joint_states"], rec["/joint_states/extra"]
+    command, command_extra = rec["/joint_commands"], rec["/joint_commands/extra"]
+    for r, (series, name) in enumerate(((state, "position"), (state, "velocity"), (state, "effort"),
+                                        (extra, "motor_position"), (extra, "motor_velocity"))):
+        assert np.array_equal(series[name], np.array([s["state"][r] for s in snaps.rows]))
+    for r, (series, name) in enumerate(((command, "position"), (command, "velocity"), (command, "effort"),
+                                        (command_extra, "stiffness"), (command_extra, "damping"),
+                                        (command_extra, "feedforward"))):
+        assert np.array_equal(series[name], np.array([s["command"][r] for s in snaps.rows]))
+    assert np.array_equal(command_extra.mode, np.array([s["mode"] for s in snaps.rows]))
+    assert np.array_equal(extra.tick, ticks)
     imu = rec["/imu/pelvis_imu"]
-    assert np.array_equal(np.hstack([imu.quaternion, imu.angular_velocity, imu.linear_acceleration]),
-                          np.array([s["imu"][0] for s in snaps.rows]))
+    columns = [f"orientation.{c}" for c in "wxyz"] + [f"angular_velocity.{c}" for c in "xyz"] + [
+        f"linear_acceleration.{c}" for c in "xyz"]
+    assert np.array_equal(np.column_stack([imu[c] for c in columns]), np.array([s["imu"][0] for s in snaps.rows]))
     ft = rec["/force_torque/l_ankle_ft"]
     i = control.robot.force_torque.names.index("l_ankle_ft")
-    assert np.array_equal(np.hstack([ft.force, ft.torque]), np.array([s["ft"][i] for s in snaps.rows]))
+    columns = [f"wrench.{k}.{c}" for k in ("force", "torque") for c in "xyz"]
+    assert np.array_equal(np.column_stack([ft[c] for c in columns]), np.array([s["ft"][i] for s in snaps.rows]))
     assert np.array_equal(rec["/hand/l_gripper"].grasp, np.array([s["grasp"][0] for s in snaps.rows]))
     assert np.array_equal(rec["/safety"].level, [s["level"] for s in snaps.rows])
+    assert [e.event for e in rec["/safety/events"].messages] == ["activate", "deactivate"]
     # every tick's timing, the same figures as the loop's statistics
     timing = rec["/timing"]
-    assert np.array_equal(timing.tick, ticks)
+    assert np.array_equal(timing.tick, ticks[1:])  # tick 0 ran no tick: no timing
     assert np.array_equal(timing.work_ns, control.stats.work[:1500])
     assert np.array_equal(timing.publish_ns, control.stats.phases[5, :1500])
-    assert rec.joint_names == list(control.robot.joint_names)
+    assert rec.joint_names == names
+    robot = rec["/robot"].messages[0]
+    assert robot.name == "mock_humanoid" and list(robot.joint_names) == names
+    assert robot.position_max.tolist() == [j.position_max for j in control.robot.joints]
+    assert "[robot]" in robot.description  # the config's text
 
 
 def test_decimation_per_channel(tmp_path):
     _, snaps, _, _, _ = run_recorded(tmp_path, 400, RecordSection(decimate={"imu": 10, "joint_command": 4}))
     rec = load(tmp_path / "run.mcap")
-    assert len(rec["/joint_state"]) == 400
+    assert len(rec["/joint_states"]) == 401  # ticks 0..400
     assert list(rec["/imu/pelvis_imu"].tick) == [s["tick"] for s in snaps.rows if s["tick"] % 10 == 0]
-    assert list(rec["/joint_command"].tick) == [s["tick"] for s in snaps.rows if s["tick"] % 4 == 0]
+    assert list(rec["/joint_commands"].tick) == [s["tick"] for s in snaps.rows if s["tick"] % 4 == 0]
+    assert list(rec["/joint_commands/extra"].tick) == [s["tick"] for s in snaps.rows if s["tick"] % 4 == 0]
 
 
 class StuckWriter(Recorder):
@@ -131,7 +150,7 @@ def test_writer_behind_drops_and_counts_and_never_holds_the_tick(tmp_path):
             recorder = StuckWriter(control.port, tmp_path / "run.mcap", RecordSection(buffer_ticks=64))
             recorder.attach()
             report = await asyncio.wait_for(control.run(ticks=500), 60)
-            assert recorder.ring.dropped == 500 - 64 and recorder.ticks_written == 0
+            assert recorder.ring.dropped == 501 - 64 and recorder.ticks_written == 0  # ticks 0..500
             StuckWriter.release.set()
             await control.deactivate()
             return report, recorder.close()
@@ -140,9 +159,9 @@ def test_writer_behind_drops_and_counts_and_never_holds_the_tick(tmp_path):
     finally:
         StuckWriter.release.set()
     assert report["ticks"] == 500
-    assert summary["dropped_ticks"] == 436 and summary["ticks"] == 64
+    assert summary["dropped_ticks"] == 437 and summary["ticks"] == 64
     rec = load(tmp_path / "run.mcap")
-    assert list(rec["/joint_state"].tick) == list(range(1, 65))  # the first 64, the rest counted
+    assert list(rec["/joint_states"].tick) == list(range(64))  # the first 64, the rest counted
 
 
 def test_sigkilled_recording_holds_its_flushed_ticks(tmp_path):
@@ -171,7 +190,7 @@ def test_sigkilled_recording_holds_its_flushed_ticks(tmp_path):
             assert type(exc).__module__.startswith("mcap"), exc
     rec = load(out)
     assert rec.truncated
-    state = rec["/joint_state"]
+    state = rec["/joint_states"]
     assert state.tick[-1] - state.tick[0] >= 4000  # at least 4 s of ticks at 1 kHz
     assert np.all(np.diff(state.tick) > 0)
 
@@ -181,30 +200,40 @@ def test_live_server_seen_by_a_websocket_client(tmp_path):
     pytest.importorskip("foxglove")
     from aiohal.outside.foxglove_server import FoxgloveServer
 
+    async def subscribe(ws, topics: list[str]) -> dict[str, tuple[dict, bytes]]:
+        """Subscribe to ``topics``; the first message of each (its channel and its CDR)."""
+        channels: dict[str, dict] = {}
+        while not all(t in channels for t in topics):
+            msg = json.loads(await asyncio.wait_for(ws.recv(), 5))
+            if msg["op"] == "advertise":
+                channels.update({c["topic"]: c for c in msg["channels"]})
+        subs = {i: channels[t] for i, t in enumerate(topics, start=7)}
+        await ws.send(json.dumps({"op": "subscribe",
+                                  "subscriptions": [{"id": i, "channelId": c["id"]} for i, c in subs.items()]}))
+        got: dict[str, tuple[dict, bytes]] = {}
+        for _ in range(10_000):
+            if len(got) == len(topics):
+                break
+            frame = await asyncio.wait_for(ws.recv(), 5)
+            if isinstance(frame, bytes) and frame[0] == 0x01:  # message data
+                sub_id, = struct.unpack_from("<I", frame, 1)
+                channel = subs[sub_id]
+                got.setdefault(channel["topic"], (channel, frame[13:]))
+        return got
+
     async def main():
         live = FoxgloveServer(port=0)
-        control = ControlLoop(load_config(HUMANOID))  # the real clock: a client connects meanwhile
+        control = ControlLoop(load_config(HUMANOID))  # the real clock: clients connect meanwhile
         await control.activate()
         recorder = Recorder(control.port, None, RecordSection(live_decimate=10), live=live)
-        recorder.attach()
+        recorder.attach()  # /robot is sent now, before any client connects
         run = asyncio.get_running_loop().create_task(control.run(duration=5.0))
-        got = {}
+        got = []
         try:
-            async with websockets.connect(f"ws://127.0.0.1:{live.port}", subprotocols=["foxglove.sdk.v1"]) as ws:
-                channels = {}
-                while "/joint_state" not in channels:
-                    msg = json.loads(await asyncio.wait_for(ws.recv(), 5))
-                    if msg["op"] == "advertise":
-                        channels.update({c["topic"]: c for c in msg["channels"]})
-                state = channels["/joint_state"]
-                assert state["encoding"] == "cdr" and state["schemaEncoding"] == "ros2msg"
-                await ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": state["id"]}]}))
-                while "data" not in got:
-                    frame = await asyncio.wait_for(ws.recv(), 5)
-                    if isinstance(frame, bytes) and frame[0] == 0x01:  # message data
-                        sub_id, = struct.unpack_from("<I", frame, 1)
-                        got["data"] = frame[13:]
-                        got["sub"] = sub_id
+            for _ in range(2):  # each client joins late, and each gets /robot
+                async with websockets.connect(f"ws://127.0.0.1:{live.port}",
+                                              subprotocols=["foxglove.sdk.v1"]) as ws:
+                    got.append(await subscribe(ws, ["/joint_states", "/robot"]))
         finally:
             control.request_stop()
             await run
@@ -214,26 +243,30 @@ def test_live_server_seen_by_a_websocket_client(tmp_path):
         return control, got, summary
 
     control, got, summary = asyncio.run(main())
-    assert got["sub"] == 7
-    tick = struct.unpack_from("<q", got["data"], 4)[0]
-    assert tick % 10 == 0 and 0 < tick <= control.robot.clock.tick
-    assert struct.unpack_from("<I", got["data"], 12)[0] == control.robot.dof
+    names = list(control.robot.joint_names)
+    for client in got:
+        for topic, msgtype in (("/joint_states", "sensor_msgs/msg/JointState"), ("/robot", "aiohal_msgs/msg/Robot")):
+            channel, data = client[topic]
+            assert channel["encoding"] == "cdr" and channel["schemaEncoding"] == "ros2msg"
+            assert channel["schemaName"] == msgtype
+            decoded = generate_dynamic(msgtype, channel["schema"])[msgtype](data)
+            assert list(decoded.name if topic == "/joint_states" else decoded.joint_names) == names
     assert summary["live_messages"] > 0
 
 
-def test_cli_record_and_replay(tmp_path):
+def test_cli_record_and_info(tmp_path):
     out = tmp_path / "r.mcap"
     proc = subprocess.run([sys.executable, "-m", "aiohal", "configs/mock_arm.toml", "--clock", "virtual",
                            "--duration", "0.5", "--record", str(out), "--log-format", "json"],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "record       " in proc.stdout and " 0 dropped" in proc.stdout
-    proc = subprocess.run([sys.executable, "-m", "aiohal", "replay", str(out), "--json"],
+    proc = subprocess.run([sys.executable, "-m", "aiohal", "info", str(out), "--json"],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads(proc.stdout)
-    assert summary["robot"] == "mock_arm" and summary["ticks"] == 500 and summary["missing_ticks"] == 0
-    assert summary["channels"]["/joint_state"] == 500
+    assert summary["robot"] == "mock_arm" and summary["ticks"] == 501 and summary["missing_ticks"] == 0
+    assert summary["channels"]["/joint_states"] == 501  # ticks 0 (activation) to 500
 
 
 def test_cli_record_into_a_missing_folder_exits_2(tmp_path):
@@ -245,7 +278,7 @@ def test_cli_record_into_a_missing_folder_exits_2(tmp_path):
 
 
 def test_importing_the_loop_does_not_import_mcap():
-    code = "import sys, aiohal.core.loop, aiohal.cli; print(sorted(m for m in sys.modules if m.split('.')[0] in ('mcap', 'matplotlib', 'rich', 'foxglove')))"
+    code = "import sys, aiohal.core.loop, aiohal.cli; print(sorted(m for m in sys.modules if m.split('.')[0] in ('mcap', 'matplotlib', 'rich', 'foxglove', 'rosbags')))"
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.stdout.strip() == "[]", proc.stderr
 
@@ -314,3 +347,25 @@ def test_a_live_view_port_in_use_exits_2_before_the_robot_starts(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert f"--foxglove {port}: the live view cannot listen" in proc.stderr and "Traceback" not in proc.stderr
     assert "starting robot" in proc.stderr and "running" not in proc.stderr  # built, never activated
+
+
+def test_a_recording_whose_messages_do_not_decode_is_refused_by_name(tmp_path):
+    """info, replay and plot on an MCAP whose JointState messages are garbage: exit 2 naming the
+    topic and the type, no traceback."""
+    from mcap.writer import Writer
+
+    bad = tmp_path / "bad.mcap"
+    with open(bad, "wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2")
+        schema = writer.register_schema(name="sensor_msgs/msg/JointState", encoding="ros2msg", data=b"@@ not a msg")
+        channel = writer.register_channel(topic="/joint_states", message_encoding="cdr", schema_id=schema)
+        writer.add_message(channel_id=channel, log_time=1, data=b"\x00\x01\x00\x00bad", publish_time=1)
+        writer.finish()
+    for args in (["info"], ["replay", "--config", str(ROOT / "configs" / "mock_arm.toml")],
+                 ["plot", "-o", str(tmp_path / "fig")]):
+        proc = subprocess.run([sys.executable, "-m", "aiohal", args[0], str(bad), *args[1:]],
+                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2, (args, proc.stderr)
+        assert "/joint_states: its messages do not decode as sensor_msgs/msg/JointState" in proc.stderr
+        assert "Traceback" not in proc.stderr

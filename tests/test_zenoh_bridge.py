@@ -1,10 +1,12 @@
-"""The Zenoh bridge on loopback: two robots (CLI processes) on one Zenoh network, a monitor in
-another process receiving state at the configured rate, and commands refused unless they come
-on a configured key with a valid value. Every session listens and connects on 127.0.0.1 ports
-the test picks, with multicast scouting off."""
+"""The Zenoh bridge as a ROS 2 node over rmw_zenoh, on loopback: two robots (CLI processes), a
+monitor process that knows only zenoh and rosbags and finds them through rmw_zenoh's liveliness
+tokens, commands taken only from a session the access control lets through, and a bridge with
+commands but no access control that refuses to start. Every session listens and connects on
+127.0.0.1 ports the test picks, with multicast scouting off."""
 
 from __future__ import annotations
 
+import ast
 import asyncio
 import json
 import math
@@ -14,17 +16,28 @@ import sys
 import threading
 import time
 import uuid
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 from conftest import ROOT, require_module
 from helpers import arm_raw
 
 zenoh = require_module("zenoh")
+require_module("rosbags")
+import zenoh.ext
 
+from aiohal import ros2
 from aiohal.config import parse_config
 from aiohal.errors import ConfigError
+from aiohal.outside import rmw_zenoh as rmw
 from aiohal.outside.options import ZenohBridgeSection
-from aiohal.outside.zenoh import decode_state, zenoh_config
+from aiohal.outside.zenoh_session import session_config
+from aiohal.ros2 import services
+
+MONITOR = ROOT / "examples" / "zenoh_monitor.py"
+JOINT_STATE = "sensor_msgs/msg/JointState"
+COMMANDS = ["setpoints", "estop", "hold", "reset_faults", "rearm"]
 
 
 def free_ports(n: int) -> list[int]:
@@ -53,132 +66,210 @@ def toml_value(v) -> str:
     return repr(v)
 
 
-def robot_toml(name: str, listen: int, connect: list[int], *, commands: bool) -> str:
-    lines = [f'[robot]\nname = "{name}"', "[loop]\nrate_hz = 1000"]
+def robot_toml(name: str, listen: int, connect: list[int], **zen) -> str:
+    # a loaded host stops these processes for tens of ms at times: not the subject here (conftest.py)
+    lines = [f'[robot]\nname = "{name}"', "[loop]\nrate_hz = 1000", "[safety]\nmax_tick_gap_ms = 5000"]
     for i in range(3):
         lines.append(f"[joints.j{i}]\nposition = [-2.0, 2.0]\nvelocity = 100.0\nacceleration = 1e6")
     lines.append('[[driver]]\ntype = "mock"\njoints = ["j*"]')
-    zen = {"listen": [ep(listen)], "connect": [ep(p) for p in connect], "multicast_scouting": False,
-           "report_s": 0.2}
-    if commands:
+    zen = {"listen": [ep(listen)], "connect": [ep(p) for p in connect], "report_s": 0.2, **zen}
+    if "setpoints" in zen.get("commands", []):
         lines.append('[controller]\ntype = "stream"\n[controller.params]\ndry_after_s = 100.0')
         lines.append("[client]\nshm = true")
-        zen.update(accept_setpoints=True, accept_safety=["hold"])
     lines.append("[bridge.zenoh]\n" + "\n".join(f"{k} = {toml_value(v)}" for k, v in zen.items()))
     return "\n\n".join(lines) + "\n"
 
 
-def test_accepting_setpoints_needs_the_shm_stream_path():
-    raw = arm_raw(3)
-    raw["bridge"] = {"zenoh": {"accept_setpoints": True, "multicast_scouting": False}}
-    with pytest.raises(ConfigError, match=r"bridge.zenoh.accept_setpoints: setpoints go through the shared-memory"):
-        parse_config(raw)
-    raw["bridge"]["zenoh"]["accept_safety"] = ["reboot"]
-    raw["bridge"]["zenoh"]["accept_setpoints"] = False
-    with pytest.raises(ConfigError, match=r"bridge.zenoh.accept_safety"):
-        parse_config(raw)
+def acl_config(tmp_path, robots: list[str]) -> str:
+    """usernames by user/password; the viewer may read but not command (put or query) the robots.
+    A session that authenticates links only to sessions that do: the robots share the config."""
+    (tmp_path / "users.txt").write_text("operator:op-secret\nviewer:view-secret\n")
+    keys = [f"0/{robot}/{name}/**" for robot in robots
+            for name in ("joint_trajectory", "estop", "hold", "reset_faults", "rearm")]
+    config = {
+        "transport": {"auth": {"usrpwd": {"dictionary_file": str(tmp_path / "users.txt")}}},
+        "access_control": {
+            "enabled": True,
+            "default_permission": "allow",
+            "rules": [{"id": "commands", "messages": ["put", "query"], "flows": ["ingress"], "permission": "deny",
+                       "key_exprs": keys}],
+            "subjects": [{"id": "viewers", "usernames": ["viewer"]}],
+            "policies": [{"rules": ["commands"], "subjects": ["viewers"]}],
+        },
+    }
+    path = tmp_path / "zenoh.json5"
+    path.write_text(json.dumps(config))
+    return str(path)
 
 
-class Watcher:
-    """The test's own Zenoh peer: the last report and state of a robot, its safety messages."""
+def trajectory(names: list[str], positions: list[list[float]], seconds: list[float] | None = None) -> bytes:
+    point = ros2.message_type("trajectory_msgs/msg/JointTrajectoryPoint")
+    duration = ros2.message_type("builtin_interfaces/msg/Duration")
+    seconds = seconds or [0.0] * len(positions)
+    points = [point(positions=np.array(p, dtype=float), velocities=np.zeros(0), accelerations=np.zeros(0),
+                    effort=np.zeros(0), time_from_start=duration(sec=int(t), nanosec=int(t % 1 * 1e9)))
+              for p, t in zip(positions, seconds, strict=True)]
+    msg = ros2.message_type("trajectory_msgs/msg/JointTrajectory")(header=ros2.header(0), joint_names=names,
+                                                                   points=points)
+    return ros2.serialize(msg)
 
-    def __init__(self, robot: str, listen: int, connect: list[int]) -> None:
+
+class Peer:
+    """The test's own rmw_zenoh-speaking session: a user's, with or without a password."""
+
+    def __init__(self, robot: str, listen: int, connect: list[int], user: tuple[str, str] | None = None) -> None:
+        section = ZenohBridgeSection(listen=[ep(listen)], connect=[ep(p) for p in connect])
+        config = session_config(section)
+        if user is not None:
+            config.insert_json5("transport/auth/usrpwd", json.dumps({"user": user[0], "password": user[1]}))
         self.robot = robot
+        self.session = zenoh.open(config)
         self.lock = threading.Lock()
-        self.report: dict | None = None
-        self.state: dict | None = None
-        self.safety: list[dict] = []
-        self.session = zenoh.open(zenoh_config(ZenohBridgeSection(
-            listen=[ep(listen)], connect=[ep(p) for p in connect], multicast_scouting=False)))
-        self.subs = [
-            self.session.declare_subscriber(f"aiohal/{robot}/report", lambda s: self._set("report", json.loads(s.payload.to_bytes()))),
-            self.session.declare_subscriber(f"aiohal/{robot}/state", lambda s: self._set("state", decode_state(s.payload.to_bytes()))),
-            self.session.declare_subscriber(f"aiohal/{robot}/safety", lambda s: self._add(json.loads(s.payload.to_bytes()))),
-        ]
+        self.state = None
+        self.gid = bytes(range(16))
+        self.sequence = 0
+        key = rmw.data_key(0, f"/{robot}/joint_states", JOINT_STATE, ros2.type_hash(JOINT_STATE))
+        self.sub = self.session.declare_subscriber(key, self._on_state)
 
-    def _set(self, attr: str, value) -> None:
+    def _on_state(self, sample) -> None:
+        msg = ros2.deserialize(sample.payload.to_bytes(), JOINT_STATE)
         with self.lock:
-            setattr(self, attr, value)
+            self.state = msg
 
-    def _add(self, value) -> None:
+    def position(self) -> list[float] | None:
         with self.lock:
-            self.safety.append(value)
+            return None if self.state is None else [float(x) for x in self.state.position]
 
-    def put(self, key: str, payload: str) -> None:
-        self.session.put(f"aiohal/{self.robot}/{key}", payload)
+    def put_trajectory(self, payload: bytes) -> None:
+        self.sequence += 1
+        key = rmw.data_key(0, f"/{self.robot}/joint_trajectory", "trajectory_msgs/msg/JointTrajectory",
+                           ros2.type_hash("trajectory_msgs/msg/JointTrajectory"))
+        self.session.put(key, payload, attachment=rmw.attachment(self.sequence, time.time_ns(), self.gid))
 
-    def wait(self, what, timeout: float = 10.0):
+    def call(self, service: str, timeout: float = 5.0):
+        """A Trigger call as an rmw_zenoh client makes it; (success, message, reply attachment) or None."""
+        self.sequence += 1
+        key = rmw.data_key(0, f"/{self.robot}/{service}", services.TRIGGER, services.service_hash(services.TRIGGER))
+        replies = self.session.get(key, payload=b"\x00\x01\x00\x00\x00", target=zenoh.QueryTarget.ALL_COMPLETE,
+                                   attachment=rmw.attachment(self.sequence, time.time_ns(), self.gid), timeout=timeout)
+        for reply in replies:
+            if reply.ok is not None:
+                msg = services.typestore().deserialize_cdr(reply.ok.payload.to_bytes(), "std_srvs/srv/Trigger_Response")
+                return msg.success, msg.message, rmw.read_attachment(reply.ok.attachment.to_bytes())
+        return None
+
+    def wait(self, what, timeout: float = 15.0):
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            with self.lock:
-                value = what(self)
+            value = what()
             if value:
                 return value
             time.sleep(0.02)
-        raise AssertionError(f"condition not met within {timeout} s; report {self.report}")
+        raise AssertionError(f"condition not met within {timeout} s; position {self.position()}")
 
     def close(self) -> None:
-        for sub in self.subs:
-            sub.undeclare()
+        self.sub.undeclare()
         self.session.close()
 
 
-def test_two_robots_a_monitor_and_commands_refused(tmp_path):
+def test_commands_are_named_and_need_access_control():
+    raw = arm_raw(3)
+    raw["bridge"] = {"zenoh": {"commands": ["setpoints"], "allow_anyone": True}}
+    with pytest.raises(ConfigError, match=r"bridge.zenoh.commands: setpoints go through the shared-memory"):
+        parse_config(raw)
+    raw["bridge"]["zenoh"]["commands"] = ["reboot"]
+    with pytest.raises(ConfigError, match=r"bridge.zenoh.commands"):
+        parse_config(raw)
+    raw["bridge"]["zenoh"] = {"commands": ["estop"]}
+    with pytest.raises(ConfigError, match=r"bridge.zenoh.commands: commands are taken only where Zenoh controls"):
+        parse_config(raw)
+    raw["bridge"]["zenoh"] = {}  # publishing only needs nothing; loopback and no multicast by default
+    section = parse_config(raw).bridge.zenoh
+    assert section.commands == [] and section.listen == ["tcp/127.0.0.1:0"] and not section.multicast_scouting
+
+
+def test_commands_without_access_control_exit_2_naming_the_key(tmp_path):
+    (port,) = free_ports(1)
+    no_acl = tmp_path / "plain.json5"
+    no_acl.write_text('{ scouting: { gossip: { enabled: true } } }')
+    for extra in ({}, {"config_file": str(no_acl)}):  # refused by the config, then by the file's content
+        (tmp_path / "r.toml").write_text(robot_toml(f"zen_{uuid.uuid4().hex[:6]}", port, [], commands=["estop"], **extra))
+        run = subprocess.run([sys.executable, "-m", "aiohal", str(tmp_path / "r.toml"), "--duration", "1"], cwd=ROOT,
+                             capture_output=True, text=True, timeout=120)
+        assert run.returncode == 2, run.stderr
+        assert "bridge.zenoh.commands: commands are taken only where Zenoh controls" in run.stderr
+
+
+def test_the_monitor_needs_no_aiohal():
+    tree = ast.parse(MONITOR.read_text())
+    imported = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    imported |= {node.module.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.module}
+    assert "aiohal" not in imported and {"zenoh", "rosbags"} <= imported
+
+
+def test_a_ros2_peer_sees_two_robots_and_only_the_operator_commands(tmp_path):
     a_name, b_name = f"zen_a_{uuid.uuid4().hex[:6]}", f"zen_b_{uuid.uuid4().hex[:6]}"
-    pa, pb, pm, pt = free_ports(4)
-    (tmp_path / "a.toml").write_text(robot_toml(a_name, pa, [], commands=True))
-    (tmp_path / "b.toml").write_text(robot_toml(b_name, pb, [pa], commands=False))
-    robots = [subprocess.Popen([sys.executable, "-m", "aiohal", str(tmp_path / f"{x}.toml"), "--duration", "25",
+    pa, pb, pm, po, pv = free_ports(5)
+    config_file = acl_config(tmp_path, [a_name, b_name])
+    (tmp_path / "a.toml").write_text(robot_toml(a_name, pa, [], commands=COMMANDS, config_file=config_file))
+    (tmp_path / "b.toml").write_text(robot_toml(b_name, pb, [], config_file=config_file))  # publishes only
+    robots = [subprocess.Popen([sys.executable, "-m", "aiohal", str(tmp_path / f"{x}.toml"), "--duration", "30",
                                 "--report-json", str(tmp_path / f"{x}.json"), "--quiet"], cwd=ROOT,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for x in ("a", "b")]
-    monitor = subprocess.Popen([sys.executable, str(ROOT / "examples" / "zenoh_monitor.py"), "--no-scouting",
-                                "--connect", ep(pa), "--connect", ep(pb), "--listen", ep(pm), "--robots", "2",
-                                "--seconds", "10", "--wait", "20"], cwd=ROOT, stdout=subprocess.PIPE,
+    # the monitor: its own process, zenoh and rosbags only (test_the_monitor_needs_no_aiohal)
+    monitor = subprocess.Popen([sys.executable, str(MONITOR), "--connect", ep(pa), "--connect", ep(pb), "--listen",
+                                ep(pm), "--user", "viewer", "--password", "view-secret", "--robots", "2",
+                                "--seconds", "10", "--wait", "25"], cwd=ROOT, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
-    watcher = None
+    operator = viewer = None
     try:
-        watcher = Watcher(a_name, pt, [pa])
-        watcher.wait(lambda w: w.report and w.state)
-        start = watcher.state["position"].copy()
+        operator = Peer(a_name, po, [pa], user=("operator", "op-secret"))
+        viewer = Peer(a_name, pv, [pa], user=("viewer", "view-secret"))
+        start = operator.wait(operator.position)
+        assert viewer.wait(viewer.position) is not None  # the viewer reads the state
+        names = ["j0", "j1", "j2"]
 
-        # commands that must move nothing: a key not configured, invalid values, malformed
-        bad = [
-            ("cmd/estop", ""),
-            ("cmd/setpoint", json.dumps({"position": [0.1, float("nan"), 0.1]})),
-            ("cmd/setpoint", json.dumps({"position": {"j0": 0.1, "j1": 0.1, "j9": 0.1}})),
-            ("cmd/setpoint", json.dumps({"position": [0.1, 0.1, 5.0]})),
-            ("cmd/setpoint", "not json"),
-            ("cmd/setpoint", json.dumps({"position": [0.1, 0.1]})),
-        ]
-        for key, payload in bad:
-            watcher.put(key, payload)
-        report = watcher.wait(lambda w: w.report if w.report["bridge"]["refused"] >= len(bad) else None)
-        assert report["bridge"]["refused"] == len(bad) and report["bridge"]["setpoints_accepted"] == 0
-        assert report["bridge"]["refused_by_reason"] == {"key not configured": 1, "not finite": 1, "unknown joint": 1,
-                                                         "out of range": 1, "malformed": 2}
-        tick = watcher.state["tick"]
-        watcher.wait(lambda w: w.state["tick"] > tick + 20)
-        assert (watcher.state["position"] == start).all() and (watcher.state["command_position"] == start).all()
-        assert watcher.state["level"] == "run" and report["level"] == "run"
+        # the viewer's commands are refused by the access control: nothing moves, no estop
+        viewer.put_trajectory(trajectory(names, [[0.5, 0.5, 0.5]]))
+        assert viewer.call("estop", timeout=2.0) is None
+        # the operator's malformed commands are refused by the bridge and counted
+        for bad in (b"\x00\x01\x00\x00garbage", trajectory(["j0", "j1", "j9"], [[0.1, 0.1, 0.1]]),
+                    trajectory(names, [[0.1, float("nan"), 0.1]]), trajectory(names, [[0.1, 0.1, 5.0]]),
+                    trajectory(names, [[0.1, 0.1]])):
+            operator.put_trajectory(bad)
+        ok, message, _ = operator.call("rearm")
+        assert not ok and "rearm" in message  # the loop's own reason: it is running already
+        time.sleep(0.3)  # what was refused had its chance to arrive: the robot must still be where it was
+        assert operator.position() == start
 
-        # a valid setpoint moves the robot (so the refusals above were the bridge's doing)
-        watcher.put("cmd/setpoint", json.dumps({"position": {"j0": 0.1, "j1": -0.2, "j2": 0.3}}))
-        watcher.wait(lambda w: list(w.state["position"]) == [0.1, -0.2, 0.3])
-        watcher.put("cmd/hold", "")
-        watcher.wait(lambda w: any(s["level"] == "hold" for s in w.safety))
+        # the operator's are applied: a trajectory moves the robot, estop stops it
+        operator.put_trajectory(trajectory(names, [[0.1, -0.2, 0.3]], [0.05]))
+        operator.wait(lambda: operator.position() == [0.1, -0.2, 0.3])
+        ok, message, (seq, _, gid) = operator.call("estop")
+        assert ok and "estop" in message
+        assert seq == operator.sequence and gid == operator.gid  # rmw_zenoh's client matches the reply so
 
-        out, err = monitor.communicate(timeout=40)
+        out, err = monitor.communicate(timeout=60)
         assert monitor.returncode == 0, err
         seen = json.loads(out)
+        assert {f"/{a_name}/aiohal", f"/{b_name}/aiohal"} <= set(seen["nodes"])
         for name in (a_name, b_name):
-            r = seen[name]
-            # the bridge decimates to 100 Hz: never faster; slower only when the host starves the
-            # processes, which a shared CI machine can do for whole seconds
+            pub = seen["publishers"][f"/{name}/joint_states"]
+            assert pub["type"] == "sensor_msgs::msg::dds_::JointState_"
+            assert pub["hash"] == seen["joint_state_hash"] == ros2.type_hash(JOINT_STATE)
+            r = seen["robots"][f"/{name}"]
+            assert r["names"] == names and r["seq_gaps"] == 0, r
+            # 100 Hz: never faster; slower only when the host starves the processes
             assert r["span_s"] >= 9.9 and r["messages"] >= 500, r
             assert 50.0 <= r["rate_hz"] <= 105.0, r
+            assert abs(r["stamp_ns"] - time.time_ns()) < 60e9  # ROS time: the wall clock
+        assert seen["publishers"]["/diagnostics"]["type"] == "diagnostic_msgs::msg::dds_::DiagnosticArray_"
+        status = seen["robots"][f"/{b_name}"]["diagnostics"]
+        assert status == {"name": f"aiohal: {b_name}", "level": 0, "message": "safety level run"}  # 0: OK
     finally:
-        if watcher is not None:
-            watcher.close()
+        for peer in (operator, viewer):
+            if peer is not None:
+                peer.close()
         if monitor.poll() is None:
             monitor.kill()
         for proc in robots:
@@ -189,34 +280,60 @@ def test_two_robots_a_monitor_and_commands_refused(tmp_path):
             except subprocess.TimeoutExpired:
                 proc.kill()
     a_report = json.loads((tmp_path / "a.json").read_text())
-    assert a_report["safety_level"] == "off" and a_report["faults"] == []
+    assert [t["event"] for t in a_report["safety"] if t["source"] == "zenoh"] == ["estop"], a_report["safety"]
+    b_report = json.loads((tmp_path / "b.json").read_text())
+    assert b_report["faults"] == []
 
 
 @pytest.mark.asyncio
-async def test_bridge_in_process_publishes_at_its_rate_and_stops_cleanly():
+async def test_bridge_in_process_publishes_latches_and_leaves_the_graph():
     pr, pt = free_ports(2)
     raw = arm_raw(3)
-    raw["robot"]["name"] = f"zen_{uuid.uuid4().hex[:6]}"
+    name = raw["robot"]["name"] = f"zen_{uuid.uuid4().hex[:6]}"
     raw["loop"]["clock"] = "auto"
-    raw["bridge"] = {"zenoh": {"listen": [ep(pr)], "multicast_scouting": False, "state_hz": 50}}
+    raw["bridge"] = {"zenoh": {"listen": [ep(pr)], "connect": [], "state_hz": 50, "namespace": "/lab/arm"}}
     from aiohal.core.loop import ControlLoop
 
     loop = ControlLoop(parse_config(raw))
     assert loop.doors is None
     async with loop:
-        watcher = Watcher(raw["robot"]["name"], pt, [pr])
+        peer = zenoh.open(session_config(ZenohBridgeSection(listen=[ep(pt)], connect=[ep(pr)])))
         try:
             run = asyncio.create_task(loop.run(duration=3.0))
-            await asyncio.to_thread(watcher.wait, lambda w: w.state, 10.0)
-            first = watcher.state["tick"]
-            await run
             bridge = loop.doors.zenoh
-            assert bridge.every == 20
-            assert abs(bridge._head - loop.robot.clock.tick // 20) <= 1  # one snapshot per 20 deadlines
-            await asyncio.to_thread(watcher.wait, lambda w: w.state["tick"] >= first + 20, 5.0)
+            states: list = []
+            await asyncio.to_thread(lambda: [time.sleep(0.05) for _ in range(200) if not bridge.keys])
+            sub = peer.declare_subscriber(bridge.keys["joint_states"], lambda s: states.append(s))
+            await asyncio.to_thread(lambda: [time.sleep(0.02) for _ in range(500) if len(states) < 20])
+            # a late joiner gets the static data, as an rmw_zenoh transient-local subscription does
+            robots: list = []
+            late = zenoh.ext.declare_advanced_subscriber(
+                peer, bridge.keys["robot"], lambda s: robots.append(s),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
+            await asyncio.to_thread(lambda: [time.sleep(0.02) for _ in range(500) if not robots])
+            tokens = await asyncio.to_thread(  # off the event loop: the robot ticks meanwhile
+                lambda: [str(r.ok.key_expr) for r in peer.liveliness().get("@ros2_lv/0/**", timeout=5.0) if r.ok])
+            await run
         finally:
-            watcher.close()
-    assert loop.doors.zenoh is None and loop.faults == []
+            sub.undeclare()
+            late.undeclare()
+        assert bridge.every == 20 and len(states) >= 20
+        # one snapshot per 20 deadlines; a host stall that skips deadlines skips their snapshots
+        tick, missed = loop.robot.clock.tick, loop.missed_ticks
+        assert tick // 20 - missed - 1 <= bridge._head <= tick // 20 + 1, (bridge._head, tick, missed)
+        first = ros2.deserialize(states[0].payload.to_bytes(), JOINT_STATE)
+        assert list(first.name) == ["j0", "j1", "j2"]
+        seqs = [rmw.read_attachment(s.attachment.to_bytes())[0] for s in states]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+        description = ros2.deserialize(robots[0].payload.to_bytes(), "aiohal_msgs/msg/Robot")
+        assert list(description.joint_names) == ["j0", "j1", "j2"] and description.name == name
+        zid = str(bridge._session.info.zid())
+        assert f"@ros2_lv/0/{zid}/0/0/NN/%/%lab%arm/aiohal" in tokens
+        assert any(t.split("/")[5:10] == ["MP", "%", "%lab%arm", "aiohal", "%lab%arm%joint_states"] for t in tokens)
+        assert not any("/MS/" in t or "/SS/" in t for t in tokens)  # publishes only: nothing to command
+    gone = [r for r in peer.liveliness().get(f"@ros2_lv/0/{zid}/**", timeout=2.0) if r.ok]
+    peer.close()
+    assert gone == [] and loop.doors.zenoh is None and loop.faults == []
 
 
 @pytest.mark.asyncio
@@ -227,7 +344,7 @@ async def test_a_bridge_that_cannot_open_is_a_fault_not_a_dead_robot():
     blocker.listen()
     try:
         raw = arm_raw(3)
-        raw["bridge"] = {"zenoh": {"listen": [ep(port)], "multicast_scouting": False}}
+        raw["bridge"] = {"zenoh": {"listen": [ep(port)], "connect": []}}
         from helpers import virtual_loop
 
         loop = virtual_loop(raw)
@@ -240,12 +357,14 @@ async def test_a_bridge_that_cannot_open_is_a_fault_not_a_dead_robot():
 
 
 @pytest.mark.asyncio
-async def test_only_a_put_sample_is_a_command():
+async def test_only_a_put_sample_is_a_command_and_a_request_needs_its_attachment(caplog):
     (port,) = free_ports(1)
     raw = arm_raw(3)
-    raw["bridge"] = {"zenoh": {"listen": [ep(port)], "multicast_scouting": False, "accept_safety": ["estop"]}}
-    from types import SimpleNamespace
-
+    raw["controller"] = {"type": "stream", "params": {"dry_after_s": 100.0}}
+    raw["client"] = {"shm": True}
+    raw["robot"]["name"] = f"zen_{uuid.uuid4().hex[:6]}"
+    raw["bridge"] = {"zenoh": {"listen": [ep(port)], "connect": [], "commands": ["setpoints", "estop"],
+                               "allow_anyone": True}}
     from helpers import virtual_loop
 
     from aiohal.safety import SafetyLevel
@@ -253,16 +372,18 @@ async def test_only_a_put_sample_is_a_command():
     loop = virtual_loop(raw)
     async with loop:
         await loop.run(ticks=2)
+        assert "allow_anyone" in caplog.text  # said at every start
         bridge = loop.doors.zenoh
-        key = f"{bridge.base}/cmd/estop"
-        delete = SimpleNamespace(key_expr=key, payload=zenoh.ZBytes(b""), kind=zenoh.SampleKind.DELETE)
-        bridge._on_command(delete)  # as zenoh's thread would
-        await asyncio.sleep(0.05)  # a request is acted on by the event loop between two ticks
+        payload = zenoh.ZBytes(trajectory(["j0", "j1", "j2"], [[0.1, 0.1, 0.1]]))
+        delete = SimpleNamespace(payload=payload, kind=zenoh.SampleKind.DELETE)
+        bridge._on_trajectory(delete)  # as zenoh's thread would
+        query = SimpleNamespace(attachment=None, payload=zenoh.ZBytes(b"\x00\x01\x00\x00\x00"),
+                                reply=lambda *a, **k: pytest.fail("answered a request without attachment"))
+        bridge._on_request("estop", query)
+        for bad in (b"\x00\x01\x00\x00\x05", trajectory(["j0", "j1", "j2"], [[0.1, 0.2, 0.3], [0.1, 0.2, 0.3]], [1, 0])):
+            bridge._on_trajectory(SimpleNamespace(payload=zenoh.ZBytes(bad), kind=zenoh.SampleKind.PUT))
         await loop.run(ticks=5)
         assert loop.level == SafetyLevel.RUN
-        assert bridge.report()["bridge"]["refused_by_reason"] == {"not a put": 1}
-        put = SimpleNamespace(key_expr=key, payload=zenoh.ZBytes(b""), kind=zenoh.SampleKind.PUT)
-        bridge._on_command(put)
-        await asyncio.sleep(0.05)
-        await loop.run(ticks=5)
-        assert loop.level == SafetyLevel.ESTOP
+        assert bridge.report()["bridge"]["refused_by_reason"] == {
+            "not a put": 1, "no attachment": 1, "malformed": 1, "time goes back": 1}
+        assert bridge.counters["refused"] == 4 and bridge.counters["setpoints_accepted"] == 0

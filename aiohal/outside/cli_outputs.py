@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -19,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from ..errors import AiohalError, MissingDependencyError
 from ..files import check_output_path
 from .port import LoopPort
+from .recorder_file import is_bag_path
 
 if TYPE_CHECKING:
     from ..config import Config
@@ -37,7 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="PATH",
-        help="record every tick to this MCAP file (overrides [record] path)",
+        help="record every tick to this MCAP file, or to this new rosbag2 directory when PATH does not "
+        "end in .mcap (overrides [record] path)",
     )
     parser.add_argument(
         "--foxglove",
@@ -64,16 +67,33 @@ def check(config: Config, args: argparse.Namespace) -> None:
     path = record_path(config, args)
     if path is not None:
         try:  # the same rule as the report: only ever replace a regular file, never the config
-            check_output_path(path, protect=(args.config, *config.named_files()))
+            protect = (args.config, *config.named_files())
+            if is_bag_path(path):
+                check_new_directory(path, protect)
+            else:
+                check_output_path(path, protect=protect)
         except ValueError as exc:
             raise AiohalError(f"--record {path}: {exc}") from None
-    if (path is not None or args.foxglove is not None) and importlib.util.find_spec("mcap") is None:
-        raise MissingDependencyError("recording needs mcap: pip install 'aiohal[record]'")
+    if (path is not None or args.foxglove is not None) and not all(
+        importlib.util.find_spec(m) for m in ("mcap", "rosbags")
+    ):
+        raise MissingDependencyError("recording needs mcap and rosbags: pip install 'aiohal[record]'")
     if args.foxglove is not None:
         if not 0 <= args.foxglove <= 65535:
             raise AiohalError(f"--foxglove {args.foxglove}: a port is 0..65535")
         if importlib.util.find_spec("foxglove") is None:
             raise MissingDependencyError("--foxglove needs foxglove-sdk: pip install 'aiohal[foxglove]'")
+
+
+def check_new_directory(path: Path, protect: tuple[Path, ...]) -> None:
+    """A rosbag2 directory is made new: ValueError when something is there (saying so first
+    of the config and the files it names) or its parent is not."""
+    if os.path.lexists(path):
+        if not path.is_dir():
+            check_output_path(path, protect=protect)
+        raise ValueError(f"{path} exists; a rosbag2 recording makes a new directory (or name a .mcap file)")
+    if not path.parent.is_dir():
+        raise ValueError(f"the directory {path.parent} does not exist")
 
 
 class RunOutputs:

@@ -5,16 +5,32 @@ end of the tick without blocking."""
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 from typing import TYPE_CHECKING
 
+from ..errors import MissingDependencyError
 from .port import LoopPort
 
 if TYPE_CHECKING:
+    from ..config import Config
     from .shm_door import ShmDoor
     from .zenoh import ZenohBridge
 
 log = logging.getLogger(__name__)
+
+
+def check(config: Config) -> None:
+    """Refuse before anything starts what a door would refuse when it opens (the CLI exits 2):
+    a Zenoh bridge that would take commands from anyone (reads its Zenoh config file)."""
+    section = config.bridge.zenoh
+    if section is None or not section.enabled or not section.commands:
+        return
+    if importlib.util.find_spec("zenoh") is None:
+        raise MissingDependencyError("[bridge.zenoh] needs eclipse-zenoh: pip install 'aiohal[zenoh]'")
+    from .zenoh_session import check_section
+
+    check_section(section)
 
 
 class Doorkeeper:

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from ..core.tick_timing import TickStats
     from ..core.ticker import Ticker, TickSource
     from ..robot import Robot
-    from ..safety import FaultRecord, SafetyLevel
+    from ..safety import FaultRecord, SafetyLevel, Transition
     from ..safety.supervisor import Supervisor
 
 #: Called at the end of every tick with one argument, which it ignores (the loop's own
@@ -128,6 +128,11 @@ class LoopPort:
         """Every fault recorded since the loop was made, oldest first; it only grows, so a
         reader keeps how many it has seen."""
         return self._supervisor.faults
+
+    @property
+    def transitions(self) -> Sequence[Transition]:
+        """Every change of safety level since the loop was made, oldest first; it only grows."""
+        return self._supervisor.machine.transitions
 
     @property
     def controller_type(self) -> str:

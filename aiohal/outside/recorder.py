@@ -21,87 +21,51 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .. import ros2
 from ..core.tick_timing import PHASES
-from ..record.cdr import Layout
-from ..record.options import Channel, RecordSection
+from ..record.options import RecordSection
+from ..ros2.fixed import FixedLayout, with_values
+from ..safety import SafetyLevel
 from . import recorder_ring as R
+from . import recorder_topics as T
 from .port import LoopPort, TickEnd
+from .recorder_file import RecordingFile
 
 if TYPE_CHECKING:
     from .foxglove_server import FoxgloveServer
 
 log = logging.getLogger(__name__)
 
-SCHEMA_PACKAGE = "aiohal/msg/"
-#: JSON channels: events and slow samples, encoding "json" with a JSON Schema
-FAULT_SCHEMA = {
-    "type": "object",
-    "properties": {
-        "tick": {"type": "integer"},
-        "source": {"type": "string"},
-        "phase": {"type": "string"},
-        "error": {"type": "string"},
-    },
-}
-HEALTH_SCHEMA = {
-    "type": "object",
-    "properties": {
-        "tick": {"type": "integer"},
-        "safety_level": {"type": "string"},
-        "drivers": {"type": "object"},
-        "controller": {"type": "object"},
-    },
-}
-ROBOT_SCHEMA = {
-    "type": "object",
-    "properties": {
-        "robot": {"type": "string"},
-        "rate_hz": {"type": "number"},
-        "joint_names": {"type": "array", "items": {"type": "string"}},
-        "devices": {"type": "object"},
-        "clock": {"type": "string"},
-    },
-}
+LEVEL_NUMBERS = {level.name.lower(): int(level) for level in SafetyLevel}
 
 
 @dataclass
 class TickChannel:
-    """A per-tick channel: its topic, layout, decimation and how its fields come from ring rows."""
+    """A per-tick topic as written: its layout (the fast path) and where it goes."""
 
-    topic: str
-    key: Channel  # the [record] decimate key
-    layout: Layout
-    fields: Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]  # (meta rows, data rows) -> values
-    timing: bool = False  # its rows are the previous tick's (timing is complete one tick later)
+    topic: T.TickTopic
+    layout: FixedLayout
     channel_id: int = 0
     live: Any = None  # the live server's channel
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
+    extra: list[str] = field(default_factory=list)  # the paths the writer fills besides the topic's fields
 
 
 class Recorder:
-    """Records a loop, through its :class:`~aiohal.outside.port.LoopPort`, to an MCAP file.
+    """Records a loop, through its :class:`~aiohal.outside.port.LoopPort`, to an MCAP file or a
+    rosbag2 directory (a path not ending in ``.mcap``; :mod:`.recorder_file`).
 
     ``attach()`` (before ``run``) adds the tick's publisher and starts the writer; ``close()``
     (after the run) drains the ring, writes the summary and closes the file. ``live`` is an
-    optional :class:`~aiohal.outside.foxglove_server.FoxgloveServer` that gets the same messages, decimated.
+    optional :class:`~aiohal.outside.foxglove_server.FoxgloveServer` that gets the same messages,
+    decimated. ``plain``: serialize every message with rosbags, one at a time (the reference
+    for the batch path, which writes the same bytes; ``python -m benchmarks.record --plain``).
     """
 
     #: ticks encoded at once by the writer
@@ -118,17 +82,16 @@ class Recorder:
         options: RecordSection | None = None,
         *,
         live: FoxgloveServer | None = None,
+        plain: bool = False,
     ) -> None:
-        from mcap.writer import CompressionType, Writer  # the extra 'record'
-
         self.port = port
         self.options = options or RecordSection()
         self.path = None if path is None else Path(path)
         self.live = live
+        self.plain = plain
         robot, stats = port.robot, port.timing
         self._arrays: list[np.ndarray] = []
-        self.channels: list[TickChannel] = []
-        self._build_channels(robot)
+        topics = T.tick_topics(robot, self._add_array, lambda: self.ring)
         self.ring = R.TickRing(
             self._arrays, self.options.buffer_ticks, [stats.lateness, stats.work, *stats.phases], stats.mask
         )
@@ -137,19 +100,12 @@ class Recorder:
         self._kernel = compiled_entry.compiled_for(
             R.record_tick, (self.ring.data, self.ring.sources, self.ring.state, 0, 0, 0, 0)
         )
-        self._file = None
-        self._writer = None
-        if self.path is not None:
-            self._file = open(self.path, "wb")  # noqa: SIM115 - open for the recorder's life, closed in close()
-            compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
-                self.options.compression
-            ]
-            # chunks are closed by time (flush_ms), not by size: the size bound is only a backstop
-            self._writer = Writer(self._file, chunk_size=64 << 20, compression=compression)
-            self._writer.start(profile="aiohal", library="aiohal")
+        self.channels = [self._channel(topic) for topic in topics]
+        self._file = None if self.path is None else RecordingFile(self.path, self.options.compression)
         self._register()
-        self._events: collections.deque[tuple[str, int, dict]] = collections.deque()
+        self._events: collections.deque[tuple[str, int, Any]] = collections.deque()
         self._faults_seen = 0
+        self._transitions_seen = 0
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._health_task: asyncio.Task | None = None
@@ -170,152 +126,56 @@ class Recorder:
         self._arrays.append(array)
         return len(self._arrays) - 1
 
-    def _build_channels(self, robot: Any) -> None:
-        n = robot.dof
-        ring = lambda: self.ring  # noqa: E731  (the ring is built after the channels name their arrays)
-        state, command = robot.state, robot.command
-        i_state, i_sfault = self._add_array(state.block), self._add_array(state.fault)
-        i_cmd, i_mode = self._add_array(command.block), self._add_array(command.mode)
-        tick_field = [("tick", np.int64, None)]
-
-        state_layout = Layout(
-            SCHEMA_PACKAGE + "JointState",
-            tick_field
-            + [
-                (f, np.float64, n)
-                for f in ("position", "velocity", "effort", "motor_position", "motor_velocity", "temperature")
-            ]
-            + [("fault", np.uint32, n)],
-        )
-
-        def state_fields(meta, data):
-            block = ring().field(data, i_state)
-            out = {
-                f: block[:, r]
-                for r, f in enumerate(
-                    ("position", "velocity", "effort", "motor_position", "motor_velocity", "temperature")
-                )
-            }
-            out["fault"] = ring().field(data, i_sfault)
-            return out
-
-        self.channels.append(TickChannel("/joint_state", "joint_state", state_layout, state_fields))
-
-        command_layout = Layout(
-            SCHEMA_PACKAGE + "JointCommand",
-            tick_field
-            + [(f, np.float64, n) for f in ("position", "velocity", "effort", "stiffness", "damping", "feedforward")]
-            + [("mode", np.int8, n)],
-        )
-
-        def command_fields(meta, data):
-            block = ring().field(data, i_cmd)
-            out = {
-                f: block[:, r]
-                for r, f in enumerate(("position", "velocity", "effort", "stiffness", "damping", "feedforward"))
-            }
-            out["mode"] = ring().field(data, i_mode)
-            return out
-
-        self.channels.append(TickChannel("/joint_command", "joint_command", command_layout, command_fields))
-
-        for kind, group in robot.device_groups.items():
-            if not len(group):
-                continue
-            i_fault = self._add_array(group.fault)
-            if group.values is not None:
-                i_values = self._add_array(group.values)
-                field_arrays = None
-            else:
-                i_values = None
-                field_arrays = {f: self._add_array(getattr(group, f)) for f in group.fields}
-            fields = []
-            for f in group.fields:
-                shape, dtype = group.shapes[f]
-                fields.append((f, dtype, shape[0] if shape else None))
-            layout = Layout(
-                SCHEMA_PACKAGE + {"imu": "Imu", "force_torque": "ForceTorque", "hand": "Hand"}[kind],
-                tick_field + fields + [("fault", np.uint32, None)],
-            )
-            for d, name in enumerate(group.names):
-
-                def device_fields(
-                    meta, data, d=d, group=group, i_fault=i_fault, i_values=i_values, field_arrays=field_arrays
-                ):
-                    if i_values is not None:
-                        values = ring().field(data, i_values)[:, d]
-                        out = {f: values[:, cols] for f, cols in group.columns.items()}
-                    else:
-                        out = {f: ring().field(data, i)[:, d] for f, i in field_arrays.items()}
-                    out["fault"] = ring().field(data, i_fault)[:, d]
-                    return out
-
-                self.channels.append(TickChannel(f"/{kind}/{name}", kind, layout, device_fields))
-
-        timing_layout = Layout(
-            SCHEMA_PACKAGE + "TickTiming",
-            tick_field
-            + [("lateness_ns", np.int64, None), ("work_ns", np.int64, None)]
-            + [(f"{p}_ns", np.int64, None) for p in PHASES],
-        )
-
-        def timing_fields(meta, data):
-            out = {"lateness_ns": meta[:, R.TIMING], "work_ns": meta[:, R.TIMING + 1]}
-            for i, p in enumerate(PHASES):
-                out[f"{p}_ns"] = meta[:, R.TIMING + 2 + i]
-            return out
-
-        self.channels.append(TickChannel("/timing", "timing", timing_layout, timing_fields, timing=True))
-
-        safety_layout = Layout(SCHEMA_PACKAGE + "Safety", [*tick_field, ("level", np.uint8, None)])
-        self.channels.append(
-            TickChannel("/safety", "safety", safety_layout, lambda meta, data: {"level": meta[:, R.LEVEL]})
-        )
+    def _channel(self, topic: T.TickTopic) -> TickChannel:
+        """The topic's layout: the stamp, its tick (where the type has one) and its fields."""
+        empty = self.ring.data[:0]
+        extra = [*T.STAMP, *(["tick"] if hasattr(topic.sample, "tick") else [])]
+        paths = extra + list(topic.fields(self.ring.meta(empty), empty))
+        return TickChannel(topic, FixedLayout(topic.sample, paths), extra=extra)
 
     def _register(self) -> None:
-        writer, live = self._writer, self.live
+        file, live = self._file, self.live
         for ch in self.channels:
-            if writer is not None:
-                schema = writer.register_schema(ch.layout.name, "ros2msg", ch.layout.schema.encode())
-                ch.channel_id = writer.register_channel(ch.topic, "cdr", schema)
+            if file is not None:
+                ch.channel_id = file.add_channel(ch.topic.topic, ch.topic.msgtype)
             if live is not None:
-                ch.live = live.channel(ch.topic, ch.layout.name, "ros2msg", ch.layout.schema.encode(), "cdr")
-        self._json_channels: dict[str, tuple[int, Any]] = {}
-        for topic, name, schema in (
-            ("/faults", "aiohal.Fault", FAULT_SCHEMA),
-            ("/health", "aiohal.Health", HEALTH_SCHEMA),
-            ("/robot", "aiohal.Robot", ROBOT_SCHEMA),
-        ):
-            data = json.dumps(schema).encode()
-            cid = 0
-            if writer is not None:
-                sid = writer.register_schema(name, "jsonschema", data)
-                cid = writer.register_channel(topic, "json", sid)
-            lch = live.channel(topic, name, "jsonschema", data, "json") if live is not None else None
-            self._json_channels[topic] = (cid, lch)
+                ch.live = self._live_channel(ch.topic.topic, ch.topic.msgtype)
+        self._event_channels: dict[str, tuple[int, Any]] = {}
+        for topic, msgtype in T.EVENT_TOPICS.items():
+            latched = topic in T.LATCHED
+            cid = file.add_channel(topic, msgtype, latched) if file is not None else 0
+            lch = self._live_channel(topic, msgtype) if live is not None else None
+            self._event_channels[topic] = (cid, lch)
+
+    def _live_channel(self, topic: str, msgtype: str) -> Any:
+        assert self.live is not None
+        return self.live.channel(topic, msgtype, "ros2msg", ros2.schema_text(msgtype).encode(), "cdr")
 
     # ------------------------------------------------------------ lifecycle
 
     def attach(self) -> None:
-        """Start recording: the writer thread, the health sampler (if an event loop runs) and the
-        tick's publisher. Call before ``control.run()``."""
+        """Start recording: the robot's description (latched), tick 0 (the state the activation
+        read, when called between ``activate()`` and ``run()``), the writer thread, the health
+        sampler (if an event loop runs) and the tick's publisher."""
         if self._attached:
             return
         port = self.port
         robot = port.robot
         self._attached = True
-        devices = {kind: list(group.names) for kind, group in robot.device_groups.items() if len(group)}
-        info = {
-            "robot": robot.name,
-            "rate_hz": 1e9 / port.period_ns,
-            "joint_names": list(robot.joint_names),
-            "devices": devices,
-            "clock": port.clock_kind,
-            "decimate": {k: self.options.decimate.get(k, 1) for k in sorted({c.key for c in self.channels})},
-        }
-        if self._writer is not None:
-            self._writer.add_metadata("aiohal", {k: json.dumps(v) for k, v in info.items()})
-        self._events.append(("/robot", port.now_ns(), info))
+        rate_hz = 1e9 / port.period_ns
+        decimate = {k: self.options.decimate.get(k, 1) for k in sorted({c.topic.key for c in self.channels})}
+        if self._file is not None:
+            info = {"robot": robot.name, "rate_hz": rate_hz, "clock": port.clock_kind, "decimate": decimate}
+            self._file.add_metadata("aiohal", {k: json.dumps(v) for k, v in info.items()})
+        description = T.robot_message(robot, rate_hz, port.clock_kind, _config_text(port))
+        data = ros2.serialize(description)
+        t = port.now_ns() + self._offset_ns
+        cid, lch = self._event_channels["/robot"]
+        if self._file is not None:
+            self._file.add_message(cid, t, data)
+        if self.live is not None and lch is not None:
+            self.live.latch(lch, data, t)
+        self.messages += 1
         self._thread = threading.Thread(target=self._write_loop, name="aiohal-recorder", daemon=True)
         self._thread.start()
         try:
@@ -325,6 +185,8 @@ class Recorder:
         if loop is not None:
             self._health_task = loop.create_task(self._sample_health())
         self._publisher = self.publisher()
+        if not port.running and port.tick == 0:
+            self._publisher(None)  # tick 0: the state read at activation, where the controller started
         port.at_tick_end(self._publisher)
 
     def publisher(self) -> TickEnd:
@@ -342,7 +204,7 @@ class Recorder:
         period = 1.0 / self.options.health_hz
         while True:
             await asyncio.sleep(period)
-            self._events.append(("/health", self.port.robot.clock.now_ns, self.port.health().as_dict()))
+            self._health_event()
 
     def close(self) -> dict[str, Any]:
         """Drain what the tick left, write the last events and the summary; returns the figures."""
@@ -360,20 +222,17 @@ class Recorder:
             self._health_event()
             self._last_timing()
             self._write_events()
-        if self._writer is not None:
+        if self._file is not None:
             try:
-                if self.error is None:
-                    self._writer.finish()
+                self._file.finish(complete=self.error is None)
             except Exception as exc:
                 self.error = f"{type(exc).__name__}: {exc}"
                 log.error("recording not finished: %s", self.error)
-            finally:
-                if self._file is not None:  # opened with the writer
-                    self._file.close()
         return self.summary()
 
     def _health_event(self) -> None:
-        self._events.append(("/health", self.port.robot.clock.now_ns, self.port.health().as_dict()))
+        health = self.port.health()
+        self._events.append(("/diagnostics", self.port.robot.clock.now_ns, health))
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -382,7 +241,7 @@ class Recorder:
             "dropped_ticks": self.ring.dropped,
             "messages": self.messages,
             "live_messages": self.live_messages,
-            "bytes": self.path.stat().st_size if self.path is not None and self.path.exists() else 0,
+            "bytes": self._file.size if self._file is not None else 0,
             **({"error": self.error} if self.error else {}),
         }
 
@@ -434,20 +293,39 @@ class Recorder:
             phase = (now - port.deadlines_origin_ns) % period
         return now + max(0, period - margin - phase)
 
+    def _encode(self, ch: TickChannel, values: dict[str, np.ndarray], count: int) -> Iterator[bytes]:
+        """The batch's messages: one numpy fill per field, or (``plain``) rosbags per message."""
+        if self.plain:
+            sample = ch.topic.sample
+            for i in range(count):
+                yield ros2.serialize(with_values(sample, {p: v[i] for p, v in values.items()}))
+            return
+        blob = ch.layout.encode(values, count).tobytes()
+        size = ch.layout.size
+        for i in range(count):
+            yield blob[i * size : (i + 1) * size]
+
+    def _values(self, ch: TickChannel, meta: np.ndarray, data: np.ndarray, ticks: np.ndarray, times: np.ndarray):
+        values = ch.topic.fields(meta, data)
+        values[T.STAMP[0]], values[T.STAMP[1]] = np.divmod(times, 1_000_000_000)
+        if "tick" in ch.extra:
+            values["tick"] = ticks
+        return values
+
     def _work(self) -> Iterator[bool]:
         """The writer's work in small steps; yields True when it has nothing left to do."""
         ring = self.ring
         options = self.options
         flush_ns = int(options.flush_ms * 1e6)
-        decimate = [options.decimate.get(ch.key, 1) for ch in self.channels]
+        decimate = [options.decimate.get(ch.topic.key, 1) for ch in self.channels]
         live_every = options.live_decimate
-        writer, live = self._writer, self.live
+        file, live = self._file, self.live
         offset = self._offset_ns
         while True:
             head = ring.head
             if head == ring.tail:
                 self._write_events()
-                if writer is not None and time.monotonic_ns() - self._last_flush >= flush_ns:
+                if file is not None and time.monotonic_ns() - self._last_flush >= flush_ns:
                     self._flush()
                 yield True
                 continue
@@ -462,7 +340,7 @@ class Recorder:
                 self._busy_ns = int(np.percentile(recent[valid], 90)) + 50_000
             yield False
             for ch, every in zip(self.channels, decimate, strict=True):
-                if ch.timing:
+                if ch.topic.timing:
                     keep = valid & (meta[:, R.PREV_TICK] % every == 0)
                     chan_ticks, stamps = meta[keep, R.PREV_TICK], meta[keep, R.PREV_NOW]
                 else:
@@ -471,18 +349,14 @@ class Recorder:
                 count = len(chan_ticks)
                 if not count:
                     continue
-                values = ch.fields(meta[keep], data[keep])
-                values["tick"] = chan_ticks
-                blob = ch.layout.encode(values, count).tobytes()
-                size = ch.layout.size
-                times = (stamps + offset).tolist()
-                tick_list = chan_ticks.tolist()
-                for i in range(count):
-                    msg = blob[i * size : (i + 1) * size]
-                    if writer is not None:
-                        writer.add_message(ch.channel_id, times[i], msg, times[i], tick_list[i] & 0xFFFFFFFF)
+                times = stamps + offset
+                values = self._values(ch, meta[keep], data[keep], chan_ticks, times)
+                time_list, tick_list = times.tolist(), chan_ticks.tolist()
+                for i, msg in enumerate(self._encode(ch, values, count)):
+                    if file is not None:
+                        file.add_message(ch.channel_id, time_list[i], msg, tick_list[i])
                     if live is not None and ch.live is not None and tick_list[i] % live_every == 0:
-                        live.log(ch.live, msg, times[i])
+                        live.log(ch.live, msg, time_list[i])
                         self.live_messages += 1
                     if i % self.STRIDE == self.STRIDE - 1:
                         yield False
@@ -490,31 +364,39 @@ class Recorder:
                 yield False
             ring.tail += n
             self.ticks_written += n
-            if writer is not None and time.monotonic_ns() - self._last_flush >= flush_ns:
+            if file is not None and time.monotonic_ns() - self._last_flush >= flush_ns:
                 self._flush()
                 yield False
 
     def _flush(self) -> None:
-        writer, file = self._writer, self._file
-        if writer is None or file is None:  # not recording to a file
-            return
-        writer.flush()  # closes the chunk in progress and writes it
-        file.flush()
+        if self._file is not None:
+            self._file.flush()
         self._last_flush = time.monotonic_ns()
 
     def _write_events(self) -> None:
-        faults = self.port.faults
+        """Faults, safety events and diagnostics that happened since the last call."""
+        port = self.port
+        now = port.robot.clock.now_ns
+        faults = port.faults
         while self._faults_seen < len(faults):
-            f = faults[self._faults_seen]
+            self._events.append(("/faults", now, T.faults_message(now + self._offset_ns, [faults[self._faults_seen]])))
             self._faults_seen += 1
-            self._events.append(("/faults", self.port.robot.clock.now_ns, f.as_dict()))
+        transitions = port.transitions
+        while self._transitions_seen < len(transitions):
+            change = transitions[self._transitions_seen]
+            self._events.append(
+                ("/safety/events", now, T.safety_event_message(now + self._offset_ns, change, LEVEL_NUMBERS))
+            )
+            self._transitions_seen += 1
         while self._events:
             topic, stamp, body = self._events.popleft()
-            data = json.dumps(_jsonable(body)).encode()
-            cid, live_channel = self._json_channels[topic]
             t = stamp + self._offset_ns
-            if self._writer is not None:
-                self._writer.add_message(cid, t, data, t, 0)
+            if topic == "/diagnostics":
+                body = T.diagnostics_message(t, body)
+            data = ros2.serialize(body)
+            cid, live_channel = self._event_channels[topic]
+            if self._file is not None:
+                self._file.add_message(cid, t, data)
             if live_channel is not None and self.live is not None:
                 self.live.log(live_channel, data, t)
             self.messages += 1
@@ -526,19 +408,30 @@ class Recorder:
         if count == 0 or ring.state[R.LAST_COUNT] != count - 1:
             return
         j = (count - 1) & stats.mask
-        ch = next(c for c in self.channels if c.timing)
-        values = {
-            "tick": np.array([ring.state[R.LAST_TICK]]),
-            "lateness_ns": stats.lateness[j : j + 1],
-            "work_ns": stats.work[j : j + 1],
-        }
+        ch = next(c for c in self.channels if c.topic.timing)
+        tick = int(ring.state[R.LAST_TICK])
+        if tick % self.options.decimate.get("timing", 1):
+            return
+        values = {"lateness_ns": stats.lateness[j : j + 1], "work_ns": stats.work[j : j + 1], "tick": np.array([tick])}
         for i, p in enumerate(PHASES):
             values[f"{p}_ns"] = stats.phases[i, j : j + 1]
-        every = self.options.decimate.get("timing", 1)
-        if int(values["tick"][0]) % every:
-            return
-        msg = ch.layout.encode(values, 1).tobytes()
         t = int(ring.state[R.LAST_NOW]) + self._offset_ns
-        if self._writer is not None:
-            self._writer.add_message(ch.channel_id, t, msg, t, int(values["tick"][0]) & 0xFFFFFFFF)
+        values[T.STAMP[0]], values[T.STAMP[1]] = np.divmod(np.array([t]), 1_000_000_000)
+        msg = next(self._encode(ch, values, 1))
+        if self._file is not None:
+            self._file.add_message(ch.channel_id, t, msg, tick)
         self.messages += 1
+
+
+def _config_text(port: LoopPort) -> str:
+    """The configuration file's text, for ``/robot``'s description ("" for a config built in code)."""
+    path = port.config.path
+    if path is None:
+        return ""
+    from ..files import FileRefused, read_regular_text
+
+    try:
+        return read_regular_text(Path(path), limit=1 << 20)
+    except (FileRefused, OSError) as exc:
+        log.warning("recording: the config's text is not in /robot: %s", exc)
+        return ""

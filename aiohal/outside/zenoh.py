@@ -1,82 +1,69 @@
-"""The Eclipse Zenoh bridge (``[bridge.zenoh]``, extra ``zenoh``): the robot on the network.
+"""The Eclipse Zenoh bridge (``[bridge.zenoh]``, extra ``zenoh``): the robot as a ROS 2 node that
+nodes running rmw_zenoh see, list and echo (docs/ros2.md gives the mapping).
 
-Key expressions, under ``<prefix>/<robot>/`` (prefix ``aiohal`` by default):
-
-==================  ====  ==================================================================
-``state``           out   binary, ``state_hz``: header (tick, now_ns, level, dof) + float64
-                          rows position, velocity, effort, commanded position (:func:`decode_state`)
-``report``          out   JSON every ``report_s``: joints, ticks, missed ticks, level, faults,
-                          the bridge's counters
-``safety``          out   JSON on every change of the safety level
-``faults``          out   JSON, one message per new fault
-``cmd/setpoint``    in    JSON ``{"position": {joint: value} | [values], "velocity": ...,
-                          "t_ns": int}``, only with ``accept_setpoints`` (through the
-                          shared-memory ring: needs ``[client] shm`` and the ``stream`` controller)
-``cmd/<request>``   in    ``hold``, ``estop``, ``rearm``: only those named in ``accept_safety``
-==================  ====  ==================================================================
+Node ``<namespace>/<node>`` (default ``/<robot>/aiohal``) publishes, in CDR with rmw_zenoh's
+attachment: ``joint_states`` (``sensor_msgs/msg/JointState`` at ``state_hz``), ``/diagnostics``
+(``diagnostic_msgs/msg/DiagnosticArray``: the robot's status every ``report_s`` and each new
+fault), ``safety_level`` and ``robot`` (``aiohal_msgs``, transient-local: late joiners get the
+last one), ``tick_timing`` (``aiohal_msgs/msg/TickTiming`` every ``report_s``). It takes nothing
+unless ``commands`` names it: ``setpoints`` subscribes to ``joint_trajectory``
+(``trajectory_msgs/msg/JointTrajectory``, into the stream controller's shared-memory ring);
+``estop``, ``hold``, ``reset_faults``, ``rearm`` are ``std_srvs/srv/Trigger`` services answered
+with the loop's reason when it refuses. Commands need access control in the session's config
+(:mod:`.zenoh_session`).
 
 The tick only copies a snapshot into a preallocated ring on the ticks that publish (one in
 ``rate / state_hz``) and compares the level and the fault count; the bridge's own thread
-encodes and puts. A command on any other key under ``cmd/``, or one that fails validation
-(malformed, unknown joint, not finite, out of range), is refused and counted, never applied.
-Zenoh's own access control and authentication (``config_file``) decide who reaches the bridge
-at all. ``zenoh`` is imported when the bridge starts, never by the tick core.
+encodes and puts. A command that fails its checks is refused and counted, never applied.
+``zenoh`` is imported when the bridge starts, never by the tick core.
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
+import concurrent.futures
+import functools
 import json
 import logging
-import math
-import struct
 import threading
 import time
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
-from ..files import read_regular_text
+from ..core.tick_timing import PHASES
 from ..logutil import RateLimitedLogger
-from ..safety import SafetyLevel, SafetyRequestRefused
+from ..ros2 import services
+from ..safety import SafetyRequestRefused
+from . import rmw_zenoh as rmw
+from . import ros2_mapping as ros
 from .options import ZenohBridgeSection
 from .port import LoopPort
+from .zenoh_session import check_access, session_config
 
 if TYPE_CHECKING:
     from ..client import RobotClient
 
 log = logging.getLogger(__name__)
 
-STATE_HEADER = struct.Struct("<qqii")  # tick, now_ns, safety level, dof
-STATE_ROWS = ("position", "velocity", "effort", "command_position")
-SAFETY_REQUESTS = ("hold", "estop", "rearm")
+#: how long a service waits for the loop to act on a request before it answers "no answer"
+REQUEST_TIMEOUT_S = 2.0
+#: rmw_zenoh's heartbeat for a reliable transient-local publisher (late sample recovery)
+HEARTBEAT_S = 0.5
 
 
-def decode_state(payload: bytes) -> dict[str, Any]:
-    """A ``state`` message as {tick, now_ns, level, position, velocity, effort, command_position}."""
-    tick, now_ns, level, dof = STATE_HEADER.unpack_from(payload)
-    rows = np.frombuffer(payload, np.float64, len(STATE_ROWS) * dof, STATE_HEADER.size).reshape(-1, dof)
-    out: dict[str, Any] = {"tick": tick, "now_ns": now_ns, "level": SafetyLevel(level).name.lower()}
-    out.update(zip(STATE_ROWS, rows, strict=True))
-    return out
+class _Topic:
+    """A publisher with its GID and sequence number: each put carries rmw_zenoh's attachment."""
 
+    def __init__(self, publisher: Any, gid: bytes) -> None:
+        self.publisher = publisher
+        self.gid = gid
+        self.sequence = 0
 
-def zenoh_config(section: ZenohBridgeSection):
-    """The session's config: the file if one is named, then the section's keys over it."""
-    import zenoh
-
-    if section.config_file:  # read here, a regular file only: zenoh's own reader would wait on a FIFO
-        config = zenoh.Config.from_json5(read_regular_text(section.config_file, "bridge.zenoh.config_file"))
-    else:
-        config = zenoh.Config()
-    config.insert_json5("mode", json.dumps(section.mode))
-    if section.listen:
-        config.insert_json5("listen/endpoints", json.dumps(section.listen))
-    if section.connect:
-        config.insert_json5("connect/endpoints", json.dumps(section.connect))
-    config.insert_json5("scouting/multicast/enabled", json.dumps(section.multicast_scouting))
-    return config
+    def put(self, payload: bytes) -> None:
+        self.sequence += 1
+        self.publisher.put(payload, attachment=rmw.attachment(self.sequence, time.time_ns(), self.gid))
 
 
 class ZenohBridge:
@@ -86,13 +73,13 @@ class ZenohBridge:
         self.port = port
         self.section = section
         robot = port.robot
-        self.base = f"{section.prefix}/{robot.name}"
+        self.namespace = section.namespace or f"/{robot.name}"
         self.dof = robot.dof
         rate = 1e9 / port.period_ns
         self.every = max(1, round(rate / section.state_hz))
         q = section.queue
         self._ticks = np.zeros((q, 3), dtype=np.int64)  # tick, now_ns, level
-        self._rows = np.zeros((q, len(STATE_ROWS), robot.dof))
+        self._rows = np.zeros((q, 3, robot.dof))  # position, velocity, effort
         self._head = 0  # snapshots written by the tick (the thread reads it; the GIL orders them)
         self._events: collections.deque = collections.deque()
         self.counters = {
@@ -100,16 +87,23 @@ class ZenohBridge:
             "state_dropped": 0,
             "setpoints_accepted": 0,
             "requests_accepted": 0,
+            "requests_refused_by_loop": 0,
             "refused": 0,
         }
         self.refused_by_reason: dict[str, int] = collections.Counter()
         self._warn = RateLimitedLogger(log)
         self._session: Any = None  # a zenoh.Session (zenoh ships no types)
+        self._declared: list[Any] = []  # tokens, publishers, subscribers, queryables: undeclared at close
+        self._topics: dict[str, _Topic] = {}
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._client: RobotClient | None = None
         self._aio: asyncio.AbstractEventLoop | None = None
         self._lock = threading.Lock()  # the zenoh callbacks' counters and the shm client
+        self._wall_minus_loop = 0  # ROS time (the wall clock) minus the loop's clock, ns
+        self._faults_sent = 0
+        self.keys: dict[str, str] = {}  # endpoint name → its key expression (for logs and tests)
+        self.tokens: list[str] = []  # the liveliness tokens declared
         self.publish = self._make_publisher()
 
     # ------------------------------------------------------------ the tick's side
@@ -117,12 +111,7 @@ class ZenohBridge:
     def _make_publisher(self):
         port, robot = self.port, self.port.robot
         state_rows = memoryview(robot.state.block[:3]).cast("B")  # position, velocity, effort: adjacent
-        command_position = memoryview(robot.command.position).cast("B")
-        cut = 3 * robot.dof * 8
-        rows = [
-            (memoryview(self._rows[i]).cast("B")[:cut], memoryview(self._rows[i]).cast("B")[cut:])
-            for i in range(self.section.queue)
-        ]
+        rows = [memoryview(self._rows[i]).cast("B") for i in range(self.section.queue)]
         ticks = [memoryview(self._ticks[i]) for i in range(self.section.queue)]
         queue, every, clock, faults = self.section.queue, self.every, robot.clock, port.faults
         events = self._events
@@ -141,9 +130,7 @@ class ZenohBridge:
             # shift the rate
             due[0] = (k // every + 1) * every
             i = self._head % queue
-            s, cmd = rows[i]
-            s[:] = state_rows
-            cmd[:] = command_position
+            rows[i][:] = state_rows
             t = ticks[i]
             t[0] = k
             t[1] = clock.now_ns
@@ -157,33 +144,89 @@ class ZenohBridge:
     def start(self) -> None:
         import zenoh
 
-        section = self.section
+        section, port = self.section, self.port
+        config = session_config(section)
+        means = check_access(section, config)
+        if section.commands and means is None:  # allow_anyone: said at every start
+            log.warning(
+                "zenoh bridge for %s takes %s from anyone who reaches it (allow_anyone = true): a lab network only",
+                port.robot.name,
+                ", ".join(section.commands),
+            )
         self._aio = asyncio.get_running_loop()
-        self._put = zenoh.SampleKind.PUT
-        if section.accept_setpoints:
+        self._wall_minus_loop = time.time_ns() - port.now_ns()
+        if "setpoints" in section.commands:
             from ..client import RobotClient
 
-            self._client = RobotClient(self.port.robot.name, command=True)
-        self._session = zenoh.open(zenoh_config(section))
-        s = self._session
-        self._pub_state = s.declare_publisher(f"{self.base}/state")
-        self._pub_report = s.declare_publisher(f"{self.base}/report")
-        self._pub_safety = s.declare_publisher(f"{self.base}/safety")
-        self._pub_faults = s.declare_publisher(f"{self.base}/faults")
-        # every key under cmd/ is heard, so that a command on a key not configured is counted
-        self._sub = s.declare_subscriber(f"{self.base}/cmd/**", self._on_command)
-        self._thread = threading.Thread(target=self._run, name=f"aiohal-zenoh-{self.port.robot.name}", daemon=True)
+            self._client = RobotClient(port.robot.name, command=True)
+        self._put = zenoh.SampleKind.PUT
+        self._session = zenoh.open(config)
+        self.node = rmw.Node(section.domain_id, str(self._session.info.zid()), self.namespace, section.node)
+        self._declare_token(self.node.token())
+        self._entities = 0
+        for endpoint in (ros.JOINT_STATES, ros.DIAGNOSTICS, ros.SAFETY, ros.TIMING, ros.ROBOT):
+            self._topics[endpoint.name] = self._declare_publisher(endpoint)
+        if "setpoints" in section.commands:
+            key, _ = self._declare_endpoint(ros.TRAJECTORY, rmw.SUBSCRIPTION)
+            self._declared.append(self._session.declare_subscriber(key, self._on_trajectory))
+        for request in ros.REQUESTS:
+            if request in section.commands:
+                key, _ = self._declare_endpoint(ros.Endpoint(request, ros.TRIGGER), rmw.SERVICE)
+                handler = functools.partial(self._on_request, request)
+                self._declared.append(self._session.declare_queryable(key, handler, complete=True))
+        rate_hz = 1e9 / port.period_ns
+        self._topics[ros.ROBOT.name].put(ros.robot_description(port.robot, rate_hz, port.clock_kind))
+        self._topics[ros.SAFETY.name].put(ros.safety_level(self._stamp(port.now_ns()), port.tick, int(port.level)))
+        self._thread = threading.Thread(target=self._run, name=f"aiohal-zenoh-{port.robot.name}", daemon=True)
         self._thread.start()
         log.info(
-            "zenoh bridge for %s: publishing under %s/, accepting %s",
-            self.port.robot.name,
-            self.base,
-            ", ".join(self._accepted_keys()) or "no command",
+            "zenoh bridge: ROS 2 node %s/%s on domain %d (rmw_zenoh), taking %s",
+            self.namespace,
+            section.node,
+            section.domain_id,
+            ", ".join(section.commands) or "no command",
         )
 
-    def _accepted_keys(self) -> list[str]:
-        keys = ["cmd/setpoint"] if self.section.accept_setpoints else []
-        return keys + [f"cmd/{r}" for r in self.section.accept_safety]
+    def _declare_token(self, token: str) -> None:
+        self._declared.append(self._session.liveliness().declare_token(token))
+        self.tokens.append(token)
+
+    def _declare_endpoint(self, endpoint: ros.Endpoint, kind: str) -> tuple[str, bytes]:
+        """The endpoint's liveliness token; its key expression and GID."""
+        self._entities += 1
+        name = self.node.qualify(endpoint.name)
+        type_hash = endpoint.type_hash()
+        token = self.node.endpoint_token(self._entities, kind, name, endpoint.ros_type, type_hash, endpoint.qos)
+        self._declare_token(token)
+        key = rmw.data_key(self.section.domain_id, name, endpoint.ros_type, type_hash)
+        self.keys[endpoint.name] = key
+        return key, rmw.gid(token)
+
+    def _declare_publisher(self, endpoint: ros.Endpoint) -> _Topic:
+        """As rmw_zenoh does: a transient-local publisher keeps its last messages in a cache that
+        late subscribers query, is detectable, and sends heartbeats so that a lost last sample
+        is recovered."""
+        import zenoh
+        import zenoh.ext
+
+        key, gid = self._declare_endpoint(endpoint, rmw.PUBLISHER)
+        options: dict[str, Any] = {
+            "congestion_control": zenoh.CongestionControl.DROP,  # never block the bridge's thread
+            "reliability": zenoh.Reliability.RELIABLE,
+        }
+        if endpoint.qos.transient_local:
+            publisher = zenoh.ext.declare_advanced_publisher(
+                self._session,
+                key,
+                cache=zenoh.ext.CacheConfig(max_samples=endpoint.qos.depth),
+                publisher_detection=True,
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=HEARTBEAT_S),
+                **options,
+            )
+        else:
+            publisher = self._session.declare_publisher(key, **options)
+        self._declared.append(publisher)
+        return _Topic(publisher, gid)
 
     def close(self) -> None:
         self._stop.set()
@@ -192,9 +235,12 @@ class ZenohBridge:
             self._thread = None
         if self._session is not None:
             try:
+                for entity in reversed(self._declared):  # the tokens go: ROS 2 sees the node leave
+                    entity.undeclare()
                 self._session.close()
             except Exception as exc:  # closing must not hide the loop's own shutdown
                 log.warning("zenoh session close failed: %s", exc)
+            self._declared.clear()
             self._session = None
         with self._lock:
             if self._client is not None:
@@ -203,13 +249,18 @@ class ZenohBridge:
 
     # ------------------------------------------------------------ the bridge's thread
 
+    def _stamp(self, loop_ns: int) -> int:
+        """A time of the loop's clock as ROS time (the wall clock), for headers."""
+        return loop_ns + self._wall_minus_loop
+
     def _run(self) -> None:
         section = self.section
         poll_s = min(0.005, 0.5 / section.state_hz)
         next_report = time.monotonic()
         tail = 0
         queue = section.queue
-        header = STATE_HEADER
+        names = list(self.port.robot.joint_names)
+        joint_states = self._topics[ros.JOINT_STATES.name]
         while not self._stop.wait(poll_s):
             try:
                 head = self._head
@@ -218,25 +269,39 @@ class ZenohBridge:
                     tail = head - queue
                 while tail < head:
                     i = tail % queue
-                    tick, now, level = (int(x) for x in self._ticks[i])
-                    self._pub_state.put(header.pack(tick, now, level, self.dof) + self._rows[i].tobytes())
+                    joint_states.put(ros.joint_state(names, self._stamp(int(self._ticks[i, 1])), self._rows[i]))
                     tail += 1
                     self.counters["state_sent"] += 1
                 while self._events:
                     self._publish_event(*self._events.popleft())
                 if time.monotonic() >= next_report:
                     next_report += section.report_s
-                    self._pub_report.put(json.dumps(self.report()))
+                    self._publish_report()
             except Exception as exc:  # the network must never take the robot down
                 self._warn.warning("put", "zenoh bridge: %s: %s", type(exc).__name__, exc)
 
     def _publish_event(self, level: int, n_faults: int, tick: int) -> None:
-        self._pub_safety.put(json.dumps({"level": SafetyLevel(level).name.lower(), "tick": tick}))
-        for fault in self.port.faults[self._faults_sent : n_faults]:
-            self._pub_faults.put(json.dumps(fault.as_dict()))
-        self._faults_sent = max(self._faults_sent, n_faults)
+        now = self._stamp(self.port.now_ns())
+        self._topics[ros.SAFETY.name].put(ros.safety_level(now, tick, level))
+        if n_faults > self._faults_sent:
+            self._publish_report(list(self.port.faults[self._faults_sent : n_faults]))
 
-    _faults_sent = 0  # faults published so far
+    def _publish_report(self, new_faults: list | None = None) -> None:
+        port = self.port
+        now = self._stamp(port.now_ns())
+        if new_faults:
+            self._faults_sent += len(new_faults)
+        values = {k: v for k, v in self.report().items() if k not in ("joints", "bridge")}
+        values.update(self.counters, refused_by_reason=json.dumps(dict(self.refused_by_reason)))
+        diagnostics = ros.diagnostics(now, port.robot.name, port.level, values, new_faults or [])
+        self._topics[ros.DIAGNOSTICS.name].put(diagnostics)
+        timing = port.timing
+        if not new_faults and timing.count >= 2:  # the last tick that has ended
+            i = (timing.count - 2) & timing.mask
+            phases = [int(timing.phases[p, i]) for p in range(len(PHASES))]
+            self._topics[ros.TIMING.name].put(
+                ros.tick_timing(now, timing.count - 2, int(timing.lateness[i]), int(timing.work[i]), phases)
+            )
 
     def report(self) -> dict[str, Any]:
         """A light report (no percentiles: they would take the GIL from the tick for milliseconds)."""
@@ -253,95 +318,89 @@ class ZenohBridge:
             "bridge": {
                 **self.counters,
                 "refused_by_reason": dict(self.refused_by_reason),
-                "accepting": self._accepted_keys(),
+                "commands": self.section.commands,
             },
         }
 
     # ------------------------------------------------------------ commands (zenoh's threads)
 
-    def _on_command(self, sample) -> None:
-        key = str(sample.key_expr)
-        name = key[len(self.base) + len("/cmd/") :]
-        try:
-            if sample.kind != self._put:  # a delete carries no command: it must not e-stop
-                raise _Refused("not a put")
-            payload = sample.payload.to_bytes()
-            if name == "setpoint" and self.section.accept_setpoints:
-                self._setpoint(payload)
-            elif name in SAFETY_REQUESTS and name in self.section.accept_safety:
-                self._safety(name)
-            else:
-                raise _Refused("key not configured")
-        except _Refused as exc:
-            self._refuse(str(exc), key)
-        except Exception as exc:  # a client's error (busy ring, robot in hold) is still a refusal
-            self._refuse(type(exc).__name__, key, str(exc))
-
-    def _refuse(self, reason: str, key: str, detail: str = "") -> None:
+    def _refuse(self, reason: str, what: str, detail: str = "") -> None:
         with self._lock:
             self.counters["refused"] += 1
             self.refused_by_reason[reason] += 1
-        self._warn.warning(f"refused:{reason}", "zenoh bridge refused a command on %s: %s %s", key, reason, detail)
+        self._warn.warning(f"refused:{reason}", "zenoh bridge refused %s: %s %s", what, reason, detail)
 
-    def _setpoint(self, payload: bytes) -> None:
-        try:
-            msg = json.loads(payload)
-        except (ValueError, UnicodeDecodeError):
-            raise _Refused("malformed") from None
-        if not isinstance(msg, dict) or "position" not in msg:
-            raise _Refused("malformed")
-        robot = self.port.robot
-        position = self._vector(msg["position"], robot)
-        velocity = None if msg.get("velocity") is None else self._vector(msg["velocity"], robot)
-        if not np.all((position >= robot.position_min) & (position <= robot.position_max)):
-            raise _Refused("out of range")
-        t_ns = msg.get("t_ns", 0)
-        if not isinstance(t_ns, int) or isinstance(t_ns, bool):
-            raise _Refused("malformed")
-        with self._lock:
-            if self._client is None:
-                raise _Refused("bridge closed")
-            self._client.send(position, velocity=velocity, t_ns=t_ns)
-            self.counters["setpoints_accepted"] += 1
-
-    def _vector(self, value: Any, robot: Any) -> np.ndarray:
-        names = robot.joint_names
-        if isinstance(value, dict):
-            unknown = [k for k in value if k not in names]
-            if unknown:
-                raise _Refused("unknown joint")
-            if len(value) != len(names):
-                raise _Refused("missing joint")
-            value = [value[n] for n in names]
-        if not isinstance(value, list) or len(value) != len(names):
-            raise _Refused("malformed")
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
-            raise _Refused("malformed")
-        if not all(math.isfinite(v) for v in value):
-            raise _Refused("not finite")
-        return np.array(value, dtype=np.float64)
-
-    def _safety(self, name: str) -> None:
+    def _on_trajectory(self, sample) -> None:
         port = self.port
+        try:
+            if sample.kind != self._put:  # a delete carries no command
+                raise ros.Refused("not a put")
+            trajectory = ros.trajectory(sample.payload.to_bytes(), port.robot, port.now_ns(), self._wall_minus_loop)
+            with self._lock:
+                client = self._client
+                if client is None:
+                    raise ros.Refused("bridge closed")
+                if len(trajectory.times_ns) > port.config.client.capacity - client.pending:
+                    raise ros.Refused("ring full")
+                client.send_trajectory(
+                    trajectory.times_ns, trajectory.positions, trajectory.velocities, timeout_s=0.0, final=True
+                )
+                self.counters["setpoints_accepted"] += len(trajectory.times_ns)
+        except ros.Refused as exc:
+            self._refuse(str(exc), "a joint_trajectory")
+        except Exception as exc:  # a client's error (robot in hold, no stream) is still a refusal
+            self._refuse(type(exc).__name__, "a joint_trajectory", str(exc))
+
+    def _on_request(self, name: str, query) -> None:
+        """A Trigger service call: acted on by the loop between two ticks; the answer carries
+        the request's sequence number and client GID back, as rmw_zenoh's clients match them."""
+        try:
+            attachment = query.attachment
+            if attachment is None:
+                raise ros.Refused("no attachment")
+            try:
+                sequence, _, client_gid = rmw.read_attachment(attachment.to_bytes())
+                services.deserialize_request(query.payload.to_bytes() if query.payload else b"", ros.TRIGGER)
+            except Exception:
+                raise ros.Refused("malformed") from None
+        except ros.Refused as exc:
+            self._refuse(str(exc), f"a {name} request")
+            return
+        success, message = self._ask_loop(name)
+        response = services.serialize_response(ros.TRIGGER, success=success, message=message)
+        query.reply(query.key_expr, response, attachment=rmw.attachment(sequence, time.time_ns(), client_gid))
+
+    def _ask_loop(self, name: str) -> tuple[bool, str]:
+        port = self.port
+
+        def reset_faults() -> str:
+            return f"cleared {len(port.reset_faults(source='zenoh'))} fault(s)"
+
         request = {
-            "hold": lambda: port.hold("requested over zenoh"),
-            "estop": lambda: port.estop("requested over zenoh", source="zenoh"),
+            "hold": lambda: port.hold("requested over ROS 2 (zenoh)"),
+            "estop": lambda: port.estop("requested over ROS 2 (zenoh)", source="zenoh"),
+            "reset_faults": reset_faults,
             "rearm": lambda: port.rearm(source="zenoh"),
         }[name]
+        answer: concurrent.futures.Future = concurrent.futures.Future()
 
-        def action() -> None:
+        def action() -> None:  # in the loop's thread
             try:
-                request()
-            except SafetyRequestRefused as exc:  # the safety channel shows the level that stayed
-                log.warning("robot %s: %s over zenoh refused: %s", port.robot.name, name, exc)
+                done = request()
+                answer.set_result((True, done or f"{name} done: safety level {port.level.name.lower()}"))
+            except SafetyRequestRefused as exc:
+                answer.set_result((False, str(exc)))
+            except Exception as exc:
+                answer.set_result((False, f"{type(exc).__name__}: {exc}"))
 
         log.warning("robot %s: %s requested over zenoh", port.robot.name, name)
-        cast(asyncio.AbstractEventLoop, self._aio).call_soon_threadsafe(
-            action
-        )  # set by start()  # acted on between two ticks, in the loop's thread
+        try:
+            cast(asyncio.AbstractEventLoop, self._aio).call_soon_threadsafe(action)  # set by start()
+            success, message = answer.result(timeout=REQUEST_TIMEOUT_S)
+        except (RuntimeError, concurrent.futures.TimeoutError):  # the loop is closed or stuck
+            success, message = False, f"the loop did not answer within {REQUEST_TIMEOUT_S:g} s"
         with self._lock:
-            self.counters["requests_accepted"] += 1
-
-
-class _Refused(Exception):
-    """A command the bridge does not apply; the message is the reason counted."""
+            self.counters["requests_accepted" if success else "requests_refused_by_loop"] += 1
+        if not success:
+            log.warning("robot %s: %s over zenoh refused: %s", port.robot.name, name, message)
+        return success, message

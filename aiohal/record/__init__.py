@@ -19,7 +19,7 @@ __all__ = ["TICK_CHANNELS", "RecordSection", "Recording", "Series", "load"]
 
 
 def load(path: Any) -> Recording:
-    """A recording as numpy arrays: ``load("run.mcap")["/joint_state"].position``."""
+    """A recording as numpy arrays: ``load("run.mcap")["/joint_states"].position``."""
     from .reader import load as _load
 
     return _load(path)

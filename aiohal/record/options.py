@@ -13,8 +13,8 @@ from pydantic import AfterValidator, Field, ValidationInfo
 from ..hal import Options
 
 #: the per-tick channels; ``decimate`` keys
-TICK_CHANNELS = ("joint_state", "joint_command", "imu", "force_torque", "hand", "timing", "safety")
-Channel = Literal["joint_state", "joint_command", "imu", "force_torque", "hand", "timing", "safety"]
+TICK_CHANNELS = ("joint_state", "joint_command", "imu", "force_torque", "hand", "device_faults", "timing", "safety")
+Channel = Literal["joint_state", "joint_command", "imu", "force_torque", "hand", "device_faults", "timing", "safety"]
 
 
 def _relative_to_config(value: Path | None, info: ValidationInfo) -> Path | None:
@@ -26,7 +26,9 @@ def _relative_to_config(value: Path | None, info: ValidationInfo) -> Path | None
 
 class RecordSection(Options):
     path: Annotated[Path | None, AfterValidator(_relative_to_config)] = Field(
-        None, description="Record every run of this config to this MCAP file (the CLI's --record overrides it)."
+        None,
+        description="Record every run of this config to this MCAP file, or to this rosbag2 directory if the "
+        "name does not end in .mcap (the CLI's --record overrides it).",
     )
     decimate: dict[Channel, Annotated[int, Field(ge=1, le=1_000_000)]] = Field(
         default_factory=dict,

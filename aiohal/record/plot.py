@@ -42,8 +42,8 @@ def plot(recording, out_dir: Path, joints: list[str] | None = None) -> list[Path
     written = []
     names = recording.joint_names
     pick = [i for i, n in enumerate(names) if not joints or any(fnmatch.fnmatchcase(n, p) for p in joints)]
-    if "/joint_state" in recording and "/joint_command" in recording and pick:
-        state, command = recording["/joint_state"], recording["/joint_command"]
+    if "/joint_states" in recording and "/joint_commands" in recording and pick:
+        state, command = recording["/joint_states"], recording["/joint_commands"]
         _common, si, ci = np.intersect1d(state.tick, command.tick, return_indices=True)
         t = state.t[si]
         fig, (ax, err) = plt.subplots(2, 1, sharex=True, figsize=(10, 6))
