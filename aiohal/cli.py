@@ -415,8 +415,13 @@ def cmd_check(argv: Sequence[str]) -> int:
     for path in args.configs:
         try:
             config = load_config(path)
+            doorkeeper.check(config)  # what only a door's own library can read (a Zenoh config)
         except ConfigError as exc:
             _print_config_error(exc)
+            status = 2
+            continue
+        except AiohalError as exc:
+            print(f"{path}: error: {exc}", file=sys.stderr)
             status = 2
             continue
         drivers = ", ".join(f"{d.name} ({d.type}, {counted(len(d.joints), 'joint')})" for d in config.drivers)

@@ -286,7 +286,8 @@ class DeviceGroup:
 
 
 class ImuGroup(DeviceGroup):
-    """Orientation as a unit quaternion (w, x, y, z), angular velocity (rad/s), acceleration (m/s²)."""
+    """Orientation as a unit quaternion (w, x, y, z), angular velocity (rad/s), acceleration (m/s²).
+    A field of NaN is not measured (an IMU without orientation reads a quaternion of NaN)."""
 
     kind = "imu"
     fields = ("quaternion", "angular_velocity", "linear_acceleration")

@@ -4,8 +4,11 @@ loss, malformed frames, identity check; and a node of another EDS and PDO layout
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import logging
 import os
+import time
 
 import numpy as np
 import pytest
@@ -13,6 +16,7 @@ import pytest
 from aiohal.config import parse_config
 from aiohal.core.loop import ControlLoop
 from aiohal.drivers.canopen import busload  # the `can` extra, installed by `make test`
+from aiohal.drivers.canopen.sim import SimBus
 from aiohal.robot import Fault
 
 _channels = itertools.count()
@@ -112,7 +116,8 @@ async def test_a_drive_fault_sends_an_emcy_holds_the_robot_and_a_reset_enables_i
         assert driver.drives.machines[1].enabled and int(state.fault[1]) & Fault.HARDWARE == 0
         assert abs(command.position[1] - state.position[1]) < 0.01  # bumpless
     errors = [f.error for f in loop.faults if f.source == "driver:bus"]
-    assert any("joint j1: EMCY from node 2" in e and "0x2310" in e for e in errors)
+    assert any("joint j1: emergency (EMCY) from node 2" in e and "0x2310, continuous over-current" in e
+               for e in errors)
     assert report["drivers"]["bus"]["drive_faults"] == 1 and report["drivers"]["bus"]["emergencies"] >= 1
 
 
@@ -388,3 +393,111 @@ async def test_after_an_emergency_stop_the_robot_is_released_and_re_armed_withou
     assert report["safety_level"] == "run" and report["faults"] == []
     assert [t["event"] for t in report["safety"]] == ["activate", "estop", "reset_faults", "rearm"]
     assert_rearmed_from_disabled(loop, sent, measured, own, rearm_tick, held, 1e-4, moving_after=200)
+
+
+@contextlib.contextmanager
+def simulated(ch: str, drives=(1, 2, 3), **options):
+    """aiohal's simulated nodes on ``ch``, started here as a device on the bus would be (the
+    driver then runs with ``simulate = false``), configured with ``options`` (SimBus's)."""
+    sim = SimBus("virtual", ch, list(drives), **options)
+    try:
+        yield sim
+    finally:
+        sim.close()
+
+
+@pytest.mark.asyncio
+async def test_drives_whose_rpdos_are_event_driven_are_brought_up_and_follow():
+    """Transmission type 255, as many drives ship: the driver sends the RPDOs just before SYNC,
+    the drive applies them on receipt, the same cycle a synchronous RPDO is applied in."""
+    ch = channel()
+    with simulated(ch, rpdo_transmission_type=255) as sim:
+        async with ControlLoop(parse_config(raw_config(ch, SINE, simulate=False))) as loop:
+            driver = driver_of(loop)
+            assert [node.rpdo[1].trans_type for node in driver.remotes] == [255, 255, 255]
+            assert all(drive.rx_on_receipt for drive in sim.drives.values())
+            errors = []
+            loop.add_publisher(lambda lp: errors.append(float(np.max(np.abs(
+                lp.robot.state.position - lp.robot.command.position)))))
+            report = await loop.run(ticks=300)
+    assert report["faults"] == [] and report["drivers"]["bus"]["drives_enabled"] == "3/3"
+    assert np.max(np.abs(loop.robot.state.position)) > 0.1 and max(errors) < 0.05
+
+
+@pytest.mark.asyncio
+async def test_an_rpdo_of_a_transmission_type_no_rpdo_can_have_is_refused_and_named():
+    ch = channel()
+    with simulated(ch) as sim:
+        sim.drives[2].node.sdo[0x1400][2].raw = 253  # RTR only: a TPDO's type
+        with pytest.raises(Exception, match=r"node 2 \(node2\): RPDO1 \(COB-ID 0x202\) has transmission type 253, "
+                                            r"which an RPDO cannot have \(0..240 synchronous, 254/255 event-driven\)"):
+            async with ControlLoop(parse_config(raw_config(ch, simulate=False))):
+                pass
+
+
+@pytest.mark.asyncio
+async def test_a_drive_that_does_not_show_the_mode_asked_is_refused_within_the_timeout():
+    ch = channel()
+    with simulated(ch) as sim:
+        sim.drives[3].keep_mode = True  # takes the SDO write of 0x6060, keeps running no mode
+        nodes = [{"node_id": i + 1, "joint": j, "mode": "csv"} for i, j in enumerate(JOINTS)]
+        start = time.monotonic()
+        with pytest.raises(Exception, match=r"node 3 \(node3\): mode csv \(9\) written to 0x6060, but the drive "
+                                            r"shows no mode \(0\) in 0x6061 after 0.2 s"):
+            async with ControlLoop(parse_config(raw_config(ch, nodes=nodes, simulate=False, mode_timeout_s=0.2))):
+                pass
+        assert time.monotonic() - start < 5.0
+        assert sim.drives[1].model.mode == 9 and sim.drives[1].model.e_mode_display.value == 9
+
+
+@pytest.mark.asyncio
+async def test_a_pdo_mapping_the_drive_refuses_is_named_with_its_pdo_entries_and_abort_code():
+    nodes = [{"node_id": i + 1, "joint": j} for i, j in enumerate(JOINTS)]
+    nodes[1]["rx_pdos"] = {"0x1600": ["0x6040:0:16", "0x607A:0:32", "0x6041:0:16"]}  # a statusword to the drive
+    with pytest.raises(Exception) as err:
+        async with ControlLoop(parse_config(raw_config(channel(), nodes=nodes))):
+            pass
+    assert ("node 2 (node2) refused RPDO1 (COB-ID 0x202, mapping 0x6040:0:16, 0x607A:0:32, 0x6041:0:16): "
+            "SDO abort: Code 0x06040041, Object cannot be mapped to the PDO") in str(err.value)
+
+
+@pytest.mark.asyncio
+async def test_a_missing_node_is_named_by_aiohal_alone(caplog):
+    """canopen logs its own "Transfer aborted by client" for the SDO that timed out; bring-up
+    keeps it from the user, and aiohal's message says what is wrong and what to check."""
+    ch = channel()
+    caplog.set_level(logging.DEBUG)
+    with simulated(ch, drives=(1, 2)), pytest.raises(Exception) as err:
+        async with ControlLoop(parse_config(raw_config(ch, simulate=False, sdo_timeout_s=0.1))):
+            pass
+    assert (f"node 3 (node3, joint j2) does not answer on virtual:{ch}: no response to an SDO read of its "
+            "device type (0x1000) within 0.1 s; check that it is powered, on this bus, at 1000000 bit/s and has "
+            "node id 3") in str(err.value)
+    assert [r.getMessage() for r in caplog.records if r.name.startswith("canopen")] == []
+    assert logging.getLogger("canopen").level == logging.WARNING  # outside bring-up: its warnings and errors
+
+
+@pytest.mark.asyncio
+async def test_an_emcy_is_logged_as_the_drive_s_emergency_with_its_code_and_meaning(caplog):
+    async with ControlLoop(parse_config(raw_config(channel(), SINE))) as loop:
+        driver = driver_of(loop)
+        driver.sim.drives[2].inject_fault(0x2310)
+        loop.add_publisher(stop_when(lambda lp: driver.emergencies, 5))
+        await loop.run(ticks=1000)
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert any(line.startswith("driver:bus at tick ") and line.endswith(
+        ": joint j1: emergency (EMCY) from node 2 (node2): error code 0x2310, continuous over-current; "
+        "error register 0x03 (generic, current)") for line in lines), lines
+    assert not any("failed in" in line for line in lines), lines
+
+
+def test_error_codes_are_described_exactly_then_by_group_then_by_class():
+    from aiohal.fieldbus.error_codes import describe_error_code, describe_error_register
+
+    assert describe_error_code(0x2310) == "continuous over-current"
+    assert describe_error_code(0x2399) == "current on the device's output side"
+    assert describe_error_code(0x2F00) == "current"
+    assert describe_error_code(0x5530) == "device hardware"
+    assert describe_error_code(0xA000) == "manufacturer-specific"
+    assert describe_error_register(0x91) == "generic, communication, manufacturer"
+    assert describe_error_register(0) == "none"

@@ -27,7 +27,8 @@ NEXT = {  # (state statusword, controlword command) -> next statusword
 
 class OtherDrive:
     """A drive on a LocalNode: on SYNC, takes the RPDO, steps the statusword, follows the
-    target position exactly (an ideal CSP drive) and sends both TPDOs."""
+    target position exactly (an ideal CSP drive) and sends both TPDOs; shows the mode written
+    to 0x6060 in 0x6061."""
 
     def __init__(self, network: canopen.Network) -> None:
         self.node = canopen.LocalNode(NODE_ID, str(EDS))
@@ -38,6 +39,11 @@ class OtherDrive:
         self.position = 12345
         self.network = network
         network.subscribe(0x80, self.on_sync)
+        self.node.add_write_callback(self.on_write)
+
+    def on_write(self, index, subindex, od, data) -> None:
+        if index == 0x6060:  # the mode asked is the mode run, as 0x6061 shows
+            self.node.set_data(0x6061, 0, bytes(data))
 
     def on_sync(self, can_id, data, timestamp) -> None:
         if self.node.nmt.state != "OPERATIONAL":

@@ -5,6 +5,7 @@ dropped (fuzzed), and config errors that name the signal."""
 from __future__ import annotations
 
 import itertools
+import logging
 import os
 
 import numpy as np
@@ -15,6 +16,7 @@ from hypothesis import strategies as st
 from aiohal.config import parse_config
 from aiohal.core.loop import ControlLoop
 from aiohal.drivers.canopen.sensors import SENSORS_DBC, DbcSensor, SensorGateway, SensorOptions, load_dbc
+from aiohal.drivers.canopen.sim import SimBus
 from aiohal.errors import ConfigError
 from aiohal.robot import Fault, Robot
 
@@ -28,7 +30,8 @@ FT = {"device": "ft", "period_ms": 4.0, "stale_periods": 25, "status": "FT_Force
     "force": ["FT_Force.X", "FT_Force.Y", "FT_Force.Z"], "torque": ["FT_Torque.X", "FT_Torque.Y", "FT_Torque.Z"]}}
 
 
-def raw_config(sensors: list[dict], **options) -> dict:
+def raw_config(sensors: list[dict], channel: str | None = None, **options) -> dict:
+    channel = channel or f"aiohal-sensors-{os.getpid()}-{next(_channels)}"
     return {
         "robot": {"name": "gateway"},
         "loop": {"rate_hz": 250},
@@ -37,7 +40,7 @@ def raw_config(sensors: list[dict], **options) -> dict:
         "driver": [
             {"type": "mock", "name": "arm", "joints": ["j0"]},
             {"type": "canopen", "name": "can", "joints": [], "devices": ["imu", "ft"], "options": {
-                "interface": "virtual", "channel": f"aiohal-sensors-{os.getpid()}-{next(_channels)}",
+                "interface": "virtual", "channel": channel,
                 "simulate": True, "sensors": sensors, **options}}],
         "controller": {"type": "hold"},
     }
@@ -84,7 +87,7 @@ async def test_a_sensor_whose_frames_stop_is_stale_and_comes_back():
         report = await loop.run(ticks=500)
         assert imu.fault == 0
     faults = [f["error"] for f in report["faults"]]
-    assert any("sensor imu: no frame for 12 ms (3 periods): stale" in f for f in faults)
+    assert any("sensor imu is stale: no valid frame for 12 ms (3 periods)" in f for f in faults)
     assert report["drivers"]["can"]["sensors"]["imu"]["stale_events"] >= 1
 
 
@@ -129,3 +132,70 @@ def test_the_decoder_takes_any_bytes_without_raising(frame, data):
         taken = sum(s.frames + s.invalid for s in gateway.sensors)
         assert taken >= 1
         assert all(np.all(np.isfinite(s.buffer)) for s in gateway.sensors)
+
+
+NO_ORIENTATION = {**IMU, "signals": {k: v for k, v in IMU["signals"].items() if k != "quaternion"}}
+
+
+@pytest.mark.asyncio
+async def test_an_imu_without_orientation_reads_a_quaternion_of_nan_and_its_other_fields():
+    async with ControlLoop(parse_config(raw_config([NO_ORIENTATION, FT]))) as loop:
+        report = await loop.run(ticks=100)
+        imu = loop.robot.imu["imu"]
+        assert np.all(np.isnan(imu.quaternion))  # not measured
+        assert np.allclose(imu.linear_acceleration, (0, 0, 9.81), atol=0.01)
+        assert np.allclose(imu.angular_velocity, 0.0) and imu.fault == 0 and imu.updated_tick > 90
+    assert report["faults"] == [] and report["drivers"]["can"]["sensors"]["imu"]["frames"] > 0
+
+
+def test_only_the_orientation_of_an_imu_may_be_left_out():
+    bad = {**IMU, "signals": {"quaternion": IMU["signals"]["quaternion"]}}
+    with pytest.raises(ConfigError) as err:
+        parse_config(raw_config([bad, FT]))
+    text = str(err.value)
+    assert 'no signals for "angular_velocity"' in text and 'no signals for "linear_acceleration"' in text
+    assert "quaternion" not in text
+
+
+@pytest.mark.asyncio
+async def test_a_status_whose_zero_means_ok_takes_the_frames_and_drops_those_it_marks_invalid():
+    """A gateway whose Status 0 means OK (here, the simulated one so configured), read with
+    status_valid = "clear": its frames are taken; a frame whose status is 1 is not."""
+    ch = f"aiohal-sensors-{os.getpid()}-{next(_channels)}"
+    sim = SimBus("virtual", ch, [], sensors={"imu": 0.004, "force_torque": 0.004}, status_ok=0)
+    try:
+        sensors = [{**IMU, "status_valid": "clear"}, {**FT, "status_valid": "clear", "status_bits": 0xFF}]
+        raw = raw_config(sensors, channel=ch, simulate=False)
+        async with ControlLoop(parse_config(raw)) as loop:
+            driver = driver_of(loop)
+            await loop.run(ticks=50)
+            imu = driver.gateway.sensors[0]
+            assert imu.frames > 0 and imu.invalid == 0 and loop.robot.imu["imu"].fault == 0
+            assert np.allclose(loop.robot.force_torque["ft"].force, (1.0, -2.0, 15.0), atol=0.05)
+            sim.sensors.invalid = True  # Status 1: not valid
+            loop.add_publisher(lambda lp: lp.request_stop("seen") if imu.invalid >= 5 else None)
+            await loop.run(ticks=500)
+            assert imu.invalid >= 5
+    finally:
+        sim.close()
+
+
+def test_status_bits_beyond_the_status_signal_are_refused():
+    with pytest.raises(ConfigError, match=r"options.sensors\[0\].status_bits: 0x100 has bits beyond the 8 of "
+                                          r"IMU_Gyro.Status"):
+        parse_config(raw_config([{**IMU, "status_bits": 0x100}, FT]))
+
+
+@pytest.mark.asyncio
+async def test_a_stale_sensor_is_logged_as_stale_naming_it(caplog):
+    async with ControlLoop(parse_config(raw_config([{**IMU, "stale_periods": 3}, FT]))) as loop:
+        driver = driver_of(loop)
+        await loop.run(ticks=20)
+        driver.sim.sensors.stopped = True
+        imu = loop.robot.imu["imu"]
+        loop.add_publisher(lambda lp: lp.request_stop("seen") if imu.fault & Fault.STALE else None)
+        await loop.run(ticks=500)
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert any(line.startswith("driver:can at tick ") and line.endswith(
+        ": sensor imu is stale: no valid frame for 12 ms (3 periods)") for line in lines), lines
+    assert not any("failed in" in line for line in lines), lines

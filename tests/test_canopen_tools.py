@@ -6,10 +6,12 @@ from __future__ import annotations
 import itertools
 import os
 import threading
+import time
 import tomllib
 
 import can
 import canopen
+import numpy as np
 import pytest
 from conftest import CONFIGS
 
@@ -18,7 +20,7 @@ from aiohal.core.loop import ControlLoop
 from aiohal.drivers.canopen import scan
 from aiohal.drivers.canopen.sim import SimBus
 from aiohal.drivers.canopen.sim.__main__ import main as sim_main
-from aiohal.drivers.canopen.sim.__main__ import node_ids
+from aiohal.drivers.canopen.sim.__main__ import node_ids, rpdo_type
 
 _channels = itertools.count()
 
@@ -97,6 +99,80 @@ def test_node_ids_are_parsed_and_checked():
     for bad in ("0", "1-200", "a", "1,1"):
         with pytest.raises(Exception, match="node ids"):
             node_ids(bad)
+
+
+@pytest.mark.asyncio
+async def test_the_driver_runs_nodes_configured_as_their_makers_ship_them():
+    """Drives whose RPDOs are event-driven (255), an IMU without orientation and a status whose
+    0 means OK: the simulator's command line so configured, the driver as it is."""
+    ch = channel()
+    stop, ready = threading.Event(), threading.Event()
+    argv = ["--interface", "virtual", "--channel", ch, "--drives", "1-2", "--rpdo-type", "255",
+            "--sensors", "--no-orientation", "--status-ok", "0"]
+    runner = threading.Thread(target=sim_main, args=(argv, stop, ready))
+    runner.start()
+    try:
+        assert ready.wait(10)
+        imu = {"device": "imu", "period_ms": 4.0, "status": "IMU_Gyro.Status", "status_valid": "clear",
+               "signals": {"angular_velocity": ["IMU_Gyro.X", "IMU_Gyro.Y", "IMU_Gyro.Z"],
+                           "linear_acceleration": ["IMU_Accel.X", "IMU_Accel.Y", "IMU_Accel.Z"]}}
+        raw = {
+            "loop": {"rate_hz": 250, "max_feedback_age": 50},
+            "joints": {"j0": {"velocity": 2.0}, "j1": {"velocity": 2.0}},
+            "devices": {"imu": {"type": "imu"}},
+            "driver": [{"type": "canopen", "name": "bus", "joints": ["j0", "j1"], "devices": ["imu"], "options": {
+                "interface": "virtual", "channel": ch, "sensors": [imu],
+                "nodes": [{"node_id": 1, "joint": "j0"}, {"node_id": 2, "joint": "j1"}]}}],
+            "controller": {"type": "sine", "params": {"amplitude": 0.2, "frequency": 1.0}},
+        }
+        async with ControlLoop(parse_config(raw)) as loop:
+            driver = loop.slots[0].driver
+            assert [node.rpdo[1].trans_type for node in driver.remotes] == [255, 255]
+            reach = [0.0]
+            loop.add_publisher(lambda lp: reach.append(float(np.max(np.abs(lp.robot.state.position)))))
+            report = await loop.run(ticks=250)
+            imu_record = loop.robot.imu["imu"]
+            assert max(reach) > 0.1  # the drives followed the sine
+            assert np.all(np.isnan(imu_record.quaternion)) and imu_record.linear_acceleration[2] == pytest.approx(9.81)
+        health = report["drivers"]["bus"]
+        assert report["faults"] == [] and health["drives_enabled"] == "2/2"
+        assert health["sensors"]["imu"]["frames"] > 0 and health["sensors"]["imu"]["invalid"] == 0
+    finally:
+        stop.set()
+        runner.join(5)
+    assert not runner.is_alive()
+
+
+def test_an_event_driven_rpdo_is_applied_on_receipt_a_synchronous_one_on_sync():
+    ch = channel()
+    sim = SimBus("virtual", ch, [1, 2], rpdo_transmission_type=255)
+    sim.drives[2].node.sdo[0x1400][2].raw = 1
+    network = connected(ch)
+    try:
+        for node_id in (1, 2):
+            network.send_message(0, bytes((0x01, node_id)))  # NMT start: the PDOs compiled
+        # RPDO1: controlword 0x0006, target position 5000, mode 8
+        for node_id in (1, 2):
+            network.send_message(0x200 + node_id, bytes((6, 0)) + (5000).to_bytes(4, "little") + bytes((8,)))
+        deadline = time.monotonic() + 5
+        while sim.drives[1].model.e_target_pos.value != 5000 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert sim.drives[1].model.e_target_pos.value == 5000  # no SYNC yet
+        assert sim.drives[2].model.e_target_pos.value == 0 and sim.drives[2].pending
+        network.send_message(0x80, b"")
+        while sim.drives[2].model.e_target_pos.value != 5000 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert sim.drives[2].model.e_target_pos.value == 5000
+    finally:
+        network.disconnect()
+        sim.close()
+
+
+def test_rpdo_types_are_parsed_and_checked():
+    assert [rpdo_type(t) for t in ("0", "240", "254", "255")] == [0, 240, 254, 255]
+    for bad in ("241", "253", "-1", "x"):
+        with pytest.raises(Exception, match=r"transmission type is 0\.\.240, 254 or 255"):
+            rpdo_type(bad)
 
 
 @pytest.mark.parametrize("content, reason", [

@@ -523,3 +523,10 @@ def test_the_report_json_is_written_when_bring_up_fails(tmp_path):
     data = json.loads(report.read_text())
     assert data["drivers"]["arm"]["status"] == "failed"
     assert [(f["source"], f["phase"]) for f in data["faults"]] == [("driver:arm", "open")]
+
+
+def test_every_shipped_config_checks():
+    configs = sorted((ROOT / "configs").glob("*.toml"))
+    proc = run_cli("check", *configs)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count(": ok: robot ") == len(configs)

@@ -200,6 +200,20 @@ def test_commands_without_access_control_exit_2_naming_the_key(tmp_path):
         assert "bridge.zenoh.commands: commands are taken only where Zenoh controls" in run.stderr
 
 
+def test_a_zenoh_config_file_zenoh_cannot_read_is_refused_by_check(tmp_path):
+    """Publishing only too: check and run exit 2 naming the key and the file (the robot ran
+    without its bridge, exit 1, before)."""
+    garbage = tmp_path / "zenoh.json5"
+    garbage.write_text("{{{ not json5")
+    (tmp_path / "r.toml").write_text(robot_toml(f"zen_{uuid.uuid4().hex[:6]}", 0, [], config_file=str(garbage)))
+    for args in (["check", str(tmp_path / "r.toml")], [str(tmp_path / "r.toml"), "--duration", "1"]):
+        run = subprocess.run([sys.executable, "-m", "aiohal", *args], cwd=ROOT, capture_output=True, text=True,
+                             timeout=120)
+        assert run.returncode == 2, run.stderr
+        assert f"bridge.zenoh.config_file: {garbage}: not a Zenoh config" in run.stderr
+        assert "Traceback" not in run.stderr
+
+
 def test_the_monitor_needs_no_aiohal():
     tree = ast.parse(MONITOR.read_text())
     imported = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}

@@ -22,9 +22,9 @@ log = logging.getLogger(__name__)
 
 def check(config: Config) -> None:
     """Refuse before anything starts what a door would refuse when it opens (the CLI exits 2):
-    a Zenoh bridge that would take commands from anyone (reads its Zenoh config file)."""
+    a Zenoh config file that Zenoh cannot read, a bridge that would take commands from anyone."""
     section = config.bridge.zenoh
-    if section is None or not section.enabled or not section.commands:
+    if section is None or not section.enabled or not (section.commands or section.config_file):
         return
     if importlib.util.find_spec("zenoh") is None:
         raise MissingDependencyError("[bridge.zenoh] needs eclipse-zenoh: pip install 'aiohal[zenoh]'")

@@ -332,11 +332,15 @@ OK, WARN, ERROR = 0, 1, 2
 
 
 def faults_message(stamp_ns: int, faults: Sequence[Any]) -> Any:
-    """``/faults``: one ERROR status per fault (name: its source; values: tick, phase)."""
+    """``/faults``: one ERROR status per fault (name: its source; values: tick, phase, and whether
+    it is a condition its driver reported rather than a failure)."""
     return _msg(
         "diagnostic_msgs/msg/DiagnosticArray",
         header=ros2.header(stamp_ns),
-        status=[_status(ERROR, f.source, f.error, {"tick": f.tick, "phase": f.phase}, f.source) for f in faults],
+        status=[
+            _status(ERROR, f.source, f.error, {"tick": f.tick, "phase": f.phase, "condition": f.condition}, f.source)
+            for f in faults
+        ],
     )
 
 

@@ -29,7 +29,9 @@ def session_config(section: ZenohBridgeSection) -> Any:
         try:
             config = zenoh.Config.from_json5(text)
         except Exception as exc:  # zenoh's own error type
-            raise ConfigError([ConfigIssue("bridge.zenoh.config_file", f"not a Zenoh config: {exc}")]) from None
+            raise ConfigError(
+                [ConfigIssue("bridge.zenoh.config_file", f"{section.config_file}: not a Zenoh config: {exc}")]
+            ) from None
     else:
         config = zenoh.Config()
     config.insert_json5("mode", json.dumps(section.mode))

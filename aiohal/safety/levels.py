@@ -210,9 +210,14 @@ class FaultRecord:
     phase: str  # open, read, write, close, update, start, stop, check
     tick: int
     error: str
+    # a condition of the hardware its driver reported (DriverView.fault: a drive's emergency, a
+    # stale sensor), not a failure of the software
+    condition: bool = False
 
     def as_dict(self) -> dict:
         return asdict(self)
 
     def __str__(self) -> str:
+        if self.condition:
+            return f"{self.source} at tick {self.tick}: {self.error}"
         return f"{self.source} failed in {self.phase} at tick {self.tick}: {self.error}"

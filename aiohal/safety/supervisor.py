@@ -126,10 +126,13 @@ class Supervisor:
             self.worst_level = self.level  # the lowest level reached while running, for the exit status
         return changed
 
-    def record_fault(self, source: str, phase: str, exc: BaseException | str) -> FaultRecord:
-        """Record and log a fault; it appears in the report and makes the CLI exit 1."""
+    def record_fault(
+        self, source: str, phase: str, exc: BaseException | str, *, condition: bool = False
+    ) -> FaultRecord:
+        """Record and log a fault; it appears in the report and makes the CLI exit 1.
+        ``condition``: one a driver reported (logged as what it is, not as a failure)."""
         error = exc if isinstance(exc, str) else f"{type(exc).__name__}: {exc}"
-        record = FaultRecord(source, phase, self.robot.clock.tick, error)
+        record = FaultRecord(source, phase, self.robot.clock.tick, error, condition)
         self.faults.append(record)
         log.error("%s", record)
         return record
@@ -511,7 +514,7 @@ class _DriverEvents(DriverEvents):
 
     def fault(self, phase: str, reason: str, hold: bool) -> None:
         supervisor = self.supervisor
-        supervisor.record_fault(self.source, phase, reason)
+        supervisor.record_fault(self.source, phase, reason, condition=True)
         if hold and supervisor.level > SafetyLevel.HOLD:
             supervisor.enter_hold(f"{self.name}: {reason}", source=self.source)
 

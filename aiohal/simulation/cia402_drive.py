@@ -24,8 +24,9 @@ State machine (statusword 0x6041 from controlword 0x6040, CiA 402 / IEC 61800-7-
     Fault reaction active  -> Fault                    motor stopped (torque off)
     Fault                  -> Switch on disabled       0 -> 1 edge of controlword bit 7
 
-Modes (0x6060, display 0x6061): 8 CSP, 9 CSV, 10 CST (another value written through the PDO
-keeps the previous mode; with no supported mode yet, Operation enabled gives no torque).
+Modes (0x6060, display 0x6061): 8 CSP, 9 CSV, 10 CST, taken at once when written by SDO, at
+the next exchange when written through the PDO (another value written through the PDO keeps
+the previous mode; with no supported mode yet, Operation enabled gives no torque).
 
 Two dynamics, chosen per drive with ``configure(dynamics=...)``:
 
@@ -123,6 +124,7 @@ class DriveModel:
         def check_mode(entry, value):
             if value not in SUPPORTED_MODES:
                 raise SdoAbort(odm.ABORT_VALUE_RANGE, f"mode {value} not supported")
+            self._take_mode(value)  # a mode written by SDO is taken at once, and shown in 0x6061
 
         self.e_error_register = od.var(0x1001, "Error register", odm.UINT8, 0, mappable="tx")
         self.e_abort_option = od.var(0x6007, "Abort connection option code", odm.INT16, 2, RW, low=0, high=3)
@@ -313,6 +315,11 @@ class DriveModel:
     def _mark_params(self, entry, value) -> None:
         self._params_dirty = True
 
+    def _take_mode(self, mode: int) -> None:
+        self.mode = mode
+        self._last_target = None
+        self.e_mode_display.value = mode
+
     def step(self, now_ns: int, outputs_valid: bool) -> None:
         last = self._last_ns
         self._last_ns = now_ns
@@ -326,8 +333,7 @@ class DriveModel:
                 self._cw_state = self.state
             mode = self.e_mode.value
             if mode != self.mode and mode in SUPPORTED_MODES:
-                self.mode = mode
-                self._last_target = None
+                self._take_mode(mode)
             target = self.e_target_pos.value
             last_target = self._last_target
             if last_target is None or dt <= 0.0:

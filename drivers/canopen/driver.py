@@ -2,11 +2,14 @@
 
 Bring-up runs off the tick (``asyncio.to_thread``): per node, NMT PRE-OPERATIONAL, identity
 (0x1018) and device type (0x1000) checked against the config, the PDO mapping read from the
-node with canopen, the mode of operation, communication cycle period and heartbeat producer
+node with canopen (or written from the config), the mode of operation written and confirmed
+by the drive's display of it (0x6061), communication cycle period and heartbeat producer
 time written by SDO, NMT OPERATIONAL; then the drives are cycled until they are enabled
-where they stand (bumpless, the CiA 402 logic of :mod:`aiohal.fieldbus.drives`).
+where they stand (bumpless, the CiA 402 logic of :mod:`aiohal.fieldbus.drives`). canopen's
+own log lines are held back meanwhile: what fails is one exception that names the node.
 
-Each tick, ``write`` sends every RPDO and then SYNC; the drives answer with their TPDOs,
+Each tick, ``write`` sends every RPDO and then SYNC: a drive applies a synchronous RPDO on
+that SYNC, an event-driven one (254, 255) on receipt; the drives answer with their TPDOs,
 which canopen's notifier thread copies into one input buffer (a slice per TPDO, a frame of
 the wrong length is counted and dropped), and the next ``read`` decodes. Nothing in the tick
 waits: frames are sent without blocking and a TPDO that has not arrived leaves the joints
@@ -14,7 +17,7 @@ unrefreshed (the loop's stale-feedback check then holds the robot).
 
 Heartbeat consumer: a node silent for ``heartbeat_timeout_ms`` fails the driver (the loop
 sends the robot to its safe state). EMCY frames are decoded by canopen; each is reported
-with its code, and a drive fault holds the robot until :meth:`CanopenDriver.reset_faults`.
+as the drive's emergency with its code and the code's meaning, and a drive fault holds the robot until :meth:`CanopenDriver.reset_faults`.
 SDO access (:meth:`sdo_read`, :meth:`sdo_write`) runs in a worker thread, never on the tick.
 """
 
@@ -25,6 +28,8 @@ import io
 import logging
 import time
 from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, cast
 
@@ -41,6 +46,7 @@ from aiohal.fieldbus.busvar import decode_mapping
 from aiohal.fieldbus.cia402 import DriveEvent, DriveUnits, EventKind
 from aiohal.fieldbus.cia402_driver import Cia402Driver
 from aiohal.fieldbus.drives import DriveGroup, DriveSpec
+from aiohal.fieldbus.error_codes import describe_error_code, describe_error_register
 from aiohal.fieldbus.pdo_options import DriveUnitOptions, parse_number, parse_pdo_entry, pdo_issues
 from aiohal.files import FileRefused, read_regular_text
 from aiohal.hal import FiniteFloat, JointValues, Options, unknown_joint_issues
@@ -60,6 +66,15 @@ log = logging.getLogger(__name__)
 DATA = Path(__file__).resolve().parent / "data"
 DRIVE_EDS = DATA / "aiohal_drive.eds"
 MODES = {"csp": 8, "csv": 9, "cst": 10}
+MODE_NAMES = {
+    0: "no mode",
+    1: "profile position",
+    3: "profile velocity",
+    4: "profile torque",
+    6: "homing",
+    7: "interpolated position",
+    **{value: name for name, value in MODES.items()},
+}
 # (index, subindex, bits) of each drive variable, in DRIVE_INPUTS / DRIVE_OUTPUTS (+ DRIVE_OFFSETS) order
 INPUT_OBJECTS = ((0x6041, 0, 16), (0x6064, 0, 32), (0x606C, 0, 32), (0x6077, 0, 16), (0x603F, 0, 16))
 OUTPUT_OBJECTS = (
@@ -89,7 +104,9 @@ class NodeOptions(Options):
     eds: ConfigPath | None = Field(None, description="EDS/DCF of the node; default: aiohal's simulated drive.")
     vendor_id: int | None = Field(None, ge=0, description="0x1018:1, checked at bring-up when given.")
     product_code: int | None = Field(None, ge=0, description="0x1018:2, checked at bring-up when given.")
-    mode: Literal["csp", "csv", "cst"] = Field("csp", description="Mode of operation written at bring-up (0x6060).")
+    mode: Literal["csp", "csv", "cst"] = Field(
+        "csp", description="Mode of operation written at bring-up (0x6060) and confirmed by the drive (0x6061)."
+    )
     counts_per_rev: FiniteFloat | None = Field(None, gt=0)
     gear_ratio: FiniteFloat | None = Field(None, gt=0)
     rated_torque: FiniteFloat | None = Field(None, gt=0)
@@ -153,6 +170,12 @@ class CanopenOptions(Options):
     heartbeat_ms: int = Field(50, ge=1, le=65535, description="Heartbeat producer time written to every node (0x1017).")
     heartbeat_timeout_ms: FiniteFloat = Field(200.0, gt=0, description="A node silent this long is lost.")
     sdo_timeout_s: FiniteFloat = Field(0.5, gt=0, description="SDO response timeout at bring-up.")
+    mode_timeout_s: FiniteFloat = Field(
+        0.5,
+        gt=0,
+        le=10,
+        description="How long bring-up waits for a drive to show the mode written to 0x6060 in 0x6061.",
+    )
     enable_timeout_s: FiniteFloat = Field(3.0, gt=0)
     stuck_after_ms: FiniteFloat = Field(1000.0, gt=0, description="A drive making no progress this long is faulted.")
     tx_error_limit: int = Field(
@@ -200,6 +223,42 @@ class _ErrorFrames(can.Listener):
             self.driver.error_frames += 1
             if msg.arbitration_id & CAN_ERR_BUSOFF:
                 self.driver.bus_off = True
+
+
+@contextmanager
+def canopen_quiet() -> Iterator[None]:
+    """canopen's own log lines hidden while the block runs (bring-up): an SDO it aborts, a
+    retry, a node that does not answer. What goes wrong there is one exception of aiohal's that
+    names the node, the object and the cause. Outside such blocks canopen's warnings and errors
+    are shown, not its info lines (every NMT, SDO and PDO step). A level the user gave the
+    ``canopen`` logger (other than WARNING) is left alone."""
+    logger = logging.getLogger("canopen")
+    if logger.level not in (logging.NOTSET, logging.WARNING):
+        yield
+        return
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(logging.WARNING)
+
+
+def transmission_type_issue(kind: str, trans_type: int | None) -> str | None:
+    """Why a PDO of this transmission type cannot be used (None: it can). ``write`` sends
+    every RPDO just before SYNC: a synchronous RPDO (0..240) is applied on that SYNC, an
+    event-driven one (254, 255) on receipt, the same cycle (docs/canopen.md). A TPDO must be
+    synchronous: its drive sends it on SYNC."""
+    if trans_type is None:
+        return None
+    if kind == "RPDO" and not (trans_type <= 240 or trans_type >= 254):
+        return f"transmission type {trans_type}, which an RPDO cannot have (0..240 synchronous, 254/255 event-driven)"
+    if kind == "TPDO" and trans_type > 240:
+        return f"transmission type {trans_type}; this driver needs synchronous TPDOs (1..240)"
+    return None
+
+
+def _entries_text(entries) -> str:
+    return ", ".join(f"0x{index:04X}:{subindex}:{bits}" for index, subindex, bits in entries) or "none"
 
 
 def load_od(path: str | Path, node_id: int, key: str = "options.nodes[].eds") -> canopen.ObjectDictionary:
@@ -391,10 +450,11 @@ class CanopenDriver(Cia402Driver):
     # ------------------------------------------------------------ lifecycle
 
     async def open(self) -> None:
-        quiet = logging.getLogger("canopen")
-        if quiet.level == logging.NOTSET:  # canopen logs every NMT, SDO and PDO step at info
-            quiet.setLevel(logging.WARNING)
-        await asyncio.to_thread(self._bring_up)
+        await asyncio.to_thread(self._quiet_bring_up)
+
+    def _quiet_bring_up(self) -> None:
+        with canopen_quiet():
+            self._bring_up()
 
     def _cycle_ns(self) -> int:
         """The bus's cycle: the loop's period times the driver's ``every``."""
@@ -456,10 +516,10 @@ class CanopenDriver(Cia402Driver):
             node.rpdo.read()
             for kind, pdos in node_opts.remaps():
                 self._remap(k, node, kind, pdos)
-            inputs = self._place(k, _pdo_maps(node.tpdo).values(), INPUT_OBJECTS, tpdo_slices, "TPDO")
-            outputs = self._place(k, _pdo_maps(node.rpdo).values(), OUTPUT_OBJECTS, rpdo_slices, "RPDO")
+            inputs = self._place(k, _pdo_maps(node.tpdo), INPUT_OBJECTS, tpdo_slices, "TPDO")
+            outputs = self._place(k, _pdo_maps(node.rpdo), OUTPUT_OBJECTS, rpdo_slices, "RPDO")
             offsets.append((inputs, outputs))
-            node.sdo[0x6060].raw = MODES[node_opts.mode]
+            self._set_mode(k, node)
             node.sdo[0x1006].raw = self._cycle_ns() // 1000
             node.sdo[0x1017].raw = opts.heartbeat_ms
             node.nmt.add_heartbeat_callback(self._heartbeat_callback(k))
@@ -504,9 +564,24 @@ class CanopenDriver(Cia402Driver):
         want = self.options.nodes[k]
         try:
             device_type = node.sdo[0x1000].raw
+        except canopen.SdoCommunicationError:
+            opts = self.options
+            raise CanopenError(
+                f"node {want.node_id} ({want.label}, joint {want.joint}) does not answer on "
+                f"{opts.interface}:{opts.channel}: no response to an SDO read of its device type (0x1000) "
+                f"within {opts.sdo_timeout_s:g} s; check that it is powered, on this bus, at "
+                f"{opts.bitrate} bit/s and has node id {want.node_id}"
+            ) from None
+        except canopen.SdoAbortedError as exc:
+            raise CanopenError(
+                f"node {want.node_id} ({want.label}): its device type (0x1000) cannot be read: SDO abort {exc}"
+            ) from None
+        try:
             vendor, product = node.sdo[0x1018][1].raw, node.sdo[0x1018][2].raw
         except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as exc:
-            raise CanopenError(f"node {want.node_id} ({want.label}) does not answer its SDOs: {exc}") from exc
+            raise CanopenError(
+                f"node {want.node_id} ({want.label}): its identity (0x1018) cannot be read: {exc}"
+            ) from None
         if device_type & 0xFFFF != 402:
             raise CanopenError(
                 f"node {want.node_id} ({want.label}): device type 0x{device_type:08X} is not a "
@@ -532,7 +607,7 @@ class CanopenDriver(Cia402Driver):
             if entries is None:
                 if pdo.enabled:
                     pdo.enabled = False
-                    pdo.save()
+                    self._save_pdo(k, kind, number, pdo, [])
                 continue
             pdo.clear()
             try:
@@ -544,8 +619,9 @@ class CanopenDriver(Cia402Driver):
                     "in the node's EDS"
                 ) from None
             pdo.enabled = True
-            pdo.trans_type = 1
-            pdo.save()
+            if transmission_type_issue(kind.upper(), pdo.trans_type) is not None:
+                pdo.trans_type = 1  # else the node's own: an event-driven RPDO stays so
+            self._save_pdo(k, kind, number, pdo, entries)
         missing = sorted(set(pdos) - set(by_number))
         if missing:
             raise CanopenError(f"node {want.node_id} ({want.label}): no {kind.upper()} {missing} in its EDS")
@@ -558,19 +634,61 @@ class CanopenDriver(Cia402Driver):
                     f"after writing {entries}: the node kept its own mapping"
                 )
 
-    def _place(self, k: int, maps, objects, slices: list, kind: str) -> list[int | None]:
-        """Lay this node's enabled synchronous PDOs end to end in its direction's buffer; the
-        offset of each drive variable in them (None: not mapped)."""
+    def _save_pdo(self, k: int, kind: str, number: int, pdo, entries: list[tuple[int, int, int]]) -> None:
+        """Write one PDO's parameters and mapping; a node that refuses them is named with the
+        PDO, its COB-ID, the entries and the SDO abort code and its meaning."""
+        want = self.options.nodes[k]
+        try:
+            pdo.save()
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+            what = "SDO abort" if isinstance(exc, canopen.SdoAbortedError) else "no SDO answer"
+            action = f"mapping {_entries_text(entries)}" if pdo.enabled else "disabling it"
+            raise CanopenError(
+                f"node {want.node_id} ({want.label}) refused {kind.upper()}{number} (COB-ID 0x{pdo.cob_id:03X}, "
+                f"{action}): {what}: {exc}"
+            ) from None
+
+    def _set_mode(self, k: int, node: canopen.RemoteNode) -> None:
+        """Write the mode of operation (0x6060), then wait for the drive to show it (0x6061)
+        within ``mode_timeout_s``: a drive that runs another mode is refused."""
+        want, opts = self.options.nodes[k], self.options
+        asked = MODES[want.mode]
+        who = f"node {want.node_id} ({want.label})"
+        try:
+            node.sdo.download(0x6060, 0, asked.to_bytes(1, "little", signed=True))
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+            raise CanopenError(f"{who} refused mode {want.mode} ({asked}) in 0x6060: {exc}") from None
+        deadline = time.monotonic() + opts.mode_timeout_s
+        for _ in range(1000):  # bounded: the deadline ends it first
+            try:
+                shown = int.from_bytes(node.sdo.upload(0x6061, 0)[:1], "little", signed=True)
+            except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+                raise CanopenError(
+                    f"{who}: the mode it runs cannot be read (0x6061, modes of operation display): {exc}"
+                ) from None
+            if shown == asked or time.monotonic() >= deadline:
+                break
+            time.sleep(0.01)
+        if shown != asked:
+            raise CanopenError(
+                f"{who}: mode {want.mode} ({asked}) written to 0x6060, but the drive shows "
+                f"{MODE_NAMES.get(shown, 'an unknown mode')} ({shown}) in 0x6061 after {opts.mode_timeout_s:g} s: "
+                "it does not run the mode asked"
+            )
+
+    def _place(self, k: int, maps: PdoMaps, objects, slices: list, kind: str) -> list[int | None]:
+        """Lay this node's enabled PDOs end to end in its direction's buffer; the offset of
+        each drive variable in them (None: not mapped)."""
         want = self.options.nodes[k]
         network = cast(canopen.Network, self.network)  # bring-up has connected it
         found: dict[tuple[int, int], tuple[int, int]] = {}
-        for pdo in maps:
+        for number, pdo in maps.items():
             if not pdo.enabled or not pdo.map:
                 continue
-            if pdo.trans_type is not None and pdo.trans_type > 240:
+            issue = transmission_type_issue(kind, pdo.trans_type)
+            if issue is not None:
                 raise CanopenError(
-                    f"node {want.node_id} ({want.label}): {kind} 0x{pdo.cob_id:03X} has transmission "
-                    f"type {pdo.trans_type}; this driver needs synchronous PDOs (1..240)"
+                    f"node {want.node_id} ({want.label}): {kind}{number} (COB-ID 0x{pdo.cob_id:03X}) has {issue}"
                 )
             start = sum(size for _, _, size in slices)
             bit = 0
@@ -787,8 +905,9 @@ class CanopenDriver(Cia402Driver):
             if machine is not None and machine.faulted and not machine.error_code:
                 machine.error_code = code  # the fault came first (its TPDO, or the EMCY a cycle late)
             self.view.fault(
-                f"joint {node.joint}: EMCY from node {node.node_id} ({node.label}): "
-                f"error code 0x{code:04X}, register 0x{register:02X}",
+                f"joint {node.joint}: emergency (EMCY) from node {node.node_id} ({node.label}): "
+                f"error code 0x{code:04X}, {describe_error_code(code)}; error register 0x{register:02X} "
+                f"({describe_error_register(register)})",
                 hold=False,
             )
 
@@ -806,6 +925,8 @@ class CanopenDriver(Cia402Driver):
             if not from_drive and self._last_emcy[i]:  # 0x603F unmapped: the code the EMCY gave
                 machine.error_code = self._last_emcy[i]
                 detail = f" (EMCY error code 0x{machine.error_code:04X})"
+            if machine.error_code:
+                detail += f": {describe_error_code(machine.error_code)}"
         self._respond(i, event, detail)
 
     # ------------------------------------------------------------ application API

@@ -3,8 +3,9 @@
 Each sensor fills one IMU or force/torque record from named signals ("Message.Signal"), in
 the order of the record's fields. canopen's notifier thread decodes each frame as it
 arrives into the sensor's buffer (a frame of the wrong length, or one cantools cannot
-decode, is counted and dropped; a status signal whose bit 0 is clear marks the values
-invalid and they are not taken); the tick copies a sensor's buffer into its record when a
+decode, is counted and dropped; a status signal that says the values are not valid, as the
+sensor's ``status_valid`` and ``status_bits`` read it, marks them invalid and they are not
+taken); an IMU without orientation signals reads a quaternion of NaN (not measured). The tick copies a sensor's buffer into its record when a
 frame came since the last tick, and marks it STALE when none came for ``stale_periods`` of its
 period while the driver was reading, until frames come again.
 """
@@ -12,10 +13,11 @@ period while the driver was reading, until frames come again.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from functools import lru_cache
 from pathlib import Path
-from typing import cast
+from typing import Literal, cast
 
 import cantools
 import numpy as np
@@ -36,6 +38,7 @@ FIELDS = {
     "imu": {"quaternion": 4, "angular_velocity": 3, "linear_acceleration": 3},
     "force_torque": {"force": 3, "torque": 3},
 }
+OPTIONAL = {"imu": {"quaternion"}}  # fields a sensor may leave out: NaN, not measured
 
 
 class SensorOptions(Options):
@@ -43,9 +46,18 @@ class SensorOptions(Options):
     period_ms: FiniteFloat = Field(gt=0, description="The sensor's own period (ms).")
     stale_periods: FiniteFloat = Field(3.0, ge=1, description="Stale after this many periods without a frame.")
     signals: dict[str, list[str]] = Field(
-        description="Per field of the record (e.g. quaternion), its signals 'Message.Signal' in order."
+        description="Per field of the record (e.g. quaternion), its signals 'Message.Signal' in order. "
+        "An IMU may leave out quaternion (no orientation): it then reads NaN, not measured."
     )
-    status: str | None = Field(None, description="'Message.Signal' whose bit 0 says the values are valid.")
+    status: str | None = Field(None, description="'Message.Signal' that says whether the values are valid.")
+    status_valid: Literal["set", "clear"] = Field(
+        "set",
+        description="set: the values are valid when every bit of status_bits is set in the status signal; "
+        "clear: when none is (a gateway whose status 0 means OK).",
+    )
+    status_bits: int = Field(
+        1, ge=1, le=0xFFFFFFFF, description="The status signal's bits that status_valid reads (default: bit 0)."
+    )
 
 
 @lru_cache(maxsize=8)
@@ -84,13 +96,22 @@ def sensor_issues(where: str, sensor: SensorOptions, kind: str | None, db) -> li
             except KeyError as exc:
                 issues.append((f"{where}.signals.{field}[{k}]", exc.args[0]))
     for field in fields:
-        if field not in sensor.signals:
+        if field not in sensor.signals and field not in OPTIONAL.get(kind, ()):
             issues.append((f"{where}.signals", f'no signals for "{field}"'))
     if sensor.status is not None:
         try:
-            _signal(db, sensor.status)
+            message, name = _signal(db, sensor.status)
         except KeyError as exc:
             issues.append((f"{where}.status", exc.args[0]))
+        else:
+            length = message.get_signal_by_name(name).length
+            if sensor.status_bits >> length:
+                issues.append(
+                    (
+                        f"{where}.status_bits",
+                        f"0x{sensor.status_bits:X} has bits beyond the {length} of {sensor.status}",
+                    )
+                )
     return issues
 
 
@@ -104,15 +125,20 @@ class DbcSensor:
         if values is None:
             raise TypeError(f"a {kind} group whose fields are not one float64 block cannot take DBC signals")
         self.row = values[record.index]  # every field of the record, in column order
+        columns = record.group.columns
+        for field in OPTIONAL.get(kind, ()):
+            if field not in options.signals:
+                self.row[columns[field]] = math.nan  # not measured
         self.buffer = self.row.copy()
         self.columns: dict[int, list[tuple[str, int]]] = {}  # frame id -> [(signal, column)]
-        columns = record.group.columns
         for field, names in options.signals.items():
             start = columns[field].start
             for k, name in enumerate(names):
                 message, signal = _signal(db, name)
                 self.columns.setdefault(message.frame_id, []).append((signal, start + k))
         self.status = _signal(db, options.status) if options.status else None
+        self.status_bits = options.status_bits
+        self.status_wanted = options.status_bits if options.status_valid == "set" else 0
         self.stale_s = options.period_ms * options.stale_periods * 1e-3
         self.frames = 0
         self.invalid = 0
@@ -123,7 +149,12 @@ class DbcSensor:
 
     def take(self, frame_id: int, values: dict) -> None:
         """A decoded frame (the notifier's thread)."""
-        if self.status is not None and self.status[0].frame_id == frame_id and not int(values[self.status[1]]) & 1:
+        status = self.status
+        if (
+            status is not None
+            and status[0].frame_id == frame_id
+            and int(values[status[1]]) & self.status_bits != self.status_wanted
+        ):
             self.invalid += 1
             return
         buffer = self.buffer
@@ -213,14 +244,14 @@ class SensorGateway:
                 if sensor.stale:
                     sensor.stale = False
                     record.set_fault(0)
-                    log.warning("canopen %s: sensor %s is back", self.name, record.name)
+                    log.warning("canopen %s: sensor %s is back (no longer stale)", self.name, record.name)
             elif not sensor.stale and now_s - sensor.last_s > sensor.stale_s:
                 sensor.stale = True
                 sensor.stale_events += 1
                 record.set_fault(Fault.STALE)
                 view.fault(
-                    f"sensor {record.name}: no frame for {sensor.stale_s * 1e3:g} ms "
-                    f"({sensor.options.stale_periods:g} periods): stale",
+                    f"sensor {record.name} is stale: no valid frame for {sensor.stale_s * 1e3:g} ms "
+                    f"({sensor.options.stale_periods:g} periods)",
                     hold=False,
                 )
 

@@ -23,20 +23,32 @@ class SimBus:
         *,
         bitrate: int = 1_000_000,
         sensors: dict[str, float] | None = None,
+        rpdo_transmission_type: int | None = None,
+        imu_orientation: bool = True,
+        status_ok: int = 1,
         **bus_options,
     ) -> None:
-        """``sensors``: the gateway's period per kind (``{"imu": 0.004, "force_torque": 0.004}``), or None."""
+        """``sensors``: the gateway's period per kind (``{"imu": 0.004, "force_torque": 0.004}``), or None.
+        ``rpdo_transmission_type``: the drives' RPDOs' at start (e.g. 255, event-driven);
+        ``imu_orientation``, ``status_ok``: the gateway's (:class:`.SimSensorGateway`)."""
         self.bus = can.Bus(
             interface=interface, channel=channel, bitrate=bitrate, receive_own_messages=False, **bus_options
         )
         self.network = canopen.Network(self.bus)
         self.network.NOTIFIER_CYCLE = 0.05  # its thread's receive timeout: how long closing waits for it
         self.network.connect()
-        self.drives = {node_id: SimDrive(self.network, node_id) for node_id in drives}
+        self.drives = {
+            node_id: SimDrive(self.network, node_id, rpdo_transmission_type=rpdo_transmission_type)
+            for node_id in drives
+        }
         self.sensors = None
         if sensors is not None:
             self.sensors = SimSensorGateway(
-                self.network, imu_period_s=sensors.get("imu", 0.002), ft_period_s=sensors.get("force_torque", 0.002)
+                self.network,
+                imu_period_s=sensors.get("imu", 0.002),
+                ft_period_s=sensors.get("force_torque", 0.002),
+                orientation=imu_orientation,
+                status_ok=status_ok,
             )
 
     def bus_off(self) -> None:

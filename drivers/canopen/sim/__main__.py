@@ -2,6 +2,8 @@
 
     python -m aiohal.drivers.canopen.sim --interface socketcan --channel vcan0 --drives 1-6 --sensors
     python -m aiohal.drivers.canopen.sim --interface udp_multicast --channel 239.74.163.2 --drives 1-6
+    python -m aiohal.drivers.canopen.sim --interface socketcan --channel vcan0 --drives 1-6 --rpdo-type 255 \
+        --sensors --no-orientation --status-ok 0
 
 ``udp_multicast`` needs python-can's ``multicast`` extra, and every process on the group sees
 the others' frames: isolate it (a network namespace with only ``lo`` up and a route
@@ -34,6 +36,17 @@ def node_ids(text: str) -> list[int]:
     return ids
 
 
+def rpdo_type(text: str) -> int:
+    """An RPDO's transmission type: 0..240 (synchronous), 254 or 255 (event-driven)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not (0 <= value <= 240 or value in (254, 255)):
+        raise argparse.ArgumentTypeError(f"{text!r}: an RPDO's transmission type is 0..240, 254 or 255")
+    return value
+
+
 def main(
     argv: list[str] | None = None, stop: threading.Event | None = None, ready: threading.Event | None = None
 ) -> int:
@@ -46,6 +59,22 @@ def main(
     parser.add_argument("--drives", type=node_ids, default=[], help="node ids of the drives, e.g. 1-6")
     parser.add_argument("--sensors", action="store_true", help="also the IMU + F/T gateway (aiohal_sensors.dbc)")
     parser.add_argument("--sensor-period-ms", type=float, default=4.0)
+    parser.add_argument(
+        "--rpdo-type",
+        type=rpdo_type,
+        default=None,
+        help="the drives' RPDO transmission type at start (default: the EDS's, 1); 255: event-driven",
+    )
+    parser.add_argument(
+        "--no-orientation", action="store_true", help="the IMU sends no orientation frame (IMU_Orientation)"
+    )
+    parser.add_argument(
+        "--status-ok",
+        type=int,
+        choices=(0, 1),
+        default=1,
+        help="the sensors' Status value that means OK (default 1; 0: a gateway whose 0 means OK)",
+    )
     parser.add_argument(
         "--dynamics",
         choices=("motor", "servo"),
@@ -67,6 +96,9 @@ def main(
             args.drives,
             bitrate=args.bitrate,
             sensors={"imu": period, "force_torque": period} if args.sensors else None,
+            rpdo_transmission_type=args.rpdo_type,
+            imu_orientation=not args.no_orientation,
+            status_ok=args.status_ok,
         )
     except Exception as exc:  # python-can raises several kinds for a bus it cannot open
         print(f"cannot open {args.interface}:{args.channel}: {exc}", file=sys.stderr)

@@ -2,11 +2,16 @@
 
 canopen's :class:`~canopen.LocalNode` is the node's communication side: object dictionary
 from an EDS, SDO server, NMT slave, heartbeat producer, EMCY producer. It has no PDO engine,
-so this class adds one: in OPERATIONAL, RPDOs are kept as they arrive and applied on the next
-SYNC (synchronous transmission types), the servo model steps by the communication cycle
-period (0x1006), and the TPDOs are sent. The PDOs are compiled from the node's own mapping
+so this class adds one: in OPERATIONAL, an RPDO of a synchronous transmission type (0..240)
+is kept as it arrives and applied on the next SYNC, one of an event-driven type (254, 255) is
+applied on receipt; on SYNC the servo model steps by the communication cycle period (0x1006),
+and the TPDOs are sent. The PDOs are compiled from the node's own mapping and communication
 objects each time it enters OPERATIONAL, so a master that remaps them in PRE-OPERATIONAL
-gets what it asked for.
+gets what it asked for; a mapping entry the drive cannot map in that direction (or of
+another size) is refused with SDO abort 0x06040041, as a drive does.
+
+``rpdo_transmission_type`` sets the RPDOs' transmission type the node starts with (its
+EDS's is 1), e.g. 255 as many drives ship.
 
 The drive itself (state machine, CSP/CSV/CST servo model, faults and their EMCY codes) is the
 simulated CiA 402 drive every bus simulator shares (:mod:`aiohal.simulation.cia402_drive`),
@@ -14,7 +19,8 @@ behind the application objects (0x6000 and up).
 
 Fault injection: :meth:`inject_fault` (drive fault, EMCY with its code), :meth:`go_silent`
 (the node stops: no heartbeat, no PDO, no SDO answer), :attr:`drop_tpdos` (the next n TPDO
-cycles are not sent), :attr:`wrong_dlc` (TPDOs sent one byte short).
+cycles are not sent), :attr:`wrong_dlc` (TPDOs sent one byte short), :attr:`keep_mode` (a
+mode written to 0x6060 by SDO is accepted and ignored: 0x6061 keeps showing the old one).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ import canopen
 from canopen.sdo import SdoAbortedError, SdoRecord
 
 from aiohal.simulation.cia402_drive import DriveModel
-from aiohal.simulation.od import Entry, ObjectDictionary, PdoCodec, SdoAbort
+from aiohal.simulation.od import ABORT_NOT_MAPPABLE, Entry, ObjectDictionary, PdoCodec, SdoAbort
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +49,14 @@ DEFAULT_CYCLE_US = 2000
 class SimDrive:
     """One simulated drive node on a canopen :class:`~canopen.Network` (already connected)."""
 
-    def __init__(self, network: canopen.Network, node_id: int, eds: str | Path = DRIVE_EDS) -> None:
+    def __init__(
+        self,
+        network: canopen.Network,
+        node_id: int,
+        eds: str | Path = DRIVE_EDS,
+        *,
+        rpdo_transmission_type: int | None = None,
+    ) -> None:
         self.network = network
         self.node_id = node_id
         self.node = canopen.LocalNode(node_id, str(eds))
@@ -53,6 +66,7 @@ class SimDrive:
         self.model.self_test_done()  # Switch on disabled
         self.lock = threading.Lock()  # the notifier thread and an injecting test
         self.rx: dict[int, PdoCodec] = {}
+        self.rx_on_receipt: set[int] = set()  # COB-IDs of the event-driven RPDOs
         self.tx: list[tuple[int, PdoCodec]] = []
         self.pending: dict[int, bytes] = {}
         self.tx_buffer = bytearray(8)
@@ -61,9 +75,16 @@ class SimDrive:
         self.silent = False
         self.drop_tpdos = 0
         self.wrong_dlc = False
+        self.keep_mode = False
         self.operational = False
         self.node.add_read_callback(self._read_object)
         self.node.add_write_callback(self._write_object)
+        if rpdo_transmission_type is not None:
+            od = self.node.object_dictionary
+            for k in range(512):
+                if 0x1400 + k not in od:
+                    break
+                cast(SdoRecord, self.node.sdo[0x1400 + k])[2].raw = rpdo_transmission_type
         network.add_node(self.node)
         network.subscribe(0, self._after_nmt)  # after the node's own NMT slave (subscribed first)
         network.subscribe(SYNC_COB_ID, self._on_sync)
@@ -92,13 +113,30 @@ class SimDrive:
         if index == 0x1006:
             self.cycle_ns = int.from_bytes(data, "little") * 1000 or DEFAULT_CYCLE_US * 1000
             return
-        if self._model_entry(index, subindex) is None:
+        if subindex > 0 and (0x1600 <= index <= 0x17FF or 0x1A00 <= index <= 0x1BFF):
+            self._check_mapping(index, int.from_bytes(data, "little"))
+            return
+        if self._model_entry(index, subindex) is None or (index == 0x6060 and self.keep_mode):
             return
         try:
             with self.lock:
                 self.model_od.write(index, subindex, bytes(data))
         except SdoAbort as exc:
             raise SdoAbortedError(exc.code) from None
+
+    def _check_mapping(self, index: int, word: int) -> None:
+        """A mapping entry written: the object must exist and be mappable in the PDO's
+        direction with its own size (0: the entry cleared)."""
+        if word == 0:
+            return
+        target, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
+        try:
+            entry = self.model_od.entry(target, sub)
+        except SdoAbort:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE) from None
+        direction = "rx" if index < 0x1800 else "tx"
+        if entry.mappable != direction or entry.bits != bits:
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
 
     # ------------------------------------------------------------ NMT and PDOs
 
@@ -117,6 +155,7 @@ class SimDrive:
         for cob_id in self.rx:
             self.network.unsubscribe(cob_id, self._on_rpdo)
         self.rx, self.tx = {}, []
+        self.rx_on_receipt = set()
         od = self.node.object_dictionary
         for comm, mapping, rx in ((0x1400, 0x1600, True), (0x1800, 0x1A00, False)):
             for k in range(512):
@@ -136,6 +175,8 @@ class SimDrive:
                 codec = PdoCodec(items)
                 if rx:
                     self.rx[cob_id & 0x7FF] = codec
+                    if cast(int, comm_param[2].raw) >= 254:
+                        self.rx_on_receipt.add(cob_id & 0x7FF)
                     self.network.subscribe(cob_id & 0x7FF, self._on_rpdo)
                 else:
                     self.tx.append((cob_id & 0x7FF, codec))
@@ -143,7 +184,12 @@ class SimDrive:
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         codec = self.rx.get(can_id)
-        if codec is not None and len(data) == codec.size and not self.silent:
+        if codec is None or len(data) != codec.size or self.silent:
+            return
+        if can_id in self.rx_on_receipt:
+            with self.lock:
+                codec.decode(bytes(data), 0)
+        else:
             self.pending[can_id] = bytes(data)
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:

@@ -1,8 +1,10 @@
 """A simulated CAN sensor gateway: an IMU and a force/torque sensor, their frames encoded with
 cantools from aiohal's DBC (``drivers/canopen/data/aiohal_sensors.dbc``), each sensor at its
 own period (checked on every SYNC). At rest: the IMU reads gravity, the F/T sensor a
-configured wrench. Fault injection: :attr:`stopped` (no frame: the master sees it go stale)
-and :attr:`wrong_dlc` (frames one byte short)."""
+configured wrench. As gateways ship: ``orientation=False`` (an IMU that sends no orientation
+frame), ``status_ok=0`` (a status signal whose 0 means OK, 1 an error; default 1 = valid).
+Fault injection: :attr:`stopped` (no frame: the master sees it go stale), :attr:`wrong_dlc`
+(frames one byte short) and :attr:`invalid` (the status says the values are not valid)."""
 
 from __future__ import annotations
 
@@ -35,6 +37,8 @@ class SimSensorGateway:
         imu_period_s: float = 0.002,
         ft_period_s: float = 0.002,
         wrench: tuple[float, ...] = (1.0, -2.0, 15.0, 0.1, -0.05, 0.02),
+        orientation: bool = True,
+        status_ok: int = 1,
     ) -> None:
         self.network = network
         # a .dbc file loads as a CAN database (a .cdd would give a diagnostics one)
@@ -42,22 +46,22 @@ class SimSensorGateway:
         self.counter = 0
         self.stopped = False
         self.wrong_dlc = False
+        self.invalid = False
+        self.status_ok = status_ok
         fx, fy, fz, tx, ty, tz = wrench
+        imu = [
+            (db.get_message_by_name("IMU_Gyro"), {"X": 0.0, "Y": 0.0, "Z": 0.0}),
+            (db.get_message_by_name("IMU_Accel"), {"X": 0.0, "Y": 0.0, "Z": 9.81}),
+        ]
+        if orientation:
+            imu.insert(0, (db.get_message_by_name("IMU_Orientation"), {"W": 1.0, "X": 0.0, "Y": 0.0, "Z": 0.0}))
         self.groups = [
-            _Schedule(
-                imu_period_s,
-                0.0,
-                [
-                    (db.get_message_by_name("IMU_Orientation"), {"W": 1.0, "X": 0.0, "Y": 0.0, "Z": 0.0}),
-                    (db.get_message_by_name("IMU_Gyro"), {"X": 0.0, "Y": 0.0, "Z": 0.0, "Status": 1}),
-                    (db.get_message_by_name("IMU_Accel"), {"X": 0.0, "Y": 0.0, "Z": 9.81}),
-                ],
-            ),
+            _Schedule(imu_period_s, 0.0, imu),
             _Schedule(
                 ft_period_s,
                 0.0,
                 [
-                    (db.get_message_by_name("FT_Force"), {"X": fx, "Y": fy, "Z": fz, "Status": 1}),
+                    (db.get_message_by_name("FT_Force"), {"X": fx, "Y": fy, "Z": fz}),
                     (db.get_message_by_name("FT_Torque"), {"X": tx, "Y": ty, "Z": tz}),
                 ],
             ),
@@ -75,9 +79,13 @@ class SimSensorGateway:
                 continue
             group.due = due + period if now - due < period else now + period  # its own period, whatever the SYNC rate
             self.counter = (self.counter + 1) & 0xFF
+            status = self.status_ok ^ 1 if self.invalid else self.status_ok
             for message, values in messages:
-                if "Counter" in [s.name for s in message.signals]:
+                names = [s.name for s in message.signals]
+                if "Counter" in names:
                     values = {**values, "Counter": self.counter}
+                if "Status" in names:
+                    values = {**values, "Status": status}
                 payload = message.encode(values, strict=False, padding=True)
                 if self.wrong_dlc:
                     payload = payload[:-1]
