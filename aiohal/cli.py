@@ -356,6 +356,9 @@ async def _run(config: Config, args: argparse.Namespace, outcome: _Outcome) -> i
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM, *SAFETY_SIGNALS):
             loop.remove_signal_handler(sig)
+        # a Ctrl-C after the run (a second one while the report prints or the process ends) asks
+        # for what is done: the process ends with the run's status, not killed by the signal
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _write_report_json(report: dict[str, Any], args: argparse.Namespace, config: Config) -> bool:

@@ -83,13 +83,16 @@ class JointSpec:
 class TickInfo:
     """The current tick, shared by reference with drivers and controllers (updated by the loop)."""
 
-    __slots__ = ("tick", "now_ns", "period_ns", "kind")
+    __slots__ = ("tick", "now_ns", "period_ns", "kind", "ticker")
 
     def __init__(self, period_ns: int) -> None:
         self.tick = -1
         self.now_ns = 0
         self.period_ns = period_ns
         self.kind = "?"  # the wake source: timerfd, sleep or virtual (a simulation steps in lockstep)
+        #: the loop's :class:`~aiohal.core.ticker.Ticker` (its ``deadline_ns``, ``shift``), for a
+        #: driver that locks the loop to a clock of its bus; None outside a loop
+        self.ticker: Any = None
 
 
 class _Rows:

@@ -13,6 +13,7 @@ import os
 import struct
 import subprocess
 import sys
+import time
 import tomllib
 
 import numpy as np
@@ -866,3 +867,33 @@ async def test_a_bit_packed_terminal_fails_the_bring_up_with_the_reason():
         with pytest.raises(DriverError, match=r"slave 0 \(AIOHAL-DIO4\) has 4 output and 4 input bits: SOEM packs"):
             async with ControlLoop(parse_config(raw)):
                 pass
+
+
+@pytest.mark.asyncio
+async def test_distributed_clocks_100_ppm_apart_are_locked_by_the_bring_up_and_kept_so_with_the_loop(segment):
+    for k, ppm in enumerate([-50, 20, -10, 50, 0, 30, -40, 10, 50]):  # the reference (slave 0) 100 ppm from the last
+        segment.control({"cmd": "dc", "slave": k, "drift_ppm": ppm})
+    segment.control({"cmd": "dc_trace", "clear": True})
+    raw = raw_config(segment.ifname, dc_static_frames=2000, dc_lock=True)
+    async with ControlLoop(parse_config(raw)) as loop:
+        locked = time.monotonic_ns()  # (the simulator's clock: the same monotonic clock)
+        frmw_at_op = (await asyncio.to_thread(segment.status))["commands"]["FRMW"]
+        report = await loop.run(ticks=1000)
+    trace = await asyncio.to_thread(segment.control, {"cmd": "dc_trace", "since_ns": locked, "step": 1000})
+    assert report["faults"] == []
+    assert frmw_at_op >= 2000  # the static compensation's frames, each with the reference's time
+    assert trace["samples"] >= 500
+    assert max(abs(w) for w in trace["worst_ns"]) < 1000, trace["worst_ns"]
+    # the loop's deadlines held half a cycle before SYNC0 (as the driver measures it; the
+    # reference clock runs 50 ppm slow: 50 us of sliding in a second otherwise)
+    assert report["drivers"]["bus"]["dc_lock_error_us"]["p50"] < 50
+
+
+@pytest.mark.asyncio
+async def test_without_dc_no_frame_carries_the_reference_clocks_time(segment):
+    raw = raw_config(segment.ifname, dc=False, sync0=False)
+    async with ControlLoop(parse_config(raw)) as loop:
+        report = await loop.run(ticks=200)
+    commands = (await asyncio.to_thread(segment.status))["commands"]
+    assert report["faults"] == [] and commands["LRW"] >= 100
+    assert "FRMW" not in commands and "ARMW" not in commands

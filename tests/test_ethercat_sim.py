@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import random
 import struct
 import subprocess
 import sys
@@ -93,9 +94,9 @@ class SdoAbortSeen(Exception):
 class Bus:
     """A test master on a Segment with a fake clock."""
 
-    def __init__(self, spec: str, watchdog_ms: float = 100.0, seed: int = 0) -> None:
+    def __init__(self, spec: str, watchdog_ms: float = 100.0, seed: int = 0, drift_ppm: float = 0.0) -> None:
         self.clock = Clock()
-        self.seg = Segment(spec, clock=self.clock, watchdog_ms=watchdog_ms, seed=seed)
+        self.seg = Segment(spec, clock=self.clock, watchdog_ms=watchdog_ms, seed=seed, drift_ppm=drift_ppm)
         self.cnt = itertools.cycle(range(1, 8))
         self.offsets: dict[tuple[int, str], int] = {}
         self.iomap = 0
@@ -1505,3 +1506,59 @@ def test_hidden_objects_are_answered_as_missing_and_clear_shows_them_again():
     assert missing.value.code == ABORT_NO_OBJECT and od.read(0x1C00, 0)  # the others are there
     control.apply(bus.seg, {"cmd": "clear"})
     assert od.read(0x1C12, 0) == b"\x01"
+
+
+def _config_dc(bus: Bus, stations: list[int], master_time: int) -> None:
+    """What SOEM's config_dc does: latch, offsets from each slave's receive time, propagation
+    delays from the port receive times (half the round trip's difference to the reference's)."""
+    bus.bwr(0x0900, bytes(4))
+    ports = [struct.unpack("<II", bus.fprd(st_, 0x0900, 8)[0]) for st_ in stations]
+    for st_, (t0, t1) in zip(stations, ports, strict=True):
+        rx = struct.unpack("<Q", bus.fprd(st_, 0x0918, 8)[0])[0]
+        bus.fpwr(st_, 0x0920, struct.pack("<Q", (master_time - rx) & (2**64 - 1)))
+        ref_trip = ports[0][1] - ports[0][0]
+        trip = t1 - t0 if t1 else 0
+        bus.fpwr(st_, 0x0928, struct.pack("<I", (ref_trip - trip) // 2))
+
+
+def _propagate(bus: Bus, ms: float, count: int, rng: random.Random) -> None:
+    """The cyclic FRMW of the reference clock's time, every ``ms`` give or take 30 %."""
+    for _ in range(count):
+        bus.clock.advance(ms * rng.uniform(0.7, 1.3))
+        bus.seg.handle_frame(frame((FRMW, 0x1001, 0x0910, bytes(8))))
+
+
+@pytest.mark.parametrize("compensation", [True, False])
+def test_dc_drift_compensation_locks_clocks_100_ppm_apart(compensation):
+    bus = Bus("drive*4", seed=3, drift_ppm=100)
+    drifts = [s["drift_ppm"] for s in bus.seg.status()["slaves"]]
+    assert drifts[0] == -50 and drifts[-1] == 50 and len(set(drifts)) == 4
+    bus.init_all()
+    assert control.apply(bus.seg, {"cmd": "dc", "compensation": compensation})["ok"]
+    stations = [0x1001 + i for i in range(4)]
+    _config_dc(bus, stations, 800_000_000_000_000_000)
+    delays = [struct.unpack("<I", bus.fprd(st_, 0x0928, 4)[0])[0] for st_ in stations]
+    assert delays[0] == 0 and delays[1] > 0 and delays == sorted(delays)
+    rng = random.Random(1)
+    _propagate(bus, 0.1, 3000, rng)  # static drift compensation
+    locked = bus.clock()
+    _propagate(bus, 1.0, 2000, rng)  # cyclic operation, 2 s
+    trace = control.apply(bus.seg, {"cmd": "dc_trace", "since_ns": locked})
+    worst = max(abs(w) for w in trace["worst_ns"])
+    assert trace["samples"] >= 1900 and trace["worst_ns"][0] == 0
+    if compensation:
+        assert worst < 1000  # LOLA's +-1 us
+    else:  # the slaves 100 ppm from the reference drift 100 us per second
+        assert worst > 100_000
+
+
+def test_the_system_time_difference_register_says_which_way_the_slave_is_off():
+    bus = Bus("drive,drive")
+    bus.init_all()
+    t = struct.unpack("<Q", bus.fprd(0x1002, 0x0910, 8)[0])[0]
+    bus.fpwr(0x1002, 0x0934, b"\x00")  # no averaging
+    bus.fpwr(0x1002, 0x0910, struct.pack("<Q", t + 5000))  # the written time is ahead: the slave is behind
+    diff = struct.unpack("<I", bus.fprd(0x1002, 0x092C, 4)[0])[0]
+    assert diff >> 31 == 1 and 4000 < diff & 0x7FFF_FFFF <= 5000
+    bus.fpwr(0x1002, 0x0930, u16(0x1000))  # a write of the speed counter start restarts the loop
+    assert bus.fprd(0x1002, 0x092C, 4)[0] == bytes(4)

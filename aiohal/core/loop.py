@@ -172,6 +172,7 @@ class ControlLoop:
             raise LifecycleError(f"activate() in state {self.state.value!r}")
         clock = self.robot.clock
         clock.kind = self.source.kind
+        clock.ticker = self.ticker
         clock.tick = 0
         clock.now_ns = self.source.now_ns()
         if self.config.loop.gc == "freeze":

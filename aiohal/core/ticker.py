@@ -91,6 +91,10 @@ class TickSource(abc.ABC):
         skip two coroutines; a source that always waits keeps this default."""
         return 0
 
+    def shift(self, ns: int) -> None:
+        """Move the deadlines after the current one by ``ns`` (a clock locked to another, e.g.
+        an EtherCAT reference clock); a virtual clock keeps its own."""
+
     def close(self) -> None:
         pass
 
@@ -114,24 +118,34 @@ def _timerfd_create_settime(first_ns: int, period_ns: int) -> int:
     if hasattr(os, "timerfd_create"):  # Python >= 3.13
         # the stubs of python_version = 3.11 lack the os.timerfd_* of 3.13
         fd = os.timerfd_create(time.CLOCK_MONOTONIC, flags=os.TFD_NONBLOCK | os.TFD_CLOEXEC)  # type: ignore[attr-defined]
+    else:
+        global _libc
+        if _libc is None:
+            _libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+        fd = _libc.timerfd_create(CLOCK_MONOTONIC, os.O_NONBLOCK | os.O_CLOEXEC)
+        if fd < 0:
+            err = ctypes.get_errno()
+            raise OSError(err, f"timerfd_create: {os.strerror(err)}")
+    try:
+        _timerfd_settime(fd, first_ns, period_ns)
+    except OSError:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _timerfd_settime(fd: int, first_ns: int, period_ns: int) -> None:
+    """Arm ``fd`` at absolute ``first_ns``, then every ``period_ns``."""
+    if hasattr(os, "timerfd_settime_ns"):  # Python >= 3.13
         os.timerfd_settime_ns(fd, flags=os.TFD_TIMER_ABSTIME, initial=first_ns, interval=period_ns)  # type: ignore[attr-defined]
-        return fd
-    global _libc
-    if _libc is None:
-        _libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
-    fd = _libc.timerfd_create(CLOCK_MONOTONIC, os.O_NONBLOCK | os.O_CLOEXEC)
-    if fd < 0:
-        err = ctypes.get_errno()
-        raise OSError(err, f"timerfd_create: {os.strerror(err)}")
+        return
     spec = _Itimerspec(
         _Timespec(period_ns // 1_000_000_000, period_ns % 1_000_000_000),
         _Timespec(first_ns // 1_000_000_000, first_ns % 1_000_000_000),
     )
-    if _libc.timerfd_settime(fd, TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:
+    if _libc.timerfd_settime(fd, TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:  # type: ignore[union-attr]
         err = ctypes.get_errno()
-        os.close(fd)
         raise OSError(err, f"timerfd_settime: {os.strerror(err)}")
-    return fd
 
 
 def timerfd_available() -> bool:
@@ -214,6 +228,11 @@ class TimerfdTickSource(TickSource):
             while mono() < deadline:
                 pass
         return n
+
+    def shift(self, ns: int) -> None:
+        self.t0_ns += ns
+        if self._fd >= 0:
+            _timerfd_settime(self._fd, self.t0_ns + (self._k + 1) * self.period_ns - self.guard_ns, self.period_ns)
 
     async def _through_loop(self) -> None:
         """Wait for the loop's reader callback on the timerfd (``_on_readable``)."""
@@ -359,6 +378,9 @@ class SleepTickSource(TickSource):
         n = k - self._k
         self._k = k
         return n
+
+    def shift(self, ns: int) -> None:
+        self.t0_ns += ns
 
 
 # ---------------------------------------------------------------- virtual clock
@@ -519,6 +541,12 @@ class Ticker:
             self.k += n
         self.deadline_ns = self.t0_ns + self.k * self.period_ns
         return self.k
+
+    def shift(self, ns: int) -> None:
+        """Move every deadline after the current tick's by ``ns`` (see :meth:`TickSource.shift`)."""
+        if self.source.on_kernel_clock:
+            self.t0_ns += ns
+            self.source.shift(ns)
 
     def close(self) -> None:
         self.source.close()

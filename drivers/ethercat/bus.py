@@ -389,10 +389,16 @@ class Bus:
         return [mapping_entry(where, index, sub, self._sdo_retried(slave, index, sub)) for sub in range(1, count + 1)]
 
     def map(
-        self, dc: bool, sync0: Sequence[int] = (), cycle_ns: int = 0, shift_ns: int = 0, safeop_timeout_s: float = 2.0
+        self,
+        dc: bool,
+        sync0: Sequence[int] = (),
+        cycle_ns: int = 0,
+        shift_ns: int = 0,
+        safeop_timeout_s: float = 2.0,
+        static_frames: int = 0,
     ) -> int:
-        """Map the process data (the masters's IO map), set DC up (SYNC0 on the slaves at
-        ``sync0``), reach SAFEOP; the map's size."""
+        """Map the process data (the masters's IO map), set DC up (``static_frames`` of static
+        drift compensation, SYNC0 on the slaves at ``sync0``), reach SAFEOP; the map's size."""
         size = 0
         try:
             size = self.master.config_overlap_map() if self.overlap else self.master.config_map()
@@ -411,12 +417,23 @@ class Bus:
             )
         if dc:
             self.master.config_dc()
+            self._compensate_drift(static_frames)
             for position in sync0:
                 self._activate_sync0(position, cycle_ns, shift_ns)
         if not reach_safeop(self.master, safeop_timeout_s):
             error = BringUpError if in_error(self.slaves) else TransientBringUpError
             raise error(f"slaves did not reach SAFEOP within {safeop_timeout_s:g} s: " + self.describe_not_in(SAFEOP))
         return size
+
+    def _compensate_drift(self, frames: int) -> None:
+        """Static drift compensation: SOEM's process-data frame carries an FRMW of the reference
+        clock's system time once config_dc found DC slaves, and each slave after the reference
+        takes it into its time control loop; ``frames`` of them back to back lock the slaves'
+        clocks before SYNC0 starts (outputs are not applied before SAFEOP)."""
+        send, receive = self.cyclic_calls(self.pysoem.settings.timeouts.ret)
+        for _ in range(frames):
+            send()
+            receive()
 
     def _missing_assignment(self, error: Any) -> bool:
         """A ConfigMapError item that is SOEM finding no 0x1C12/0x1C13 on a slave whose PDOs

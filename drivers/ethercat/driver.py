@@ -59,6 +59,7 @@ from .bus import (
     shares_a_byte,
     state_name,
 )
+from .dc_lock import DcLock
 from .devices import DriveGroup, DriveSpec, ForceTorqueDevice, ImuDevice
 from .options import FT_CONTROL, FT_VARIABLES, IMU_VARIABLES, EthercatOptions, option_issues
 from .sm_watchdog import Setting
@@ -156,6 +157,7 @@ class EthercatDriver(Cia402Driver):
         self.al_checks_unanswered = 0  # of which some slave did not answer in time (a busy host): not judged
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
         self.infos: list[SlaveInfo] = []
+        self.dc_lock: DcLock | None = None  # options.dc_lock, from the bring-up on
         self.sm_watchdogs: dict[str, float] = {}  # slave name -> its SM watchdog time (ms), read back after OP
         self.image: ProcessImage | None = None
         self.sensors: list[tuple[int, ImuDevice | ForceTorqueDevice]] = []
@@ -207,6 +209,7 @@ class EthercatDriver(Cia402Driver):
             cycle_ns=self.view.clock.period_ns,
             shift_ns=round(opts.sync0_shift_us * 1000),
             safeop_timeout_s=opts.safeop_timeout_s,
+            static_frames=opts.dc_static_frames,
         )
         for i, (s, layout, slave) in enumerate(zip(opts.slaves, layouts, bus.slaves, strict=True)):
             self.infos.append(
@@ -245,6 +248,11 @@ class EthercatDriver(Cia402Driver):
             if i.output_bytes
         ]
         self._send_now, self._receive_now = bus.cyclic_calls(opts.receive_timeout_us)
+        if opts.dc and opts.dc_lock:
+            period = self.view.clock.period_ns
+            target = (round(opts.sync0_shift_us * 1000) - period // 2) % period  # half a cycle before SYNC0
+            self.dc_lock = DcLock(bus.master, self._send_now, self._receive_now, self.view.clock, target)
+            self._send_now, self._receive_now = self.dc_lock.send, self.dc_lock.receive
         self._split = opts.exchange == "split"
         self._on_event = self._on_drive_event  # bound once, not on every read
         period_s = self.view.clock.period_ns * 1e-9
@@ -773,6 +781,8 @@ class EthercatDriver(Cia402Driver):
             cpu = self._cpu_ns[:n] if self.cycles < RING else self._cpu_ns
             out[key] = _p50_p99_us(rtt)
             out["cpu_us"] = _p50_p99_us(cpu[cpu > 0]) if (cpu > 0).any() else {}
+        if self.dc_lock is not None and self.dc_lock.count:
+            out["dc_lock_error_us"] = _p50_p99_us(np.abs(self.dc_lock.recent_errors_ns()))
         if self._keepalive_cycles:
             out["keepalive_cycles"] = self._keepalive_cycles
         out["al_checks"] = self.al_checks

@@ -80,6 +80,19 @@ class EthercatOptions(Options):
     )
     overlap_map: bool = Field(False, description="config_overlap_map (inputs and outputs share logical addresses).")
     dc: bool = Field(True, description="Distributed clocks: config_dc, and FRMW of the system time each cycle.")
+    dc_static_frames: int = Field(
+        3000,
+        ge=0,
+        le=1_000_000,
+        description="Static drift compensation: frames carrying the reference clock's time to every "
+        "slave, back to back after config_dc and before SYNC0 and SAFEOP (the simulated ESCs lock "
+        "within 3000; the ETG recommends about 15000 for hardware).",
+    )
+    dc_lock: bool = Field(
+        False,
+        description="Keep the loop's deadlines locked to the reference clock, half a cycle before "
+        "SYNC0 (a PI on the reference's time each cycle); needs dc.",
+    )
     sync0: bool = Field(
         False,
         description="Activate SYNC0 at the loop's period on every cia402 drive (DC-synchronous "
@@ -170,6 +183,8 @@ def option_issues(options: EthercatOptions, joints: list[str], devices: dict[str
             issues += pdo_issues(f"{where}.{key}", pdos, low, high)
     if not options.dc and options.sync0_slaves():
         issues.append(("options.sync0", "SYNC0 needs distributed clocks (options.dc = true)"))
+    if not options.dc and options.dc_lock:
+        issues.append(("options.dc_lock", "locking the loop to the reference clock needs options.dc = true"))
     for joint in joints:
         if joint not in drives_for:
             issues.append(("joints", f'joint "{joint}" has no cia402 drive in options.slaves'))

@@ -47,6 +47,12 @@ def _parser() -> argparse.ArgumentParser:
         "--watchdog-ms", type=float, default=100.0, help="SM (process data) watchdog time, 0 = off (default 100)"
     )
     p.add_argument("--seed", type=int, default=0, help="seed for noise and random frame drops")
+    p.add_argument(
+        "--drift-ppm",
+        type=float,
+        default=0.0,
+        help="spread of the slaves' clock drifts: the first at -ppm/2, the last at +ppm/2 (default 0)",
+    )
     p.add_argument("--wait-s", type=float, default=10.0, help="how long to wait for the interface")
     p.add_argument(
         "--inject",
@@ -85,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     parent = os.getppid()
     try:
-        segment = Segment(args.slaves, watchdog_ms=args.watchdog_ms, seed=args.seed)
+        segment = Segment(args.slaves, watchdog_ms=args.watchdog_ms, seed=args.seed, drift_ppm=args.drift_ppm)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -23,8 +23,12 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
 ``device``         ``slave`` + device settings (imu: quat/gyro/acc/noise/valid; ft: wrench/
                    noise/force_limit/torque_limit; dio: pattern; drive: load/inertia/viscous/
                    coulomb/csp_hz/csv_tau/max_speed/position/fault/power_on_fault)
-``dc``             ``slave``, ``supported`` (bool): the slave's ESC has a distributed clock
-                   or not (features register, DC registers); power-cycles that slave
+``dc``             ``slave`` (default: all); ``supported`` (bool): the slave's ESC has a
+                   distributed clock or not (features register, DC registers; power-cycles
+                   it); ``drift_ppm``: its crystal's drift; ``compensation`` (bool, false:
+                   its time control loop corrects nothing)
+``dc_trace``       ``since_ns`` (segment clock), ``step`` (every n-th sample), ``clear``:
+                   the slaves' SYNC0 errors against the reference clock over time
 ``watchdog``       ``slave`` (default: all); ``divider`` (0..65535: 0x0400 at power-on,
                    default 2498 = 100 us units); ``implemented`` (false: the ESC has no SM
                    watchdog, 0x0400-0x0443 read 0 and ignore writes); ``sm_trigger``
@@ -35,7 +39,7 @@ Slaves are numbered from 0 in bus order (the order of the ``--slaves`` spec and 
 ``power_cycle``    ``slave`` (default: all): back to the power-on state (registers, SII,
                    object dictionary values, device model)
 ``clear``          - (drop, delay, wkc faults off; cable repaired; no EEPROM busy; every
-                   slave has DC and its default SM watchdog again, no op_delay, no drive faulted at power-on, no
+                   slave has DC (its drift from the start, compensating) and its default SM watchdog again, no op_delay, no drive faulted at power-on, no
                    hidden objects)
 ``reset_counters`` -
 =================  ==========================================================================
@@ -138,13 +142,12 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
         k = _int(c.pop("slave"), "slave")
         return {"device": seg.slave(k).device.configure(**c)}
     if cmd == "dc":
-        k = _int(c["slave"], "slave")
-        supported = c["supported"]
-        if not isinstance(supported, bool):
-            raise ValueError("supported: expected true or false")
-        seg.slave(k).has_dc = supported
-        seg.power_cycle(k)
-        return None
+        return _dc(seg, c)
+    if cmd == "dc_trace":
+        answer = seg.dc_trace.as_dict(_int(c.get("since_ns", 0), "since_ns"), _int(c.get("step", 1), "step"))
+        if c.get("clear", False) is True:
+            seg.dc_trace.clear()
+        return answer
     if cmd == "watchdog":
         targets = [_int(c["slave"], "slave")] if "slave" in c else range(len(seg.slaves))
         divider = _int(c.get("divider", WD_DIVIDER), "divider")
@@ -177,6 +180,9 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
         seg.eeprom_busy_off()
         for k, esc in enumerate(seg.slaves):
             esc.op_delay_ns = 0
+            esc.drift_ppm, esc.dc_compensation = seg.start_drifts[k], True
+            esc.dc.set_drift(seg.clock(), esc.drift_ppm)
+            esc.dc.compensating = True
             if esc.device.od is not None:
                 esc.device.od.hidden = set()
             if isinstance(esc.device, Drive) and esc.device.model.power_on_fault is not None:  # only drives have one
@@ -199,6 +205,30 @@ def _apply(seg: Segment, c: dict[str, Any]) -> dict[str, Any] | None:
         seg.reset_counters()
         return None
     raise ValueError(f"unknown command {cmd!r}")
+
+
+def _dc(seg: Segment, c: dict[str, Any]) -> dict[str, Any]:
+    """A slave's (or every slave's) distributed clock: there or not, drift, compensation."""
+    targets = [_int(c["slave"], "slave")] if "slave" in c else range(len(seg.slaves))
+    for key in ("supported", "compensation"):
+        if key in c and not isinstance(c[key], bool):
+            raise ValueError(f"{key}: expected true or false")
+    if not any(key in c for key in ("supported", "drift_ppm", "compensation")):
+        raise ValueError("dc: give supported, drift_ppm and/or compensation")
+    drift = float(c["drift_ppm"]) if "drift_ppm" in c else None
+    if drift is not None and not -1000 <= drift <= 1000:
+        raise ValueError("drift_ppm must be within -1000..1000")
+    for k in targets:
+        esc = seg.slave(k)
+        if drift is not None:
+            esc.drift_ppm = drift
+            esc.dc.set_drift(seg.clock(), drift)
+        if "compensation" in c:
+            esc.dc_compensation = esc.dc.compensating = c["compensation"]
+        if "supported" in c:
+            esc.has_dc = c["supported"]
+            seg.power_cycle(k)
+    return {"drift_ppm": [esc.drift_ppm for esc in seg.slaves]}
 
 
 def apply_line(segment: Segment, line: bytes | str) -> bytes:

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .coe import CoeServer
+from .dc import DcClock
 from .devices import Device, PdoConfigError
 from .sii import build_sii
 
@@ -112,12 +113,27 @@ class Esc:
     """A slave: an ESC with its device behind the PDI."""
 
     def __init__(
-        self, device: Device, *, clock: Callable[[], int], watchdog_ms: float = 100.0, boot_offset_ns: int = 0
+        self,
+        device: Device,
+        *,
+        clock: Callable[[], int],
+        watchdog_ms: float = 100.0,
+        boot_offset_ns: int = 0,
+        drift_ppm: float = 0.0,
+        frame_clock: Callable[[], int] | None = None,
     ) -> None:
         self.device = device
         self.clock = clock
+        #: the distributed clock's time source: the time of the frame being handled (as the
+        #: frame passes every slave within microseconds on hardware, not as this process walks
+        #: them), else the clock
+        self.dc_clock = frame_clock or clock
         self.watchdog_ms = watchdog_ms
         self.boot_offset_ns = boot_offset_ns
+        #: how much faster this slave's crystal runs than the host's clock (kept over power cycles)
+        self.drift_ppm = drift_ppm
+        #: False: the time control loop compares the propagated time but corrects nothing
+        self.dc_compensation = True
         self.sii_original = build_sii(device.sii_description())
         self.sii = bytearray(self.sii_original)
         mbx = device.mailbox
@@ -186,8 +202,8 @@ class Esc:
         self.al_state = INIT
         self.al_error = False
         self.al_code = 0
-        self.boot_ns = self.clock() - self.boot_offset_ns
-        self.dc_offset = 0
+        self.dc = DcClock(self.dc_clock(), self.boot_offset_ns, self.drift_ppm)
+        self.dc.compensating = self.dc_compensation
         self.sync0_start = 0
         self._set_al_status()
         # mailbox
@@ -221,10 +237,17 @@ class Esc:
 
     # ================================================================ helpers
     def local_time(self, now: int) -> int:
-        return now - self.boot_ns
+        return self.dc.local(now)
 
     def system_time(self, now: int) -> int:
-        return (now - self.boot_ns + self.dc_offset) & MASK64
+        return self.dc.system(now)
+
+    def system_time_written(self, now: int, value: int, bits: int = 64) -> None:
+        """The system time arrived (ARMW/FRMW of the reference clock's, or a write): one step
+        of the time control loop, at this slave's place in the line."""
+        if self.has_dc:
+            diff = self.dc.received(now + HOP_NS * self.position, value, bits)
+            U32.pack_into(self.mem, 0x092C, diff)
 
     def _set_al_status(self) -> None:
         U16.pack_into(self.mem, 0x0130, self.al_state | (0x10 if self.al_error else 0))
@@ -250,7 +273,7 @@ class Esc:
                 b = self.read(REG_END, end - REG_END)
                 return None if a is None or b is None else a + b
             if ado < 0x0918 and end > 0x0910 and self.has_dc:
-                U64.pack_into(self.mem, 0x0910, self.system_time(self.clock()))
+                U64.pack_into(self.mem, 0x0910, self.system_time(self.dc_clock() + HOP_NS * self.position))
             if ado < 0x0998 and end > 0x0990:
                 self._refresh_next_sync0()
             return bytes(self.mem[ado:end])
@@ -277,6 +300,12 @@ class Esc:
                 b = self.write(REG_END, data[k:])
                 return a or b
             self._write_regs(ado, data)
+            if ado <= 0x0910 and end >= 0x0914:  # a write of the system time: the loop compares it
+                k = 0x0910 - ado
+                wide = end >= 0x0918
+                self.system_time_written(
+                    self.dc_clock(), int.from_bytes(data[k : k + (8 if wide else 4)], "little"), 64 if wide else 32
+                )
             return True
         rx = self.mbx_rx
         if rx is not None and ado < rx[1] and end > rx[0]:
@@ -411,8 +440,8 @@ class Esc:
         self._sm_changed()
 
     def _h_latch(self, a: int, b: int) -> None:
-        now = self.clock()
-        t0 = self.local_time(now) + HOP_NS * self.position
+        now = self.dc_clock()
+        t0 = self.local_time(now + HOP_NS * self.position)
         mem = self.mem
         U32.pack_into(mem, 0x0900, t0 & 0xFFFFFFFF)
         t1 = t0 + 2 * HOP_NS * self.downstream if self.downstream else 0
@@ -422,7 +451,16 @@ class Esc:
         U64.pack_into(mem, 0x0918, t0 & MASK64)
 
     def _h_dc_offset(self, a: int, b: int) -> None:
-        self.dc_offset = U64.unpack_from(self.mem, 0x0920)[0]
+        self.dc.set_offset(self.dc_clock() + HOP_NS * self.position, U64.unpack_from(self.mem, 0x0920)[0])
+
+    def _h_dc_delay(self, a: int, b: int) -> None:
+        self.dc.delay = U32.unpack_from(self.mem, 0x0928)[0]
+
+    def _h_dc_loop(self, a: int, b: int) -> None:
+        self.dc.depth = self.mem[0x0934]
+        if a < 0x0932 and b > 0x0930:  # a write of the speed counter start restarts the loop
+            self.dc.set_speed_start(self.dc_clock() + HOP_NS * self.position, U16.unpack_from(self.mem, 0x0930)[0])
+            U32.pack_into(self.mem, 0x092C, 0)
 
     def _h_sync0_start(self, a: int, b: int) -> None:
         self.sync0_start = U64.unpack_from(self.mem, 0x0990)[0]
@@ -432,7 +470,7 @@ class Esc:
         cycle = U32.unpack_from(mem, 0x09A0)[0]
         start = self.sync0_start
         if mem[0x0981] & 0x03 == 0x03 and cycle:
-            now = self.system_time(self.clock())
+            now = self.system_time(self.dc_clock() + HOP_NS * self.position)
             if now > start:
                 start += -(-(now - start) // cycle) * cycle
         U64.pack_into(mem, 0x0990, start & MASK64)
@@ -844,6 +882,9 @@ class Esc:
             "watchdog_trip": self.last_trip,
             "coe": dict(self.coe.stats) if self.coe is not None else None,
             "dc": self.has_dc,
+            "drift_ppm": self.drift_ppm,
+            "dc_compensation": self.dc_compensation,
+            "dc_loop": self.dc.summary(),
             "sync0": {"active": self.mem[0x0981] & 0x03 == 0x03, "cycle_ns": U32.unpack_from(self.mem, 0x09A0)[0]},
         }
 
@@ -861,5 +902,7 @@ _HOOKS: list[tuple[int, int, Any]] = [
     (0x0800, 0x0880, Esc._h_sm),
     (0x0900, 0x0904, Esc._h_latch),
     (0x0920, 0x0928, Esc._h_dc_offset),
+    (0x0928, 0x092C, Esc._h_dc_delay),
+    (0x0930, 0x0936, Esc._h_dc_loop),
     (0x0990, 0x0998, Esc._h_sync0_start),
 ]

@@ -20,8 +20,9 @@ import struct
 import time
 from collections.abc import Callable
 
+from .dc_trace import DcTrace, drifts
 from .devices import Device
-from .esc import MASK64, OP, SAFEOP, Esc
+from .esc import HOP_NS, MASK64, OP, SAFEOP, Esc
 from .spec import parse_spec
 
 ETHERTYPE = b"\x88\xa4"
@@ -93,13 +94,24 @@ class Segment:
         clock: Callable[[], int] = time.monotonic_ns,
         watchdog_ms: float = 100.0,
         seed: int = 0,
+        drift_ppm: float = 0.0,
     ) -> None:
         devices = parse_spec(slaves, seed) if isinstance(slaves, str) else list(slaves)
         self.clock = clock
         self.rng = random.Random(seed)
         self.slaves: list[Esc] = []
-        for i, dev in enumerate(devices):
-            esc = Esc(dev, clock=clock, watchdog_ms=watchdog_ms, boot_offset_ns=1_000_000_000 + 7_919_000 * i)
+        self.dc_trace = DcTrace()
+        self._frame_now: int | None = None  # the time of the frame being handled
+        self.start_drifts = drifts(len(devices), drift_ppm, seed)  # (control command clear: back to these)
+        for i, (dev, drift) in enumerate(zip(devices, self.start_drifts, strict=True)):
+            esc = Esc(
+                dev,
+                clock=clock,
+                watchdog_ms=watchdog_ms,
+                boot_offset_ns=1_000_000_000 + 7_919_000 * i,
+                drift_ppm=drift,
+                frame_clock=self._frame_time,
+            )
             esc.on_change = self._on_change
             self.slaves.append(esc)
         self.faults = Faults()
@@ -187,9 +199,19 @@ class Segment:
         return self._addr
 
     # ------------------------------------------------------------------ frames
+    def _frame_time(self) -> int:
+        now = self._frame_now
+        return self.clock() if now is None else now
+
     def handle_frame(self, frame: bytes) -> bytes | None:
         """Process one Ethernet frame; the reply (same length) or None if it is lost."""
-        now = self.clock()
+        self._frame_now = now = self.clock()
+        try:
+            return self._handle_frame(frame, now)
+        finally:
+            self._frame_now = None
+
+    def _handle_frame(self, frame: bytes, now: int) -> bytes | None:
         c = self.counters
         c["frames"] += 1
         self.last_delay_ns = 0
@@ -381,12 +403,19 @@ class Segment:
             readers = {id(e) for e in self._addresses().get(adp, ())}
             new_adp = adp
         if ado == 0x0910 and n == 8:
-            # the DC drift compensation datagram: the reference clock reads its system time,
-            # the other slaves compare it with theirs (modelled as a write without effect)
+            # the DC drift compensation datagram: the reference clock reads its system time
+            # (as the frame passes it), the slaves after it take that time into their loops
+            reference = None
             for esc in active:
                 if id(esc) in readers:
-                    U64.pack_into(buf, d, esc.system_time(now))
+                    reference = esc
+                    if esc.has_dc:
+                        U64.pack_into(buf, d, esc.system_time(now + HOP_NS * esc.position))
+                else:
+                    esc.system_time_written(now, U64.unpack_from(buf, d)[0])
                 wkc += 1
+            if reference is not None and reference.has_dc:
+                self.dc_trace.sample(now, reference, active)
             return wkc, new_adp
         for esc in active:
             if id(esc) in readers:
