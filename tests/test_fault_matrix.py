@@ -247,6 +247,10 @@ class TickTimes:
 async def test_can_heartbeat_loss_fails_the_driver_within_its_timeout():
     timeout_ms, heartbeat_ms, at = 100.0, 10, 50
     raw = can_config(channel(), SINE, heartbeat_ms=heartbeat_ms, heartbeat_timeout_ms=timeout_ms)
+    # the subject is the heartbeat: the loop's own stale-feedback check (a silent node sends no
+    # TPDO either) must not come first when a stall of this busy host delays the heartbeat's
+    # verdict (silence while the process was stalled is not counted as the node's)
+    raw["loop"]["max_feedback_age"] = 1000
     async with ControlLoop(parse_config(raw)) as loop:
         driver = driver_of(loop)
         times = TickTimes()
