@@ -60,6 +60,7 @@ def board():
     b.close()
 
 
+@pytest.mark.realtime  # a robot process frozen and resumed, its simulators on their own clock: run alone
 @pytest.mark.parametrize("driver", FREEZES)
 def test_a_frozen_robot_process_holds_where_it_stands_and_rearms_without_a_step(tmp_path, driver):
     name, level = FREEZES[driver]

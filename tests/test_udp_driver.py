@@ -20,6 +20,10 @@ from aiohal.drivers.udp.protocol import COMMAND_RECORD, STATE_RECORD, BoardFault
 from aiohal.drivers.udp.sim import BoardSimulator
 from aiohal.robot import Fault, Mode
 
+#: the simulated boards answer on their own clock, in processes of their own: these run with
+#: the realtime group, alone, not beside the parallel tests (a loaded host delays their replies)
+pytestmark = pytest.mark.realtime
+
 KEY_HEX = "00112233445566778899aabbccddeeff"
 KEY = bytes.fromhex(KEY_HEX)
 
