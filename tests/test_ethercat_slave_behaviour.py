@@ -122,6 +122,7 @@ def _second_master(config: str, **env) -> subprocess.CompletedProcess:
                           text=True, timeout=120, cwd=ROOT, env={**os.environ, **env})
 
 
+@pytest.mark.realtime  # two robot processes and the segment's simulator on two cores: run alone
 @pytest.mark.parametrize("refused_by", ["lock", "op"])
 def test_a_second_master_is_refused_and_the_first_keeps_running(segment, tmp_path, refused_by):
     """A second ``python -m aiohal`` on the interface: refused by the first one's lock on it,
