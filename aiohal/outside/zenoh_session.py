@@ -4,7 +4,8 @@ The bridge takes commands only where Zenoh itself decides who reaches them: acce
 rules, user/password authentication or TLS with client certificates, read from the session's
 config (the ``config_file``, then the section's keys over it). Without any of them a bridge
 with commands refuses to start, unless ``allow_anyone`` says a lab does without. The check
-reads this session's config only: through a router, the router's config is the boundary.
+reads the bridge's own Zenoh config only: through a router, the router's config is the
+boundary.
 """
 
 from __future__ import annotations
