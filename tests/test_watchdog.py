@@ -68,11 +68,11 @@ def board():
     b.close()
 
 
-def robot_config(tmp_path, port: int) -> str:
+def robot_config(tmp_path, port: int, watchdog_ms: float = WATCHDOG_MS) -> str:
     text = (CONFIGS / "mock_arm.toml").read_text().replace(
         'dynamics = "first_order"', f'dynamics = "first_order"\nestop_datagram = "127.0.0.1:{port}"')
     assert "estop_datagram" in text
-    text += f"\n[safety]\nwatchdog_ms = {WATCHDOG_MS}\nwatchdog_priority = 90\n"
+    text += f"\n[safety]\nwatchdog_ms = {watchdog_ms}\nwatchdog_priority = 90\n"
     path = tmp_path / "robot.toml"
     path.write_text(text)
     return str(path)
