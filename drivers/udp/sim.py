@@ -160,6 +160,7 @@ class BoardSimulator:
             self.boards.append(board)
             self.selector.register(sock, selectors.EVENT_READ, board)
             start += count
+        self._measure()
 
     @property
     def addresses(self) -> list[tuple[str, int]]:
@@ -286,7 +287,12 @@ class BoardSimulator:
                 cmd["damping"][mask],
             )
             mask[:] = False
-        states = self.states
+        self._measure()
+
+    def _measure(self) -> None:
+        """Every state record refilled from the joints: after each servo step, and once at
+        construction so that a board asked before its first step answers where it stands."""
+        model, states = self.model, self.states
         states["position"] = model.position
         states["velocity"] = model.velocity
         states["effort"] = model.effort
