@@ -39,10 +39,11 @@ test: lint
 
 # The suite in an installed venv (.ci/run: `make suite PY=.venv312/bin/python`). The tests that
 # need no real time run in parallel, one worker per core (pytest-xdist; a file's tests on one
-# worker, so that its module fixtures start once); then the realtime-marked ones, alone.
+# worker, so that its module fixtures start once); then the realtime-marked ones, alone. Each
+# part names its 20 slowest tests: one over 20 s says why in a comment.
 suite:
-	$(PY) -m pytest -n auto --dist loadfile -m "not realtime"
-	$(PY) -m pytest -m realtime
+	$(PY) -m pytest -n auto --dist loadfile -m "not realtime" --durations=20
+	$(PY) -m pytest -m realtime --durations=20
 
 check: $(STAMP)
 	$(PY) -m aiohal check $(CONFIG)

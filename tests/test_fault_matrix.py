@@ -191,6 +191,26 @@ async def test_ethercat_faults_reach_their_level_within_the_error_limit(segment,
             ("driver:bus", "hold", change["tick"]), ("loop", "estop", change["tick"])]
 
 
+@pytest.mark.asyncio
+async def test_ethercat_wkc_errors_in_a_stall_count_in_the_health(segment):
+    """The tick stalls (100 ms, five times keepalive_after_ms) right after the segment was told
+    to answer its next 3 frames short: the keep-alive cycles the bus meanwhile and meets them,
+    and they count as the tick's own would."""
+    raw = raw_config(segment.ifname, wkc_error_limit=5)
+
+    def stall(lp) -> None:
+        if lp.robot.clock.tick == 200:
+            segment.control({"cmd": "wkc", "count": 3})
+            time.sleep(0.1)
+
+    async with ControlLoop(parse_config(raw)) as loop:
+        loop.add_publisher(stall)
+        report = await loop.run(ticks=400)
+    health = report["drivers"]["bus"]
+    assert health["keepalive_cycles"] >= 3, health
+    assert health["wkc_errors"] >= 3 and report["faults"] == [] and report["safety_level"] == "run", health
+
+
 @pytest.mark.realtime
 def test_a_frozen_process_is_stopped_by_the_watchdog_process_within_its_time(tmp_path, board):
     require_root("SCHED_FIFO for the robot, its watchdog process and the simulated board")

@@ -330,11 +330,12 @@ class EthercatDriver(Cia402Driver):
         (or no tick can run yet). Returns the working counter."""
         bus = self.bus
         if self._outstanding:  # a frame of the tick's is still out: take it first
-            bus.receive(self.options.receive_timeout_us)
+            self._count_off_tick(bus.receive(self.options.receive_timeout_us))
             self._outstanding = False
         self._pack_outputs_holding()
         bus.send()
         wkc = bus.receive(timeout_us or self.options.bringup_receive_timeout_us)
+        self._count_off_tick(wkc)
         if wkc == self._expected:
             self._load_inputs()
             if self.drives is not None:
@@ -342,6 +343,14 @@ class EthercatDriver(Cia402Driver):
                 if self._in_op:  # before OP a drive ignores its outputs: a fault reset would be spent
                     self.drives.update_machines(self._on_drive_event)
         return wkc
+
+    def _count_off_tick(self, wkc: int) -> None:
+        """A running bus's cycle the keep-alive ran (a stall of the loop) counts in the health
+        as the tick's own: a working-counter error there is one all the same."""
+        if self._activated and wkc != self._expected:
+            self.wkc_errors += 1
+            if wkc < 0:
+                self.frames_lost += 1
 
     def _pack_outputs_holding(self) -> None:
         if self.drives is not None:
