@@ -10,6 +10,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from conftest import CONFIGS, ROOT, require_module, start_segment
 
 CONFIG = CONFIGS / "walkman_whole_sim.toml"
@@ -22,7 +23,7 @@ def test_the_whole_robot_config_passes_check():
     proc = subprocess.run([sys.executable, "-m", "aiohal", "check", str(CONFIG)], capture_output=True, text=True,
                           timeout=60, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
-    assert "drivers: legs (ethercat, 15 joints), can_sensors (canopen, 0 joints), hand (nrt_hand, 1 joint)" in proc.stdout
+    assert "drivers: can_sensors (canopen, 0 joints), hand (nrt_hand, 1 joint), legs (ethercat, 15 joints)" in proc.stdout
     assert "at 2000 Hz" in proc.stdout
 
 
@@ -43,6 +44,7 @@ def whole_robot_text(ifname: str, record: str) -> str:
     return text + "\n[safety]\nmax_tick_gap_ms = 5000\n"
 
 
+@pytest.mark.root
 def test_the_whole_robot_runs_with_every_part_producing_data(tmp_path):
     """A few seconds through the CLI: no working-counter error the driver could have avoided,
     no fault, and data from every part: the drives' positions moving, the CAN IMU reading
