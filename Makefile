@@ -69,6 +69,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.fig7 --json bench-results/fig7.json
 	$(PY) -m benchmarks.tick_phase $$([ "$$(id -u)" = 0 ] && echo --fifo) --json bench-results/tick_phase.json
 	@if [ "$$(id -u)" = 0 ]; then $(PY) -m benchmarks.ethercat --json bench-results/ethercat.json; else echo "benchmarks.ethercat skipped: needs root"; fi
+	@if [ "$$(id -u)" = 0 ]; then $(PY) -m benchmarks.whole_robot --json bench-results/whole_robot.json; else echo "benchmarks.whole_robot skipped: needs root"; fi
 
 # a few of the benchmarks, shortened: a first look in a few minutes (bench takes about 30)
 bench-quick: $(STAMP)

@@ -29,6 +29,7 @@ import zenoh.ext
 
 from aiohal import ros2
 from aiohal.config import parse_config
+from aiohal.core.run_report import format_report
 from aiohal.errors import ConfigError
 from aiohal.outside import rmw_zenoh as rmw
 from aiohal.outside.options import ZenohBridgeSection
@@ -351,6 +352,10 @@ async def test_bridge_in_process_publishes_latches_and_leaves_the_graph():
     gone = [r for r in peer.liveliness().get(f"@ros2_lv/0/{zid}/**", timeout=2.0) if r.ok]
     peer.close()
     assert gone == [] and loop.doors.zenoh is None and loop.faults == []
+    # the run report, built after the doors closed, still has what the bridge sent and dropped
+    counters = loop.report()["bridge"]["zenoh"]
+    assert counters["state_sent"] >= len(states) and counters["state_dropped"] == 0, counters
+    assert "bridge       zenoh: " in format_report(loop.report())
 
 
 @pytest.mark.asyncio

@@ -14,6 +14,7 @@ from .ticker import TimerfdTickSource
 if TYPE_CHECKING:
     from ..config import Config
     from ..hal import Controller
+    from ..outside.doorkeeper import Doorkeeper
     from ..robot import Robot
     from ..safety import FaultRecord, SafetyLevel
     from ..safety.supervisor import Supervisor
@@ -38,6 +39,7 @@ class ReportedLoop(Protocol):
     extrapolator: TargetExtrapolator | None
     supervisor: Supervisor
     realtime: RealtimeState | None
+    doors: Doorkeeper | None
     event_loop: str
     stop_reason: str
 
@@ -80,6 +82,7 @@ def build(loop: ReportedLoop) -> dict[str, Any]:
         if isinstance(source, TimerfdTickSource)
         else {}
     )
+    bridges = loop.doors.report() if loop.doors is not None else {}
     return {
         "robot": loop.robot.name,
         "joints": loop.robot.dof,
@@ -102,6 +105,7 @@ def build(loop: ReportedLoop) -> dict[str, Any]:
         "faults": [f.as_dict() for f in loop.faults],
         "drivers": {slot.name: slot.report(n) for slot in loop.slots},
         "controller": metrics,
+        **({"bridge": bridges} if bridges else {}),
     }
 
 
@@ -215,6 +219,11 @@ def format_report(report: dict[str, Any]) -> str:
         lines.append(
             f"  record       {rec['path'] or 'live only'}: {rec['ticks']} ticks, {rec['dropped_ticks']} dropped, "
             f"{rec['messages']} messages" + (f", ERROR {rec['error']}" if rec.get("error") else "")
+        )
+    for name, counters in report.get("bridge", {}).items():
+        lines.append(
+            f"  bridge       {name}: {counters['state_sent']} states sent, {counters['state_dropped']} dropped, "
+            f"{counters['refused']} commands refused"
         )
     panel = report.get("status_panel")
     if panel and panel["refreshes"]:

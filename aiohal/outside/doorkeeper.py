@@ -39,6 +39,8 @@ class Doorkeeper:
         self._port = port
         self.shm: ShmDoor | None = None
         self.zenoh: ZenohBridge | None = None
+        #: the bridges' counters as they were when each closed (the run report comes after)
+        self.closed: dict[str, dict] = {}
         if config.client.shm:
             from .shm_door import ShmDoor
 
@@ -68,4 +70,12 @@ class Doorkeeper:
             self.shm = None
         if self.zenoh is not None:
             self.zenoh.close()
+            self.closed["zenoh"] = dict(self.zenoh.counters)
             self.zenoh = None
+
+    def report(self) -> dict[str, dict]:
+        """Each bridge's counters (sent, dropped, refused...): live while open, final once closed."""
+        out = dict(self.closed)
+        if self.zenoh is not None:
+            out["zenoh"] = dict(self.zenoh.counters)
+        return out
