@@ -7,8 +7,9 @@ import os
 import pytest
 from helpers import arm_raw, virtual_loop
 
-from aiohal.outside.recorder import EventFeed, make_ring
+from aiohal.outside.recorder import EventFeed
 from aiohal.outside.terminal_status import StatusFigures, render
+from aiohal.outside.tick_door import make_ring
 from aiohal.outside.tick_ring import TickReader
 from aiohal.safety import SafetyLevel, SafetyRequestRefused
 

@@ -45,7 +45,7 @@ def test_batch_encoder_writes_the_bytes_of_rosbags_for_every_channel(tmp_path):
         writer = RecorderWriter({"robot": control.robot, "path": None, "options": RecordSection(),
                                  "period_ns": control.period_ns, "clock": "virtual", "config_text": "",
                                  "offset_ns": 0, "now_ns": 0, "start": recorder.ring.head, "pid": os.getpid(),
-                                 "line": recorder.ring.claim_reader()})
+                                 "line": recorder.ring.claim_reader(recorder.ring.head)})
         recorder.close()
         return writer
 

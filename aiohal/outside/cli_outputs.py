@@ -21,14 +21,13 @@ from typing import TYPE_CHECKING, Any
 from ..errors import AiohalError, MissingDependencyError
 from ..files import check_output_path
 from .output_process import OutputRefused
-from .port import LoopPort, TickEnd
+from .port import LoopPort
 from .recorder_file import is_bag_path
 
 if TYPE_CHECKING:
     from ..config import Config
     from .recorder import EventFeed, Recorder
     from .terminal_status import StatusPanel
-    from .tick_ring import TickRing
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +99,8 @@ def check_new_directory(path: Path, protect: tuple[Path, ...]) -> None:
 
 class RunOutputs:
     """Made before the robot starts (the live view's port is taken then), started once it is
-    active, closed after it is deactivated. Every output reads the loop's one tick ring from a
-    process of its own; the tick's part is the ring's publisher, and nothing else."""
+    active, closed after it is deactivated. Every output reads the loop's tick ring
+    (:mod:`.tick_door`) from a process of its own; the tick's part is the ring's publisher."""
 
     def __init__(self, port: LoopPort, args: argparse.Namespace) -> None:
         self.port = port
@@ -109,32 +108,22 @@ class RunOutputs:
         self.options = port.config.record
         self.foxglove_port: int | None = args.foxglove
         self.show_status = not args.quiet and not args.no_panel and sys.stdout.isatty()
-        self.ring: TickRing | None = None
         self.recorder: Recorder | None = None
         self.live: Recorder | None = None
         self.status: StatusPanel | None = None
         self.feed: EventFeed | None = None
         self.panel_cost: dict[str, Any] | None = None
-        self._publisher: TickEnd | None = None
-
-    def _ring(self) -> TickRing:
-        if self.ring is None:
-            from .recorder import make_ring
-
-            self.ring = make_ring(self.port, self.options.buffer_ticks)
-        return self.ring
 
     def open_live(self) -> None:
         """Start the live view's process (before the robot starts: a port in use stops nothing)."""
         if self.foxglove_port is not None and self.live is None:
             from .recorder import Recorder
 
-            live = Recorder(self.port, None, self.options, live_port=self.foxglove_port, ring=self._ring())
+            live = Recorder(self.port, None, self.options, live_port=self.foxglove_port)
             try:
                 live.start_process()
             except OutputRefused as exc:
                 live.close()
-                self._close_ring()
                 raise AiohalError(exc.reason) from None
             self.live = live
             log.info("live view: Foxglove on ws://127.0.0.1:%d", live.live_port)
@@ -145,7 +134,7 @@ class RunOutputs:
         if self.path is not None:
             from .recorder import Recorder
 
-            self.recorder = Recorder(port, self.path, self.options, ring=self._ring())
+            self.recorder = Recorder(port, self.path, self.options)
             self.recorder.attach()
             log.info("recording to %s", self.path)
         if self.live is not None:
@@ -154,19 +143,17 @@ class RunOutputs:
             from .recorder import EventFeed
             from .terminal_status import StatusPanel
 
-            self.status = StatusPanel(port, self._ring())
-            self.feed = EventFeed(port, self.options.health_hz)
+            self.status = StatusPanel(port, self.options.buffer_ticks)
             try:
-                self.feed.sinks.append(self.status.start())
-            except (RuntimeError, OSError) as exc:
+                process = self.status.start()
+            except (OutputRefused, OSError) as exc:
                 log.warning("no status panel: %s", exc)
+                self.status.stop()
                 self.status = None
-            self.feed.start()
-        if self.ring is not None:
-            self._publisher = self.ring.publisher(port)
-            if not port.running and port.tick == 0:
-                self._publisher(None)  # tick 0: the state read at activation, where the controller started
-            port.at_tick_end(self._publisher)
+            else:
+                self.feed = EventFeed(port, self.options.health_hz)
+                self.feed.sinks.append(process)
+                self.feed.start()
 
     def stop_status(self) -> None:
         if self.feed is not None:
@@ -177,19 +164,8 @@ class RunOutputs:
             self.panel_cost = self.status.cost()
             self.status = None
 
-    def _close_ring(self) -> None:
-        if self._publisher is not None:
-            self.port.stop_calling(self._publisher)
-            self._publisher = None
-        if self.ring is not None and not (self.recorder or self.live or self.status):
-            self.ring.close()
-            self.ring = None
-
     def close(self) -> dict[str, Any]:
         """Everything stopped and written; the recording's figures for the report."""
-        if self._publisher is not None:
-            self.port.stop_calling(self._publisher)
-            self._publisher = None
         self.stop_status()
         out: dict[str, Any] = {}
         if self.panel_cost is not None:
@@ -202,5 +178,4 @@ class RunOutputs:
             self.live = None
             if live.get("error"):
                 out["live_view"] = live
-        self._close_ring()
         return out

@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from ..robot import Robot
     from ..safety import FaultRecord, SafetyLevel, Transition
     from ..safety.supervisor import Supervisor
+    from .tick_door import TickDoor
 
 #: Called at the end of every tick with one argument, which it ignores (the loop's own
 #: publishers get the loop there). It must not block, log or allocate on the common path.
@@ -91,6 +92,8 @@ class LoopPort:
         #: (or copy them there for later); never write them
         self.robot = loop.robot
         self.period_ns = loop.period_ns
+        #: the loop's tick ring while an output reads it (:mod:`.tick_door`)
+        self.tick_door: TickDoor | None = None
 
     # ------------------------------------------------------------ what to read
 

@@ -26,7 +26,8 @@ from ..core.tick_timing import PHASES
 from ..record.options import RecordSection
 from . import tick_ring as R
 from .output_process import OutputProcess
-from .port import LoopPort, TickEnd
+from .port import LoopPort
+from .tick_door import TickDoor, close_door, open_door
 
 log = logging.getLogger(__name__)
 
@@ -34,19 +35,6 @@ log = logging.getLogger(__name__)
 START_TIMEOUT_S = 60.0
 #: how long it may take to drain the ring and close the file at the end
 STOP_TIMEOUT_S = 60.0
-
-
-def make_ring(port: LoopPort, buffer_ticks: int) -> R.TickRing:
-    """The loop's tick ring, holding ``buffer_ticks`` ticks (rounded up to a power of 2)."""
-    stats = port.timing
-    return R.TickRing(
-        port.robot.name,
-        R.ring_arrays(port.robot),
-        buffer_ticks,
-        [stats.lateness, stats.work, *stats.phases],
-        stats.mask,
-        port.period_ns,
-    )
 
 
 class EventFeed:
@@ -104,10 +92,9 @@ class Recorder:
     rosbag2 directory (a path not ending in ``.mcap``; :mod:`.recorder_file`), and/or serves
     it live to Foxglove on ``live_port`` (0: any free port; :attr:`live_port` says which).
 
-    ``attach()`` (before ``run``) starts the writer's process and the tick's publisher;
-    ``close()`` (after the run) lets it drain the ring, write the summary and close the file.
-    ``ring``: the loop's tick ring when other outputs share it (its owner publishes into it);
-    without, the recorder makes one and publishes itself. ``plain``: serialize every message
+    ``attach()`` (before ``run``) opens the loop's tick door (:mod:`.tick_door`) and starts the
+    writer's process; ``close()`` (after the run) lets it drain the ring, write the summary and
+    close the file. ``plain``: serialize every message
     with rosbags, one at a time (the reference for the batch path, which writes the same bytes;
     ``python -m benchmarks.record --plain``).
     """
@@ -119,7 +106,6 @@ class Recorder:
         options: RecordSection | None = None,
         *,
         live_port: int | None = None,
-        ring: R.TickRing | None = None,
         plain: bool = False,
     ) -> None:
         self.port = port
@@ -127,8 +113,8 @@ class Recorder:
         self.path = None if path is None else Path(path)
         self.live_port = live_port
         self.plain = plain
-        self._own_ring = ring is None
-        self.ring = ring if ring is not None else make_ring(port, self.options.buffer_ticks)
+        self.door: TickDoor | None = None
+        self.ring: R.TickRing | None = None
         self.process: OutputProcess | None = None
         self.feed = EventFeed(port, self.options.health_hz)
         self.error: str | None = None
@@ -136,7 +122,6 @@ class Recorder:
         self._attached = False
         self._closed = False
         self._summary: dict[str, Any] | None = None
-        self._publisher: TickEnd | None = None
         self._offset_ns = time.time_ns() - port.now_ns()  # tick clock -> Unix time
 
     def start_process(self) -> None:
@@ -145,7 +130,10 @@ class Recorder:
         if self.process is not None:
             return
         port = self.port
-        self._line = self.ring.claim_reader()
+        self.door = open_door(port, self.options.buffer_ticks)
+        self.ring = self.door.ring
+        start = self.door.start_index()
+        self._line = self.ring.claim_reader(start)
         spec = {
             "robot": port.robot,
             "path": None if self.path is None else str(self.path),
@@ -157,7 +145,7 @@ class Recorder:
             "config_text": _config_text(port),
             "offset_ns": self._offset_ns,
             "now_ns": port.now_ns(),
-            "start": self.ring.head,
+            "start": start,
             "pid": os.getpid(),
             "line": self._line,
         }
@@ -182,12 +170,6 @@ class Recorder:
             log.error("recording not started: %s", self.error)
             return
         self.feed.start()
-        if self._own_ring:
-            port = self.port
-            self._publisher = self.ring.publisher(port)
-            if not port.running and port.tick == 0:
-                self._publisher(None)  # tick 0: the state read at activation, where the controller started
-            port.at_tick_end(self._publisher)
 
     @property
     def pid(self) -> int | None:
@@ -201,9 +183,6 @@ class Recorder:
             return self.summary()
         self._closed = True
         self.feed.stop()
-        if self._publisher is not None:
-            self.port.stop_calling(self._publisher)
-            self._publisher = None  # it holds views of the ring's memory
         if self.process is not None:
             final = {"events": self.feed.collect(health=True), "last_timing": self._last_timing()}
             self._summary = self.process.stop(final, STOP_TIMEOUT_S)
@@ -211,15 +190,17 @@ class Recorder:
                 self.error = self.process.error
                 log.error("%s: %s", self.process.name, self.error)
         summary = self.summary()
-        if self._own_ring:
-            self.ring.close()
+        if self.door is not None:
+            close_door(self.door)
+            self.door = None
         return summary
 
     def summary(self) -> dict[str, Any]:
         if self._summary is not None:
             out = dict(self._summary)
         else:  # no word from the writer: what its reader line says
-            seen = R.reader_figures(self.ring, self._line) if self._line >= 0 and self.ring.readers is not None else {}
+            ring = self.ring
+            seen = R.reader_figures(ring, self._line) if ring is not None and ring.readers is not None else {}
             out = {
                 "path": None if self.path is None else str(self.path),
                 "ticks": seen.get("kept", 0),
@@ -236,6 +217,7 @@ class Recorder:
 
     def _last_timing(self) -> dict[str, Any] | None:
         """The run's last tick's timing (stored after its publisher ran), when it was recorded."""
+        assert self.ring is not None
         last = self.ring.last_tick()
         stats = self.port.timing
         count = stats.count

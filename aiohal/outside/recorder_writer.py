@@ -248,7 +248,11 @@ class RecorderWriter:
                     self._flush()
                 yield True
                 continue
+            self.ticks_written += len(data)
             meta = ring.meta(data)
+            if file is None:  # live only: encode only the ticks that go out
+                sent = (meta[:, R.TICK] % live_every == 0) | (meta[:, R.PREV_TICK] % live_every == 0)
+                data, meta = data[sent], meta[sent]
             ticks = meta[:, R.TICK]
             valid = meta[:, R.TIMING_VALID] != 0
             for ch, every in zip(self.channels, decimate, strict=True):
@@ -271,7 +275,6 @@ class RecorderWriter:
                         live.log(ch.live, msg, time_list[i])
                         self.live_messages += 1
                 self.messages += count
-            self.ticks_written += len(data)
             if file is not None and time.monotonic_ns() - self._last_flush >= flush_ns:
                 self._flush()
             yield False

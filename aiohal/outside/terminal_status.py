@@ -18,6 +18,7 @@ import numpy as np
 from . import tick_ring as R
 from .output_process import OutputProcess
 from .port import LoopPort
+from .tick_door import TickDoor, close_door, open_door
 
 
 class StatusFigures:
@@ -137,6 +138,9 @@ class StatusOutput:
         self.refreshes = 0
         self.draw_ns = 0
         self.max_draw_ns = 0
+        if console is None and spec.get("terminal") is not None:  # another terminal (or a file)
+            self._out = open(spec["terminal"], "w")  # noqa: SIM115 - closed in finish()
+            console = Console(file=self._out, force_terminal=True, width=100)
         self._live = Live(
             render(self.state.figures()), console=console or Console(), auto_refresh=False, transient=True
         )
@@ -165,6 +169,8 @@ class StatusOutput:
     def finish(self, final: Any) -> dict[str, Any]:
         """Stop drawing; what drawing took in this process (refreshes, mean and longest draw)."""
         self._live.stop()
+        if getattr(self, "_out", None) is not None:
+            self._out.close()
         self.ring.close()
         return {
             "refreshes": self.refreshes,
@@ -174,24 +180,31 @@ class StatusOutput:
 
 
 class StatusPanel:
-    """The loop's side: starts the panel's process reading ``ring`` and feeds it through ``feed``
-    (a :class:`~aiohal.outside.recorder.EventFeed`)."""
+    """The loop's side: starts the panel's process reading the loop's tick ring; a
+    :class:`~aiohal.outside.recorder.EventFeed` sends it the health and faults."""
 
-    def __init__(self, port: LoopPort, ring: R.TickRing, refresh_hz: float = 4.0) -> None:
+    def __init__(
+        self, port: LoopPort, buffer_ticks: int = 4096, refresh_hz: float = 4.0, terminal: str | None = None
+    ) -> None:
         self.port = port
-        self.ring = ring
+        self.buffer_ticks = buffer_ticks
+        self.door: TickDoor | None = None
         self.refresh_hz = refresh_hz
+        self.terminal = terminal
         self.process: OutputProcess | None = None
         self._cost: dict[str, Any] | None = None
 
     def start(self, timeout_s: float = 60.0) -> OutputProcess:
-        line = self.ring.claim_reader()
+        self.door = door = open_door(self.port, self.buffer_ticks)
+        start = door.start_index()
+        line = door.ring.claim_reader(start)
         spec = {
             "robot_name": self.port.robot.name,
-            "start": self.ring.head,
+            "start": start,
             "pid": os.getpid(),
             "line": line,
             "refresh_hz": self.refresh_hz,
+            "terminal": self.terminal,
         }
         self.process = OutputProcess("status", spec, f"status panel of {self.port.robot.name}")
         self.process.wait_ready(timeout_s)
@@ -201,6 +214,9 @@ class StatusPanel:
         if self.process is not None:
             self._cost = self.process.stop(None, 30.0)
             self.process = None
+        if self.door is not None:
+            close_door(self.door)
+            self.door = None
 
     def cost(self) -> dict[str, Any]:
         """What drawing took in the panel's process: refreshes, mean and longest draw."""

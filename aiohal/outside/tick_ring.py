@@ -286,14 +286,15 @@ class TickRing:
 
         return record_tick
 
-    def claim_reader(self) -> int:
-        """A reader line for an output process: it reports there where it is and what it lost."""
+    def claim_reader(self, start: int) -> int:
+        """A reader line for an output process starting at row ``start``: it reports there where
+        it is and what it lost."""
         if self._next_reader >= READERS:
             raise ShmError(f"{self.name}: at most {READERS} output processes")
         i = self._next_reader
         self._next_reader += 1
         self.readers[i] = 0
-        self.readers[i, C_TAIL] = self.readers[i, C_START] = self.head
+        self.readers[i, C_TAIL] = self.readers[i, C_START] = start
         return i
 
     def last_tick(self) -> tuple[int, int, int] | None:
