@@ -91,10 +91,7 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
                                     "--seconds", str(2 * seconds + 30), "--wait", "30"], cwd=ROOT,
                                    stdout=subprocess.PIPE, text=True)
     publish = port.tick_door.publish  # the tick's whole share of every output
-    bridge = control.doors.zenoh
-    bridge_publish = bridge.publish if bridge is not None else None
-    if bridge_publish is not None:
-        control.remove_publisher(bridge_publish)
+    bridge = control.doors.zenoh if control.doors is not None else None
     for feed in feeds:
         feed.stop()
     rate = 1e9 / control.period_ns
@@ -103,13 +100,10 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
     bounds: list[tuple[int, bool]] = []  # (stats index where a block starts, outputs on)
 
     def switch(on: bool) -> None:
-        for p in (publish, bridge_publish):
-            if p is None:
-                continue
-            if on:
-                control.add_publisher(p)
-            else:
-                control.remove_publisher(p)
+        if on:
+            control.add_publisher(publish)
+        else:
+            control.remove_publisher(publish)
         for feed in feeds:
             feed.start() if on else feed.stop()
 
@@ -142,7 +136,7 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
             text, _ = proc.communicate(timeout=30)
             extra[name] = text.strip().splitlines()[-1] if text.strip() else ""
         if bridge is not None:
-            extra["zenoh_bridge"] = dict(bridge.counters)
+            extra["zenoh_bridge"] = dict(bridge.counters)  # given by its process at close
     stats = control.stats
     n = stats.count
     on_mask = np.zeros(n, dtype=bool)

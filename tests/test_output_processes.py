@@ -4,8 +4,10 @@ serving live, the output processes die with the loop, and the tick ring is read 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -20,6 +22,7 @@ pytest.importorskip("rosbags")
 
 from aiohal import ControlLoop, load_config
 from aiohal.core.ticker import VirtualTickSource
+from aiohal.outside.options import BridgeSection, ZenohBridgeSection
 from aiohal.outside.recorder import Recorder
 from aiohal.outside.tick_ring import TickReader
 from aiohal.record import RecordSection, load
@@ -57,15 +60,26 @@ def alive(pid: int) -> bool:
         return False
 
 
-def test_recording_and_serving_live_start_no_thread_in_the_loops_process(tmp_path):
-    """Threads of the loop's process while it records and serves Foxglove (/proc/self/task)."""
+def test_recording_serving_live_and_bridging_start_no_thread_in_the_loops_process(tmp_path):
+    """Threads of the loop's process while it records, serves Foxglove and bridges to Zenoh
+    (/proc/self/task)."""
     pytest.importorskip("foxglove")
     seen: list[tuple[int, int]] = []
 
+    pytest.importorskip("zenoh")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        zport = s.getsockname()[1]
+    config = load_config(HUMANOID)
+    config = dataclasses.replace(config, bridge=BridgeSection(
+        zenoh=ZenohBridgeSection(listen=[f"tcp/127.0.0.1:{zport}"], connect=[])))
+
     async def main():
-        control = ControlLoop(load_config(HUMANOID), tick_source=VirtualTickSource())
-        await control.activate()
+        control = ControlLoop(config, tick_source=VirtualTickSource())
         before = tasks()
+        await control.activate()  # the Zenoh bridge starts
+        bridge = control.doors.zenoh
+        assert bridge is not None and control.faults == []
         recorder = Recorder(control.port, tmp_path / "run.mcap", RecordSection(), live_port=0)
         recorder.attach()
         control.add_publisher(
@@ -75,9 +89,10 @@ def test_recording_and_serving_live_start_no_thread_in_the_loops_process(tmp_pat
         )
         await control.run(ticks=400)
         await control.deactivate()
-        return before, recorder.close()
+        return before, recorder.close(), bridge
 
-    before, summary = asyncio.run(main())
+    before, summary, bridge = asyncio.run(main())
+    assert bridge.counters["state_sent"] >= 3  # joint_states at 100 Hz of 400 ticks
     assert summary["ticks"] == 401 and summary["dropped_ticks"] == 0
     # besides the tick's thread, only the loop's own stall watchdog (which runs without outputs
     # too); no thread of an output, Python or native

@@ -62,13 +62,14 @@ class Channel:
         return pickle.loads(data)
 
     def answer(self, what: str, body: Any) -> None:
+        """Send a message to the loop (from any thread: each is one datagram)."""
         try:
             self.sock.sendall(pickle.dumps((what, body), protocol=pickle.HIGHEST_PROTOCOL))
         except OSError:
             self.closed = True
 
 
-def make_output(kind: str, spec: dict[str, Any]) -> Any:
+def make_output(kind: str, spec: dict[str, Any], channel: Channel) -> Any:
     """The output object: ``step() -> bool`` (True: nothing was left to do), ``message(m)``,
     ``finish(final) -> summary``, ``info() -> dict``."""
     if kind == "recorder":
@@ -79,6 +80,10 @@ def make_output(kind: str, spec: dict[str, Any]) -> Any:
         from .terminal_status import StatusOutput
 
         return StatusOutput(spec)
+    if kind == "zenoh":
+        from .zenoh_output import ZenohOutput
+
+        return ZenohOutput(spec, channel)
     raise ValueError(f"unknown output {kind!r}")
 
 
@@ -91,7 +96,7 @@ def run(channel: Channel) -> int:
         return 1
     _, kind, spec = first
     try:
-        output = make_output(kind, spec)
+        output = make_output(kind, spec, channel)
     except Exception as exc:
         from ..errors import AiohalError
 

@@ -12,6 +12,7 @@ socket's end (:mod:`.output_main`).
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import os
 import pickle
@@ -21,6 +22,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -68,6 +70,7 @@ class OutputProcess:
         finally:
             theirs.close()
         self._sock = ours
+        self._loop: asyncio.AbstractEventLoop | None = None
         ours.sendall(pickle.dumps(("start", kind, spec), protocol=pickle.HIGHEST_PROTOCOL))
         ours.setblocking(False)
 
@@ -101,10 +104,39 @@ class OutputProcess:
         self.sent += 1
         return True
 
+    def serve(self, loop: asyncio.AbstractEventLoop, act: Callable[[str], tuple[bool, str]]) -> None:
+        """Answer the child's requests on ``loop`` (the loop's thread, between ticks): each
+        ``("request", (id, name))`` is acted on by ``act(name) -> (success, message)`` and
+        answered ``("answer", id, success, message)``."""
+        self._loop = loop
+
+        def readable() -> None:
+            for _ in range(64):  # bounded: what is there now
+                try:
+                    data = self._sock.recv(MAX_MESSAGE)
+                except (BlockingIOError, InterruptedError):
+                    return
+                except OSError:
+                    data = b""
+                if not data:
+                    loop.remove_reader(self._sock.fileno())
+                    self._loop = None
+                    return
+                what, body = pickle.loads(data)
+                if what == "request":
+                    rid, name = body
+                    success, message = act(name)
+                    self.send(("answer", rid, success, message))
+
+        loop.add_reader(self._sock.fileno(), readable)
+
     def stop(self, final: Any, timeout_s: float) -> dict[str, Any] | None:
         """Ask the child to finish (``final`` is its last message) and wait for its summary; a
         child that does not answer within ``timeout_s`` is killed. None when it gave no summary."""
         summary = None
+        if self._loop is not None:
+            self._loop.remove_reader(self._sock.fileno())
+            self._loop = None
         if self.alive:
             self._sock.setblocking(True)
             try:
@@ -129,6 +161,9 @@ class OutputProcess:
 
     def kill(self) -> None:
         """End the child now (the loop is going away without a summary)."""
+        if self._loop is not None:
+            self._loop.remove_reader(self._sock.fileno())
+            self._loop = None
         if self.alive:
             self.process.kill()
         self.process.wait(timeout=10)
