@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from aiohal import ControlLoop, load_config
-from aiohal.outside.recorder import EventFeed, Recorder
+from aiohal.outside.recorder import Recorder
 from aiohal.outside.terminal_status import StatusPanel
 from aiohal.record import load
 
@@ -60,8 +60,10 @@ def side_figures(stats, mask: np.ndarray, blocks: list[tuple[int, int]]) -> dict
 
 
 async def measure(config_path: Path, seconds: float, block_s: float, out: Path, plain: bool = False,
-                  every: bool = False) -> dict:
+                  every: bool = False, cpus: list[int] | None = None) -> dict:
     config = load_config(config_path)
+    if cpus:  # the tick on these CPUs, the output processes on the others
+        config = dataclasses.replace(config, realtime=config.realtime.model_copy(update={"cpus": cpus}))
     if every:
         from aiohal.outside.options import BridgeSection, ZenohBridgeSection
 
@@ -75,37 +77,35 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
     port = control.port
     recorder = Recorder(port, out, config.record, plain=plain)
     recorder.attach()
-    feeds = [recorder.feed]
     live = status = client = monitor = None
     if every:
         live = Recorder(port, None, config.record, live_port=0)
         live.attach()
         status = StatusPanel(port, config.record.buffer_ticks, terminal="/dev/null")
-        status_feed = EventFeed(port, config.record.health_hz)
-        status_feed.sinks.append(status.start())
-        feeds += [live.feed, status_feed]
+        status.start()
         client = subprocess.Popen([sys.executable, "-m", "benchmarks.record", "--foxglove-client", str(live.live_port),
                                    "--seconds", str(2 * seconds + 30)], cwd=ROOT, stdout=subprocess.PIPE, text=True)
         monitor = subprocess.Popen([sys.executable, str(ROOT / "examples" / "zenoh_monitor.py"),
                                     "--connect", f"tcp/127.0.0.1:{zport}", "--listen", f"tcp/127.0.0.1:{free_port()}",
-                                    "--seconds", str(2 * seconds + 30), "--wait", "30"], cwd=ROOT,
+                                    "--seconds", str(2 * seconds), "--wait", "30"], cwd=ROOT,
                                    stdout=subprocess.PIPE, text=True)
     publish = port.tick_door.publish  # the tick's whole share of every output
     bridge = control.doors.zenoh if control.doors is not None else None
-    for feed in feeds:
-        feed.stop()
+    feed = port.event_feed  # one for every output process: health sampled on the event loop
+    feed.stop()
+    control.remove_publisher(publish)  # the run starts with the outputs off
     rate = 1e9 / control.period_ns
     blocks_per_side = round(seconds / block_s)
     ticks_per_block = round(block_s * rate)
     bounds: list[tuple[int, bool]] = []  # (stats index where a block starts, outputs on)
+    missed = {"off": 0, "on": 0}  # deadlines missed in each side's blocks
 
     def switch(on: bool) -> None:
         if on:
             control.add_publisher(publish)
         else:
             control.remove_publisher(publish)
-        for feed in feeds:
-            feed.start() if on else feed.stop()
+        feed.start() if on else feed.stop()
 
     async def toggle() -> None:
         on = False
@@ -114,9 +114,11 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
             while control.state != "running":
                 await asyncio.sleep(0.001)
             bounds.append((control.stats.count, on))
+            before = control.missed_ticks
             target = control.stats.count + ticks_per_block
             while control.stats.count < target:
                 await asyncio.sleep(0.0005)
+            missed["on" if on else "off"] += control.missed_ticks - before
             on = not on
             switch(on)
         control.request_stop("benchmark done")
@@ -132,8 +134,13 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
         status.stop()
         extra["status_panel"] = status.cost()
         for name, proc in (("foxglove_client", client), ("zenoh_monitor", monitor)):
-            proc.terminate()
-            text, _ = proc.communicate(timeout=30)
+            if name == "foxglove_client":
+                proc.terminate()
+            try:
+                text, _ = proc.communicate(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                text, _ = proc.communicate()
             extra[name] = text.strip().splitlines()[-1] if text.strip() else ""
         if bridge is not None:
             extra["zenoh_bridge"] = dict(bridge.counters)  # given by its process at close
@@ -148,12 +155,13 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
     off_mask = ~on_mask
     off_mask[: edges[0] + 1] = False  # the warm-up before the first block
     blocks = list(itertools.pairwise(edges))
-    side = {name: side_figures(stats, mask, blocks) for name, mask in (("off", off_mask), ("on", on_mask))}
+    side = {name: {**side_figures(stats, mask, blocks), "missed": missed[name]}
+            for name, mask in (("off", off_mask), ("on", on_mask))}
     rec = load(out)
     return {
         "config": str(config_path.relative_to(ROOT) if config_path.is_relative_to(ROOT) else config_path),
         "outputs": "recording, Foxglove + client, panel, Zenoh bridge + subscriber" if every else "recording",
-        "rate_hz": rate, "block_s": block_s, "seconds_per_side": seconds, "plain": plain,
+        "rate_hz": rate, "cpus": cpus, "block_s": block_s, "seconds_per_side": seconds, "plain": plain,
         "sides": side,
         "work_p50_added_us": round(side["on"]["work_p50_us"] - side["off"]["work_p50_us"], 2),
         "missed_ticks_run": report["missed_ticks"],
@@ -180,6 +188,8 @@ def foxglove_client(port: int, seconds: float) -> None:
                     continue
                 if isinstance(frame, bytes):
                     got += 1
+                    if got % 1000 == 0:
+                        print(f"foxglove client: {got} messages on {len(subscribed)} channels", flush=True)
                     continue
                 msg = json.loads(frame)
                 if msg["op"] == "advertise":
@@ -203,6 +213,8 @@ def main() -> None:
     p.add_argument("--block", type=float, default=0.5, help="seconds per on or off block")
     p.add_argument("--out", type=Path, default=Path("/tmp/aiohal-record-bench.mcap"))
     p.add_argument("--all", action="store_true", help="every output on: recording, Foxglove, panel, Zenoh")
+    p.add_argument("--cpus", type=lambda v: [int(c) for c in v.split(",") if c], default=[1],
+                   help="pin the tick to these CPUs ([realtime] cpus; the outputs keep off them); '' for none")
     p.add_argument("--plain", action="store_true", help="serialize each message with rosbags (the plain path)")
     p.add_argument("--foxglove-client", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--json", default=None)
@@ -211,13 +223,15 @@ def main() -> None:
         foxglove_client(args.foxglove_client, args.seconds)
         return
     t = time.monotonic()
-    result = asyncio.run(measure(args.config.resolve(), args.seconds, args.block, args.out, args.plain, args.all))
+    result = asyncio.run(measure(args.config.resolve(), args.seconds, args.block, args.out, args.plain, args.all,
+                                 args.cpus))
     rows = [{"side": k, **v} for k, v in result["sides"].items()]
     print(f"outputs: {result['outputs']}")
     print(table(rows, [("side", "outputs"), ("ticks", "ticks"), ("work_p50_us", "work p50 µs"),
                        ("work_p99_us", "work p99 µs"), ("block_work_p99_median_us", "work p99 µs (block median)"),
                        ("publish_p50_us", "publish p50 µs"), ("lateness_p99_us", "lateness p99 µs"),
-                       ("block_lateness_p99_median_us", "lateness p99 µs (block median)")]))
+                       ("block_lateness_p99_median_us", "lateness p99 µs (block median)"),
+                       ("missed", "missed deadlines")]))
     print(f"work p50 added by the outputs: {result['work_p50_added_us']} µs; missed deadlines in the run: "
           f"{result['missed_ticks_run']}; recorder dropped: {result['dropped_ticks']}")
     print("ticks per channel in the file:", result["recorded_ticks_per_channel"])

@@ -7,7 +7,7 @@ import os
 import pytest
 from helpers import arm_raw, virtual_loop
 
-from aiohal.outside.recorder import EventFeed
+from aiohal.outside.event_feed import EventFeed
 from aiohal.outside.terminal_status import StatusFigures, render
 from aiohal.outside.tick_door import make_ring
 from aiohal.outside.tick_ring import TickReader

@@ -26,7 +26,7 @@ from .recorder_file import is_bag_path
 
 if TYPE_CHECKING:
     from ..config import Config
-    from .recorder import EventFeed, Recorder
+    from .recorder import Recorder
     from .terminal_status import StatusPanel
 
 log = logging.getLogger(__name__)
@@ -111,7 +111,6 @@ class RunOutputs:
         self.recorder: Recorder | None = None
         self.live: Recorder | None = None
         self.status: StatusPanel | None = None
-        self.feed: EventFeed | None = None
         self.panel_cost: dict[str, Any] | None = None
 
     def open_live(self) -> None:
@@ -140,25 +139,17 @@ class RunOutputs:
         if self.live is not None:
             self.live.attach()
         if self.show_status:
-            from .recorder import EventFeed
             from .terminal_status import StatusPanel
 
-            self.status = StatusPanel(port, self.options.buffer_ticks)
+            self.status = StatusPanel(port, self.options.buffer_ticks, health_hz=self.options.health_hz)
             try:
-                process = self.status.start()
+                self.status.start()
             except (OutputRefused, OSError) as exc:
                 log.warning("no status panel: %s", exc)
                 self.status.stop()
                 self.status = None
-            else:
-                self.feed = EventFeed(port, self.options.health_hz)
-                self.feed.sinks.append(process)
-                self.feed.start()
 
     def stop_status(self) -> None:
-        if self.feed is not None:
-            self.feed.stop()
-            self.feed = None
         if self.status is not None:
             self.status.stop()
             self.panel_cost = self.status.cost()

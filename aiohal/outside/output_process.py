@@ -22,7 +22,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -47,7 +47,7 @@ class OutputProcess:
     the thread that started the child.
     """
 
-    def __init__(self, kind: str, spec: dict[str, Any], name: str) -> None:
+    def __init__(self, kind: str, spec: dict[str, Any], name: str, avoid_cpus: Collection[int] | None = None) -> None:
         self.kind = kind
         self.name = name
         self.sent = 0
@@ -69,10 +69,23 @@ class OutputProcess:
             )
         finally:
             theirs.close()
+        self._keep_off(avoid_cpus)
         self._sock = ours
         self._loop: asyncio.AbstractEventLoop | None = None
         ours.sendall(pickle.dumps(("start", kind, spec), protocol=pickle.HIGHEST_PROTOCOL))
         ours.setblocking(False)
+
+    def _keep_off(self, cpus: Collection[int] | None) -> None:
+        """Off the CPUs the tick is pinned to (``[realtime] cpus``), where there are others: the
+        tick's caches stay its own."""
+        if not cpus:
+            return
+        try:
+            others = os.sched_getaffinity(0) - set(cpus)
+            if others:
+                os.sched_setaffinity(self.process.pid, others)
+        except OSError as exc:
+            log.warning("%s: not kept off CPUs %s: %s", self.name, sorted(cpus), exc)
 
     @property
     def pid(self) -> int:
@@ -95,10 +108,13 @@ class OutputProcess:
 
     def send(self, message: Any) -> bool:
         """Hand the child a message without waiting: False (counted) if it could not go now."""
+        return self.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+
+    def send_bytes(self, data: bytes) -> bool:
+        """:meth:`send` of a message pickled already (one pickling for every output)."""
         try:
-            data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
             self._sock.send(data)
-        except (BlockingIOError, BrokenPipeError, ConnectionResetError, OSError):
+        except OSError:  # full (BlockingIOError), or the child is gone
             self.dropped_messages += 1
             return False
         self.sent += 1

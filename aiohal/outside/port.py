@@ -24,6 +24,7 @@ if TYPE_CHECKING:
     from ..robot import Robot
     from ..safety import FaultRecord, SafetyLevel, Transition
     from ..safety.supervisor import Supervisor
+    from .event_feed import EventFeed
     from .tick_door import TickDoor
 
 #: Called at the end of every tick with one argument, which it ignores (the loop's own
@@ -94,6 +95,8 @@ class LoopPort:
         self.period_ns = loop.period_ns
         #: the loop's tick ring while an output reads it (:mod:`.tick_door`)
         self.tick_door: TickDoor | None = None
+        #: the loop's health and fault feed while an output process gets it (:mod:`.event_feed`)
+        self.event_feed: EventFeed | None = None
 
     # ------------------------------------------------------------ what to read
 

@@ -15,7 +15,6 @@ progress and flushes the file every ``flush_ms`` (docs/recording.md).
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import os
 import time
@@ -25,6 +24,7 @@ from typing import Any
 from ..core.tick_timing import PHASES
 from ..record.options import RecordSection
 from . import tick_ring as R
+from .event_feed import EventFeed, join_feed, leave_feed
 from .output_process import OutputProcess
 from .port import LoopPort
 from .tick_door import TickDoor, close_door, open_door
@@ -35,56 +35,6 @@ log = logging.getLogger(__name__)
 START_TIMEOUT_S = 60.0
 #: how long it may take to drain the ring and close the file at the end
 STOP_TIMEOUT_S = 60.0
-
-
-class EventFeed:
-    """What the outputs need that is not in the ring, sampled on the event loop: the drivers'
-    health (every ``1/health_hz`` s), new faults and safety changes, as ``("event", topic,
-    stamp_ns, body)`` messages to every process in ``sinks``."""
-
-    def __init__(self, port: LoopPort, health_hz: float) -> None:
-        self.port = port
-        self.period_s = 1.0 / health_hz
-        self.sinks: list[OutputProcess] = []
-        self._faults_seen = 0
-        self._transitions_seen = 0
-        self._task: asyncio.Task | None = None
-
-    def start(self) -> None:
-        try:
-            loop = asyncio.get_running_loop()
-        except RuntimeError:
-            return  # no event loop: the final events only
-        self._task = loop.create_task(self._run())
-
-    async def _run(self) -> None:
-        while True:
-            await asyncio.sleep(self.period_s)
-            for event in self.collect(health=True):
-                for sink in self.sinks:
-                    sink.send(event)
-
-    def collect(self, *, health: bool) -> list[tuple]:
-        port = self.port
-        now = port.robot.clock.now_ns
-        events: list[tuple] = []
-        faults = port.faults
-        while self._faults_seen < len(faults):
-            events.append(("event", "/faults", now, faults[self._faults_seen]))
-            self._faults_seen += 1
-        transitions = port.transitions
-        while self._transitions_seen < len(transitions):
-            events.append(("event", "/safety/events", now, transitions[self._transitions_seen]))
-            self._transitions_seen += 1
-        if health:
-            events.append(("event", "/diagnostics", now, port.health()))
-            events.append(("event", "/loop", now, {"missed_ticks": port.missed_ticks, "ticks": port.timing.count}))
-        return events
-
-    def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            self._task = None
 
 
 class Recorder:
@@ -116,7 +66,7 @@ class Recorder:
         self.door: TickDoor | None = None
         self.ring: R.TickRing | None = None
         self.process: OutputProcess | None = None
-        self.feed = EventFeed(port, self.options.health_hz)
+        self.feed: EventFeed | None = None
         self.error: str | None = None
         self._line = -1
         self._attached = False
@@ -150,8 +100,9 @@ class Recorder:
             "line": self._line,
         }
         what = "recorder" if self.path is not None else "live view"
-        self.process = OutputProcess("recorder", spec, f"{what} of {port.robot.name}")
-        self.feed.sinks.append(self.process)
+        self.process = OutputProcess(
+            "recorder", spec, f"{what} of {port.robot.name}", avoid_cpus=port.config.realtime.cpus
+        )
         info = self.process.wait_ready(START_TIMEOUT_S)
         if self.live_port is not None:
             self.live_port = info["live_port"]
@@ -169,7 +120,8 @@ class Recorder:
             self.error = str(exc)
             log.error("recording not started: %s", self.error)
             return
-        self.feed.start()
+        assert self.process is not None
+        self.feed = join_feed(self.port, self.options.health_hz, self.process)
 
     @property
     def pid(self) -> int | None:
@@ -182,9 +134,11 @@ class Recorder:
         if self._closed:
             return self.summary()
         self._closed = True
-        self.feed.stop()
+        if self.feed is not None and self.process is not None:
+            leave_feed(self.feed, self.process)  # the last health and events go first
+            self.feed = None
         if self.process is not None:
-            final = {"events": self.feed.collect(health=True), "last_timing": self._last_timing()}
+            final = {"last_timing": self._last_timing()}
             self._summary = self.process.stop(final, STOP_TIMEOUT_S)
             if self._summary is None:
                 self.error = self.process.error

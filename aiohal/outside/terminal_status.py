@@ -3,7 +3,7 @@ an output process of its own.
 
 The process reads the tick's timing from the tick ring (:mod:`.tick_ring`: each row carries
 the previous tick's lateness and work) and the drivers' health, the faults and the missed
-ticks from the loop's messages (:mod:`.recorder`'s event feed); the loop's process spends
+ticks from the loop's messages (:mod:`.event_feed`); the loop's process spends
 nothing on drawing. Its cost (refreshes, mean and longest draw) comes back in the report.
 """
 
@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from . import tick_ring as R
+from .event_feed import EventFeed, join_feed, leave_feed
 from .output_process import OutputProcess
 from .port import LoopPort
 from .tick_door import TickDoor, close_door, open_door
@@ -180,15 +181,22 @@ class StatusOutput:
 
 
 class StatusPanel:
-    """The loop's side: starts the panel's process reading the loop's tick ring; a
-    :class:`~aiohal.outside.recorder.EventFeed` sends it the health and faults."""
+    """The loop's side: starts the panel's process reading the loop's tick ring; the loop's
+    event feed (:mod:`.event_feed`) sends it the health and faults."""
 
     def __init__(
-        self, port: LoopPort, buffer_ticks: int = 4096, refresh_hz: float = 4.0, terminal: str | None = None
+        self,
+        port: LoopPort,
+        buffer_ticks: int = 4096,
+        refresh_hz: float = 4.0,
+        terminal: str | None = None,
+        health_hz: float = 10.0,
     ) -> None:
         self.port = port
         self.buffer_ticks = buffer_ticks
         self.door: TickDoor | None = None
+        self.feed: EventFeed | None = None
+        self.health_hz = health_hz
         self.refresh_hz = refresh_hz
         self.terminal = terminal
         self.process: OutputProcess | None = None
@@ -206,11 +214,17 @@ class StatusPanel:
             "refresh_hz": self.refresh_hz,
             "terminal": self.terminal,
         }
-        self.process = OutputProcess("status", spec, f"status panel of {self.port.robot.name}")
+        self.process = OutputProcess(
+            "status", spec, f"status panel of {self.port.robot.name}", avoid_cpus=self.port.config.realtime.cpus
+        )
         self.process.wait_ready(timeout_s)
+        self.feed = join_feed(self.port, self.health_hz, self.process)
         return self.process
 
     def stop(self) -> None:
+        if self.feed is not None and self.process is not None:
+            leave_feed(self.feed, self.process)
+            self.feed = None
         if self.process is not None:
             self._cost = self.process.stop(None, 30.0)
             self.process = None

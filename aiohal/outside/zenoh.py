@@ -15,10 +15,10 @@ import os
 from typing import Any
 
 from ..safety import SafetyRequestRefused
+from .event_feed import EventFeed, join_feed, leave_feed
 from .options import ZenohBridgeSection
 from .output_process import OutputProcess
 from .port import LoopPort
-from .recorder import EventFeed
 from .tick_door import TickDoor, close_door, open_door
 from .zenoh_session import check_access, session_config
 
@@ -42,7 +42,7 @@ class ZenohBridge:
         self.every = max(1, round(rate / section.state_hz))
         self.process: OutputProcess | None = None
         self.door: TickDoor | None = None
-        self.feed = EventFeed(port, FEED_HZ)
+        self.feed: EventFeed | None = None
         self.keys: dict[str, str] = {}  # endpoint name → its key expression (for logs and tests)
         self.tokens: list[str] = []  # the liveliness tokens declared
         self.zid = ""
@@ -75,7 +75,9 @@ class ZenohBridge:
             "start": start,
             "line": door.ring.claim_reader(start),
         }
-        self.process = OutputProcess("zenoh", spec, f"zenoh bridge of {port.robot.name}")
+        self.process = OutputProcess(
+            "zenoh", spec, f"zenoh bridge of {port.robot.name}", avoid_cpus=port.config.realtime.cpus
+        )
         try:
             info = self.process.wait_ready(START_TIMEOUT_S)
         except BaseException:
@@ -83,8 +85,7 @@ class ZenohBridge:
             raise
         self.keys, self.tokens, self.zid = info["keys"], info["tokens"], info["zid"]
         self.process.serve(asyncio.get_running_loop(), self._act)
-        self.feed.sinks.append(self.process)
-        self.feed.start()
+        self.feed = join_feed(port, FEED_HZ, self.process)
         log.info(
             "zenoh bridge: ROS 2 node %s/%s on domain %d (rmw_zenoh), taking %s",
             self.namespace,
@@ -120,9 +121,11 @@ class ZenohBridge:
         return success, message
 
     def close(self) -> None:
-        self.feed.stop()
+        if self.feed is not None and self.process is not None:
+            leave_feed(self.feed, self.process)
+            self.feed = None
         if self.process is not None:
-            summary = self.process.stop({"events": self.feed.collect(health=False)}, 30.0)
+            summary = self.process.stop({}, 30.0)
             if summary is not None:
                 for k, v in summary["counters"].items():
                     self.counters[k] += v
