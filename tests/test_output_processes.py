@@ -153,3 +153,35 @@ def test_a_client_reads_every_tick_from_the_same_ring():
     positions = np.concatenate(rows)
     assert lost == 0 and len(positions) == 300
     assert np.array_equal(positions, np.array(snapshots))
+
+
+def test_a_robot_client_reads_the_tick_ring_of_its_robot():
+    """``RobotClient.ticks()``: the same ring, found through the robot's shared-memory door."""
+    import uuid
+
+    from helpers import arm_raw
+
+    from aiohal.client import RobotClient
+    from aiohal.config import parse_config
+
+    raw = arm_raw(3)
+    raw["robot"]["name"] = f"ring_{uuid.uuid4().hex[:6]}"
+    raw["client"] = {"shm": True}
+
+    async def main():
+        control = ControlLoop(parse_config(raw), tick_source=VirtualTickSource())
+        await control.activate()
+        recorder = Recorder(control.port, None, RecordSection(buffer_ticks=256))
+        recorder.attach()
+        client = RobotClient(raw["robot"]["name"])
+        reader = client.ticks()
+        await control.run(ticks=50)
+        meta = reader.meta(reader.read(256))
+        reader.close()
+        client.close()
+        await control.deactivate()
+        recorder.close()
+        return meta
+
+    meta = asyncio.run(main())
+    assert list(meta[:, 1]) == list(range(1, 51))  # every tick of the run, from where it attached
