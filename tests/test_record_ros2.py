@@ -70,6 +70,7 @@ def test_batch_encoder_writes_the_bytes_of_rosbags_for_every_channel(tmp_path):
         plain = list(recorder._encode(ch, values, n))
         recorder.plain = False
         assert batch == plain, ch.topic.topic
+    recorder.ring.close()
     assert {"sensor_msgs/msg/JointState", "sensor_msgs/msg/Imu", "geometry_msgs/msg/WrenchStamped",
             "aiohal_msgs/msg/Hand", "aiohal_msgs/msg/TickTiming", "aiohal_msgs/msg/SafetyLevel",
             "aiohal_msgs/msg/JointStateExtra", "aiohal_msgs/msg/JointCommandExtra",

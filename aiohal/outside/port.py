@@ -24,8 +24,6 @@ if TYPE_CHECKING:
     from ..robot import Robot
     from ..safety import FaultRecord, SafetyLevel, Transition
     from ..safety.supervisor import Supervisor
-    from .event_feed import EventFeed
-    from .tick_door import TickDoor
 
 #: Called at the end of every tick with one argument, which it ignores (the loop's own
 #: publishers get the loop there). It must not block, log or allocate on the common path.
@@ -94,9 +92,9 @@ class LoopPort:
         self.robot = loop.robot
         self.period_ns = loop.period_ns
         #: the loop's tick ring while an output reads it (:mod:`.tick_door`)
-        self.tick_door: TickDoor | None = None
+        self.tick_door: Any = None  # a TickDoor (that module imports this one)
         #: the loop's health and fault feed while an output process gets it (:mod:`.event_feed`)
-        self.event_feed: EventFeed | None = None
+        self.event_feed: Any = None  # an EventFeed
 
     # ------------------------------------------------------------ what to read
 

@@ -38,7 +38,6 @@ from .zenoh_session import session_config
 
 if TYPE_CHECKING:
     from ..client import RobotClient
-    from .output_main import Channel
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +137,8 @@ class Commands:
 class ZenohOutput:
     """The bridge in its process: the session, the node's endpoints, the ring's rows out."""
 
-    def __init__(self, spec: dict[str, Any], channel: Channel) -> None:
+    def __init__(self, spec: dict[str, Any], channel: Any) -> None:
+        """``channel``: the process's socket to the loop (:class:`.output_main.Channel`)."""
         import zenoh
 
         section = self.section = spec["section"]
