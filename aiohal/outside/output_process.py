@@ -162,8 +162,8 @@ class OutputProcess:
                     summary = message[1]
                 elif message is not None:
                     self.error = str(message[1])
-            except OSError as exc:
-                self.error = f"{type(exc).__name__}: {exc}"
+            except OSError:  # the child is going: its exit says why, below
+                pass
         self._sock.close()
         try:
             self.process.wait(timeout=max(1.0, timeout_s / 4))

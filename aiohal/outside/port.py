@@ -118,6 +118,12 @@ class LoopPort:
         return self._loop.state == LoopState.RUNNING
 
     @property
+    def active(self) -> bool:
+        """Whether the loop is active and not ticking: its state is what the activation read
+        (before the first ``run()``) or what the last tick left."""
+        return self._loop.state == LoopState.ACTIVE
+
+    @property
     def deadlines_origin_ns(self) -> int:
         """The run's deadlines are this plus whole periods (on the loop's clock)."""
         return self._loop.ticker.t0_ns

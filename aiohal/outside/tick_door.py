@@ -1,9 +1,9 @@
 """The loop's one tick ring, shared by every output: the first that opens it makes it and puts
 its publisher on the tick; the last that lets go removes both.
 
-A door opened between ``activate()`` and ``run()`` writes tick 0 (the state the activation
-read, where the controller started) once; a reader that starts before the run reads from
-there (:meth:`TickDoor.start_index`).
+Between ``activate()`` and ``run()`` the door writes tick 0 (the state the activation read,
+where the controller started) once, for the first reader that starts then; every reader that
+starts before the run reads from there (:meth:`TickDoor.start_index`).
 """
 
 from __future__ import annotations
@@ -36,9 +36,14 @@ class TickDoor:
         self._tick0: int | None = None
 
     def start_index(self) -> int:
-        """Where a reader starting now begins: tick 0's row before the run, else the next row."""
+        """Where a reader starting now begins: before the run, tick 0's row (written by the
+        first reader that asks once the loop is active: the state the activation read);
+        else the next row."""
         port = self.port
-        if self._tick0 is not None and not port.running and port.tick == 0:
+        if port.active and port.tick == 0:
+            if self._tick0 is None:
+                self._tick0 = self.ring.head
+                self.publish(None)
             return self._tick0
         return self.ring.head
 
@@ -49,9 +54,6 @@ def open_door(port: LoopPort, buffer_ticks: int) -> TickDoor:
     door = port.tick_door
     if door is None:
         door = port.tick_door = TickDoor(port, buffer_ticks)
-        if not port.running and port.tick == 0:
-            door._tick0 = door.ring.head
-            door.publish(None)
         port.at_tick_end(door.publish)
     door.users += 1
     return door
