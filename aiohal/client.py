@@ -24,6 +24,7 @@ import math
 import os
 import time
 from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,6 +32,9 @@ from .outside import shm_segment
 from .outside.shm_segment import RobotNotRunning, ShmError
 from .robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
 from .safety import SafetyLevel
+
+if TYPE_CHECKING:
+    from .outside.tick_ring import TickReader
 
 __all__ = [
     "BufferFull",
@@ -172,6 +176,14 @@ class RobotClient:
             elif now_wall > deadline:
                 self._check_alive()
                 raise ShmError(f"robot {self.robot!r}: no consistent state within {timeout_s:g} s")
+
+    def ticks(self, *, start: int | None = None) -> TickReader:
+        """A reader of every tick the loop publishes (the tick ring the recorder and the other
+        outputs read): while an output runs, or ShmError. It starts at the newest row (or at
+        ``start``); close it when done."""
+        from .outside.tick_ring import TickReader
+
+        return TickReader(self.robot, pid=int(self._seg.header[shm_segment.H_PID]), start=start)
 
     def wait_tick(self, after: int = -1, timeout_s: float = 1.0) -> int:
         """Wait until the robot published a tick later than ``after``; returns it."""

@@ -181,7 +181,7 @@ def run_whole(seconds: float, loop: str, without: tuple[str, ...] = (), sim_prio
         "hand": {k: hand.get(k) for k in ("hand", "alive", "pipe") if k in hand},
         "record_dropped_ticks": record.get("dropped_ticks"), "record_ticks": record.get("ticks"),
         "record_messages": record.get("messages"),
-        "bridge_state_dropped": bridge.get("state_dropped"), "bridge_state_sent": bridge.get("state_sent"),
+        "bridge_state_lost": bridge.get("state_lost"), "bridge_state_sent": bridge.get("state_sent"),
         "controller": report["controller"], "faults": report["faults"], "safety_worst": report["safety_worst"],
         "cpu_percent": report.get("cpu_percent"), "exit_code": report["exit_code"], **calm,
     }
@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
                 "ticks": d["ticks"], "missed": d["missed"], "p50": d["lateness_p50_us"], "p99": d["lateness_p99_us"],
                 "work_p50": d.get("work_p50_us", "–"), "work_p99": d.get("work_p99_us", "–"),
                 "wkc": d.get("wkc_errors", "–"), "rec_drop": d.get("record_dropped_ticks", "–"),
-                "br_drop": d.get("bridge_state_dropped", "–"), "load": f"{d['load1_before']}→{d['load1_after']}",
+                "br_drop": d.get("bridge_state_lost", "–"), "load": f"{d['load1_before']}→{d['load1_after']}",
                 "busy": d["cpu_busy_percent"], "steal": d["steal_percent"],
                 "ratio": (rnd["lateness_p99_ratio"] or "–") if case == "whole" else "", "met": (
                     "yes" if rnd["floor_met"] else "no") if case == "whole" else "",

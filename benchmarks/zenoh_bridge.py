@@ -51,7 +51,8 @@ async def run_case(bridge: bool, seconds: float) -> dict:
     async with loop:
         await loop.run(duration=2.0)  # the monitor connects meanwhile
         report = await loop.run(duration=seconds)
-        sent = loop.doors.zenoh.counters["state_sent"] if loop.doors.zenoh else None
+        bridge = loop.doors.zenoh
+    sent = bridge.counters["state_sent"] if bridge is not None else None  # its process's figure, at close
     if monitor is not None:
         monitor.kill()
         monitor.wait()

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 from helpers import arm_raw, virtual_loop
 
-from aiohal.outside.terminal_status import panel_figures, render
+from aiohal.outside.event_feed import EventFeed
+from aiohal.outside.terminal_status import StatusFigures, render
+from aiohal.outside.tick_door import make_ring
+from aiohal.outside.tick_ring import TickReader
 from aiohal.safety import SafetyLevel, SafetyRequestRefused
 
 
@@ -71,10 +76,23 @@ async def test_requests_act_or_are_refused_with_the_loops_reasons():
 
 @pytest.mark.asyncio
 async def test_the_terminal_status_shows_the_run_through_the_port():
+    """The panel's figures from the tick ring and the event feed, as its process gets them."""
     loop = virtual_loop(arm_raw())
     async with loop:
+        ring = make_ring(loop.port, 64)
+        reader = TickReader("test_arm", pid=os.getpid())
+        status = StatusFigures("test_arm")
+        publish = ring.publisher(loop.port)
+        loop.port.at_tick_end(publish)
         await loop.run(ticks=30)
-        figures = panel_figures(loop.port)
+        loop.port.stop_calling(publish)
+        del publish
+        status.add_rows(reader.meta(reader.read(64)))
+        for event in EventFeed(loop.port, 10.0).collect(health=True):
+            status.message(event)
+        figures = status.figures()
+        reader.close()
+        ring.close()
     assert figures["robot"] == "test_arm" and figures["ticks"] == 30 and figures["missed_ticks"] == 0
     assert figures["safety_level"] == "run" and figures["fault_count"] == 0
     assert figures["drivers"]["arm"]["status"] == "open" and figures["controller"]["type"] == "hold"

@@ -11,7 +11,6 @@ import signal
 import struct
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -129,39 +128,49 @@ def test_decimation_per_channel(tmp_path):
     assert list(rec["/joint_commands/extra"].tick) == [s["tick"] for s in snaps.rows if s["tick"] % 4 == 0]
 
 
-class StuckWriter(Recorder):
-    """A writer that does nothing until released: the ring fills up."""
+def test_a_stopped_writer_loses_its_oldest_ticks_counted_and_never_holds_the_tick(tmp_path):
+    """The writer's process is SIGSTOPped for the whole run: the run ends (the tick never waits
+    for it), and once it goes on it writes the ring's last ticks and counts the rest."""
 
-    release = threading.Event()
-
-    def _write_loop(self) -> None:
-        self.release.wait(60)
-        super()._write_loop()
-
-
-def test_writer_behind_drops_and_counts_and_never_holds_the_tick(tmp_path):
-    StuckWriter.release.clear()
-    try:
-        # the run can only end while the writer is stuck if the tick never waits for it
-
-        async def main():
-            control = ControlLoop(load_config(HUMANOID), tick_source=VirtualTickSource())
-            await control.activate()
-            recorder = StuckWriter(control.port, tmp_path / "run.mcap", RecordSection(buffer_ticks=64))
-            recorder.attach()
+    async def main():
+        control = ControlLoop(load_config(HUMANOID), tick_source=VirtualTickSource())
+        await control.activate()
+        recorder = Recorder(control.port, tmp_path / "run.mcap", RecordSection(buffer_ticks=64))
+        recorder.attach()
+        os.kill(recorder.pid, signal.SIGSTOP)
+        try:
             report = await asyncio.wait_for(control.run(ticks=500), 60)
-            assert recorder.ring.dropped == 501 - 64 and recorder.ticks_written == 0  # ticks 0..500
-            StuckWriter.release.set()
-            await control.deactivate()
-            return report, recorder.close()
+        finally:
+            os.kill(recorder.pid, signal.SIGCONT)
+        await control.deactivate()
+        return report, recorder.close()
 
-        report, summary = asyncio.run(main())
-    finally:
-        StuckWriter.release.set()
-    assert report["ticks"] == 500
-    assert summary["dropped_ticks"] == 437 and summary["ticks"] == 64
+    report, summary = asyncio.run(main())
+    assert report["ticks"] == 500 and report["missed_ticks"] == 0
+    assert summary["ticks"] + summary["dropped_ticks"] == 501  # ticks 0..500, each written or counted
+    assert summary["dropped_ticks"] >= 501 - 64
     rec = load(tmp_path / "run.mcap")
-    assert list(rec["/joint_states"].tick) == list(range(64))  # the first 64, the rest counted
+    ticks = list(rec["/joint_states"].tick)
+    # what it read before it stopped (tick 0, perhaps), then the newest the ring still held
+    assert len(ticks) == summary["ticks"] and ticks[-40:] == list(range(461, 501)) and np.all(np.diff(ticks) > 0)
+
+
+def test_a_killed_writer_costs_no_tick_and_its_loss_is_in_the_summary(tmp_path):
+    async def main():
+        control = ControlLoop(load_config(HUMANOID), tick_source=VirtualTickSource())
+        await control.activate()
+        recorder = Recorder(control.port, tmp_path / "run.mcap", RecordSection(buffer_ticks=64))
+        recorder.attach()
+        os.kill(recorder.pid, signal.SIGKILL)
+        report = await asyncio.wait_for(control.run(ticks=300), 60)
+        await control.deactivate()
+        return report, recorder.close()
+
+    report, summary = asyncio.run(main())
+    assert report["ticks"] == 300, report
+    assert not [f for f in report["faults"] if "record" in f["source"]], report["faults"]  # not the loop's fault
+    assert summary["ticks"] + summary["dropped_ticks"] == 301, summary
+    assert "SIGKILL" in summary["error"], summary
 
 
 def test_sigkilled_recording_holds_its_flushed_ticks(tmp_path):
@@ -198,7 +207,6 @@ def test_sigkilled_recording_holds_its_flushed_ticks(tmp_path):
 def test_live_server_seen_by_a_websocket_client(tmp_path):
     websockets = pytest.importorskip("websockets")
     pytest.importorskip("foxglove")
-    from aiohal.outside.foxglove_server import FoxgloveServer
 
     async def subscribe(ws, topics: list[str]) -> dict[str, tuple[dict, bytes]]:
         """Subscribe to ``topics``; the first message of each (its channel and its CDR)."""
@@ -222,16 +230,16 @@ def test_live_server_seen_by_a_websocket_client(tmp_path):
         return got
 
     async def main():
-        live = FoxgloveServer(port=0)
         control = ControlLoop(load_config(HUMANOID))  # the real clock: clients connect meanwhile
         await control.activate()
-        recorder = Recorder(control.port, None, RecordSection(live_decimate=10), live=live)
+        recorder = Recorder(control.port, None, RecordSection(live_decimate=10), live_port=0)
         recorder.attach()  # /robot is sent now, before any client connects
+        port = recorder.live_port
         run = asyncio.get_running_loop().create_task(control.run(duration=5.0))
         got = []
         try:
             for _ in range(2):  # each client joins late, and each gets /robot
-                async with websockets.connect(f"ws://127.0.0.1:{live.port}",
+                async with websockets.connect(f"ws://127.0.0.1:{port}",
                                               subprotocols=["foxglove.sdk.v1"]) as ws:
                     got.append(await subscribe(ws, ["/joint_states", "/robot"]))
         finally:
@@ -239,7 +247,6 @@ def test_live_server_seen_by_a_websocket_client(tmp_path):
             await run
             await control.deactivate()
             summary = recorder.close()
-            live.close()
         return control, got, summary
 
     control, got, summary = asyncio.run(main())

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -25,6 +26,7 @@ from rosbags.rosbag2 import Reader as BagReader
 from aiohal import ControlLoop, load_config, ros2
 from aiohal.core.ticker import VirtualTickSource
 from aiohal.outside.recorder import Recorder
+from aiohal.outside.recorder_writer import RecorderWriter
 from aiohal.record import RecordSection, load
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,8 +41,13 @@ def test_batch_encoder_writes_the_bytes_of_rosbags_for_every_channel(tmp_path):
         recorder.attach()
         await control.run(ticks=200)
         await control.deactivate()
+        # the writer's encoder, in this process, on the same ring
+        writer = RecorderWriter({"robot": control.robot, "path": None, "options": RecordSection(),
+                                 "period_ns": control.period_ns, "clock": "virtual", "config_text": "",
+                                 "offset_ns": 0, "now_ns": 0, "start": recorder.ring.head, "pid": os.getpid(),
+                                 "line": recorder.ring.claim_reader(recorder.ring.head)})
         recorder.close()
-        return recorder
+        return writer
 
     recorder = asyncio.run(main())
     rng = np.random.default_rng(7)
@@ -63,6 +70,7 @@ def test_batch_encoder_writes_the_bytes_of_rosbags_for_every_channel(tmp_path):
         plain = list(recorder._encode(ch, values, n))
         recorder.plain = False
         assert batch == plain, ch.topic.topic
+    recorder.ring.close()
     assert {"sensor_msgs/msg/JointState", "sensor_msgs/msg/Imu", "geometry_msgs/msg/WrenchStamped",
             "aiohal_msgs/msg/Hand", "aiohal_msgs/msg/TickTiming", "aiohal_msgs/msg/SafetyLevel",
             "aiohal_msgs/msg/JointStateExtra", "aiohal_msgs/msg/JointCommandExtra",

@@ -81,7 +81,7 @@ def test_the_whole_robot_runs_with_every_part_producing_data(tmp_path):
     assert hand["hand"] == "ok" and hand["pipe"]["received"] > 50, hand
     assert report["record"]["ticks"] > 0 and report["record"]["dropped_ticks"] == 0, report["record"]
     bridge = report["bridge"]["zenoh"]
-    assert bridge["state_sent"] > 50 and bridge["state_dropped"] == 0, bridge
+    assert bridge["state_sent"] > 50 and bridge["state_lost"] == 0, bridge
 
     from aiohal.record import load
 

@@ -222,8 +222,8 @@ def format_report(report: dict[str, Any]) -> str:
         )
     for name, counters in report.get("bridge", {}).items():
         lines.append(
-            f"  bridge       {name}: {counters['state_sent']} states sent, {counters['state_dropped']} dropped, "
-            f"{counters['refused']} commands refused"
+            f"  bridge       {name}: {counters.get('state_sent', 0)} states sent, {counters.get('state_lost', 0)} lost, "
+            f"{counters.get('refused', 0)} commands refused"
         )
     panel = report.get("status_panel")
     if panel and panel["refreshes"]:

@@ -3,8 +3,9 @@ recording (``--record``, ``[record]``), the live Foxglove server (``--foxglove``
 terminal status.
 
 The CLI calls :func:`add_arguments`, :func:`check` before anything starts, and
-:class:`RunOutputs` around the run; the work is in :mod:`.recorder`, :mod:`.foxglove_server`
-and :mod:`.terminal_status`, each of which reads the loop through its port.
+:class:`RunOutputs` around the run. The tick writes the loop's tick ring (:mod:`.tick_ring`);
+the recording, the live view and the panel each run in a process of their own that reads it
+(:mod:`.recorder`, :mod:`.recorder_writer`, :mod:`.foxglove_server`, :mod:`.terminal_status`).
 """
 
 from __future__ import annotations
@@ -19,12 +20,12 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import AiohalError, MissingDependencyError
 from ..files import check_output_path
+from .output_process import OutputRefused
 from .port import LoopPort
 from .recorder_file import is_bag_path
 
 if TYPE_CHECKING:
     from ..config import Config
-    from .foxglove_server import FoxgloveServer
     from .recorder import Recorder
     from .terminal_status import StatusPanel
 
@@ -97,7 +98,9 @@ def check_new_directory(path: Path, protect: tuple[Path, ...]) -> None:
 
 
 class RunOutputs:
-    """Started once the robot is active, closed after it is deactivated."""
+    """Made before the robot starts (the live view's port is taken then), started once it is
+    active, closed after it is deactivated. Every output reads the loop's tick ring
+    (:mod:`.tick_door`) from a process of its own; the tick's part is the ring's publisher."""
 
     def __init__(self, port: LoopPort, args: argparse.Namespace) -> None:
         self.port = port
@@ -106,32 +109,45 @@ class RunOutputs:
         self.foxglove_port: int | None = args.foxglove
         self.show_status = not args.quiet and not args.no_panel and sys.stdout.isatty()
         self.recorder: Recorder | None = None
-        self.live: FoxgloveServer | None = None
+        self.live: Recorder | None = None
         self.status: StatusPanel | None = None
         self.panel_cost: dict[str, Any] | None = None
 
     def open_live(self) -> None:
-        """Bind the live view's port (before the robot starts: a port in use stops nothing)."""
+        """Start the live view's process (before the robot starts: a port in use stops nothing)."""
         if self.foxglove_port is not None and self.live is None:
-            from .foxglove_server import FoxgloveServer
+            from .recorder import Recorder
 
-            self.live = FoxgloveServer(self.foxglove_port)
-            log.info("live view: Foxglove on ws://%s:%d", self.live.host, self.live.port)
+            live = Recorder(self.port, None, self.options, live_port=self.foxglove_port)
+            try:
+                live.start_process()
+            except OutputRefused as exc:
+                live.close()
+                raise AiohalError(exc.reason) from None
+            self.live = live
+            log.info("live view: Foxglove on ws://127.0.0.1:%d", live.live_port)
 
     def start(self) -> None:
         self.open_live()
-        if self.path is not None or self.live is not None:
+        port = self.port
+        if self.path is not None:
             from .recorder import Recorder
 
-            self.recorder = Recorder(self.port, self.path, self.options, live=self.live)
+            self.recorder = Recorder(port, self.path, self.options)
             self.recorder.attach()
-            if self.path is not None:
-                log.info("recording to %s", self.path)
+            log.info("recording to %s", self.path)
+        if self.live is not None:
+            self.live.attach()
         if self.show_status:
             from .terminal_status import StatusPanel
 
-            self.status = StatusPanel(self.port)
-            self.status.start()
+            self.status = StatusPanel(port, self.options.buffer_ticks, health_hz=self.options.health_hz)
+            try:
+                self.status.start()
+            except (OutputRefused, OSError) as exc:
+                log.warning("no status panel: %s", exc)
+                self.status.stop()
+                self.status = None
 
     def stop_status(self) -> None:
         if self.status is not None:
@@ -147,6 +163,10 @@ class RunOutputs:
             out["status_panel"] = self.panel_cost
         if self.recorder is not None:
             out["record"] = self.recorder.close()
+            self.recorder = None
         if self.live is not None:
-            self.live.close()
+            live = self.live.close()
+            self.live = None
+            if live.get("error"):
+                out["live_view"] = live
         return out

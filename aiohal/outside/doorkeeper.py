@@ -1,7 +1,8 @@
 """Opens and closes the loop's doors to other processes, as the config asks: the shared-memory
 door (``[client] shm``) and the network bridges (``[bridge.*]``). They are made with the loop's
-drivers, opened when it is active and closed with its drivers; each copies its state at the
-end of the tick without blocking."""
+drivers, opened when it is active and closed with its drivers. The shared-memory door copies
+its state at the end of the tick without blocking; the bridges read the tick ring from a
+process of their own."""
 
 from __future__ import annotations
 
@@ -51,7 +52,6 @@ class Doorkeeper:
             from .zenoh import ZenohBridge  # zenoh itself is imported when the bridge starts
 
             self.zenoh = ZenohBridge(port, zenoh_section)
-            port.at_tick_end(self.zenoh.publish)
 
     def activate(self) -> None:
         if self.zenoh is not None:

@@ -91,6 +91,10 @@ class LoopPort:
         #: (or copy them there for later); never write them
         self.robot = loop.robot
         self.period_ns = loop.period_ns
+        #: the loop's tick ring while an output reads it (:mod:`.tick_door`)
+        self.tick_door: Any = None  # a TickDoor (that module imports this one)
+        #: the loop's health and fault feed while an output process gets it (:mod:`.event_feed`)
+        self.event_feed: Any = None  # an EventFeed
 
     # ------------------------------------------------------------ what to read
 
@@ -112,6 +116,12 @@ class LoopPort:
     def running(self) -> bool:
         """Whether the loop is ticking now (inside ``run()``)."""
         return self._loop.state == LoopState.RUNNING
+
+    @property
+    def active(self) -> bool:
+        """Whether the loop is active and not ticking: its state is what the activation read
+        (before the first ``run()``) or what the last tick left."""
+        return self._loop.state == LoopState.ACTIVE
 
     @property
     def deadlines_origin_ns(self) -> int:

@@ -22,7 +22,7 @@ from .. import ros2
 from ..core.tick_timing import PHASES
 from ..record.options import Channel
 from ..robot import CommandRow, StateRow
-from . import recorder_ring as R
+from . import tick_ring as R
 
 #: (meta rows, data rows) -> numbers by field path, one row per tick
 Fields = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
@@ -55,7 +55,9 @@ def _vector3(name: str = "geometry_msgs/msg/Vector3") -> Any:
     return _msg(name, x=0.0, y=0.0, z=0.0)
 
 
-def tick_topics(robot: Any, add_array: Callable[[np.ndarray], int], ring: Callable[[], R.TickRing]) -> list[TickTopic]:
+def tick_topics(
+    robot: Any, add_array: Callable[[np.ndarray], int], ring: Callable[[], R.TickReader]
+) -> list[TickTopic]:
     """The run's per-tick topics. ``add_array`` names an array for the ring to copy and returns
     its index; ``ring()`` is the ring, built once every topic named its arrays."""
     n = robot.dof
@@ -139,7 +141,7 @@ def tick_topics(robot: Any, add_array: Callable[[np.ndarray], int], ring: Callab
 
 
 def _device_topics(
-    robot: Any, add_array: Callable[[np.ndarray], int], ring: Callable[[], R.TickRing]
+    robot: Any, add_array: Callable[[np.ndarray], int], ring: Callable[[], R.TickReader]
 ) -> list[TickTopic]:
     """``/imu/<name>`` (sensor_msgs/Imu), ``/force_torque/<name>`` (geometry_msgs/WrenchStamped),
     ``/hand/<name>`` (aiohal_msgs/Hand), and every device's fault bits on ``/device_faults``."""
@@ -177,11 +179,11 @@ def _device_topics(
     return topics
 
 
-def _ring_field(ring: Callable[[], R.TickRing], index: int, data: np.ndarray) -> np.ndarray:
+def _ring_field(ring: Callable[[], R.TickReader], index: int, data: np.ndarray) -> np.ndarray:
     return ring().field(data, index)
 
 
-def _field_reader(group: Any, add_array: Callable[[np.ndarray], int], ring: Callable[[], R.TickRing]) -> FieldOf:
+def _field_reader(group: Any, add_array: Callable[[np.ndarray], int], ring: Callable[[], R.TickReader]) -> FieldOf:
     """How a device group's field is read from ring rows: columns of its value block, or its own array."""
     if group.values is not None:
         i_values = add_array(group.values)
