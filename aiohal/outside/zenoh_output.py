@@ -10,7 +10,7 @@ every ``report_s``). It takes nothing unless ``commands`` names it: ``setpoints`
 ``joint_trajectory`` (``trajectory_msgs/msg/JointTrajectory``, into the stream controller's
 shared-memory ring, as any client); ``estop``, ``hold``, ``reset_faults``, ``rearm`` are
 ``std_srvs/srv/Trigger`` services, relayed to the loop, which acts between two ticks and
-answers with its reason when it refuses. Commands need access control in the session's config
+answers with its reason when it refuses. Commands need access control in the Zenoh config
 (:mod:`.zenoh_session`). A command that fails its checks is refused and counted, never applied.
 """
 
