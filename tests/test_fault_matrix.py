@@ -191,6 +191,7 @@ async def test_ethercat_faults_reach_their_level_within_the_error_limit(segment,
             ("driver:bus", "hold", change["tick"]), ("loop", "estop", change["tick"])]
 
 
+@pytest.mark.realtime  # the keep-alive thread must get its cycles in within the stall: run alone
 @pytest.mark.asyncio
 async def test_ethercat_wkc_errors_in_a_stall_count_in_the_health(segment):
     """The tick stalls (100 ms, five times keepalive_after_ms) right after the segment was told
