@@ -361,6 +361,61 @@ async def test_bridge_in_process_publishes_latches_and_leaves_the_graph():
 
 
 @pytest.mark.asyncio
+async def test_a_rearm_relayed_while_the_loop_was_frozen_is_not_acted_on_later():
+    """The loop freezes between a rearm request and its handling: the caller hears "no answer"
+    from the bridge, and the loop, running again, must not re-arm on that request then."""
+    pr, pt = free_ports(2)
+    raw = arm_raw(3)
+    name = raw["robot"]["name"] = f"zen_{uuid.uuid4().hex[:6]}"
+    raw["loop"].update(clock="auto", stall_timeout_ms=10000)  # the ~2 s freeze is the test's, not a stall
+    raw["safety"] = {"max_tick_gap_ms": 10000}
+    raw["bridge"] = {"zenoh": {"listen": [ep(pr)], "connect": [], "commands": ["hold", "rearm"],
+                               "allow_anyone": True}}
+    from aiohal.core.loop import ControlLoop
+    from aiohal.safety import SafetyLevel
+
+    loop = ControlLoop(parse_config(raw))
+    async with loop:
+        run = asyncio.create_task(loop.run(duration=120.0))
+        peer = Peer(name, pt, [pr])
+        try:
+            bridge = loop.doors.zenoh
+            # the first call also waits for the peer to find the service
+            ok, message, _ = await asyncio.to_thread(peer.wait, lambda: peer.call("hold", timeout=1.0))
+            assert ok and loop.level == SafetyLevel.HOLD, message
+            ok, message, _ = await asyncio.to_thread(peer.call, "rearm")
+            assert ok and loop.level == SafetyLevel.RUN, message  # a timely rearm acts
+            ok, message, _ = await asyncio.to_thread(peer.call, "hold")
+            assert ok and loop.level == SafetyLevel.HOLD, message
+
+            def freeze_until_the_caller_gives_up() -> tuple:
+                """Block the loop's thread while a rearm goes out and the bridge stops waiting."""
+                answer: list = []
+                caller = threading.Thread(target=lambda: answer.append(peer.call("rearm", timeout=10.0)))
+                caller.start()
+                caller.join(timeout=NOT_HUNG_S)
+                assert answer and answer[0] is not None, "the bridge gave no answer at all"
+                return answer[0]
+
+            ok, message, _ = freeze_until_the_caller_gives_up()
+            assert not ok and "did not answer" in message, message
+            for _ in range(int(NOT_HUNG_S / 0.01)):  # the loop reads the queued request
+                if bridge.counters["requests_expired"]:
+                    break
+                await asyncio.sleep(0.01)
+            assert bridge.counters["requests_expired"] == 1, dict(bridge.counters)
+            await asyncio.sleep(0.05)
+            assert loop.level == SafetyLevel.HOLD  # the robot did not move on a request nobody waits for
+            assert [t.event for t in loop.supervisor.machine.transitions if t.event == "rearm"] == ["rearm"]
+            ok, message, _ = await asyncio.to_thread(peer.call, "rearm")
+            assert ok and loop.level == SafetyLevel.RUN, message  # and a new request acts again
+        finally:
+            peer.close()
+            loop.request_stop()
+            await run
+
+
+@pytest.mark.asyncio
 async def test_a_bridge_that_cannot_open_is_a_fault_not_a_dead_robot():
     (port,) = free_ports(1)
     blocker = socket.socket()

@@ -120,10 +120,12 @@ class OutputProcess:
         self.sent += 1
         return True
 
-    def serve(self, loop: asyncio.AbstractEventLoop, act: Callable[[str], tuple[bool, str]]) -> None:
+    def serve(self, loop: asyncio.AbstractEventLoop, act: Callable[[str, float], tuple[bool, str]]) -> None:
         """Answer the child's requests on ``loop`` (the loop's thread, between ticks): each
-        ``("request", (id, name))`` is acted on by ``act(name) -> (success, message)`` and
-        answered ``("answer", id, success, message)``."""
+        ``("request", (id, name, sent))`` is acted on by ``act(name, age_s) -> (success, message)``
+        and answered ``("answer", id, success, message)``. ``sent`` is the child's
+        ``time.monotonic()`` (one clock for every process of the host): the age lets ``act``
+        refuse a request its caller has stopped waiting for (a loop that was frozen)."""
         self._loop = loop
 
         def readable() -> None:
@@ -140,8 +142,8 @@ class OutputProcess:
                     return
                 what, body = pickle.loads(data)
                 if what == "request":
-                    rid, name = body
-                    success, message = act(name)
+                    rid, name, sent = body
+                    success, message = act(name, time.monotonic() - sent)
                     self.send(("answer", rid, success, message))
 
         loop.add_reader(self._sock.fileno(), readable)

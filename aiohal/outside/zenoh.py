@@ -28,6 +28,12 @@ log = logging.getLogger(__name__)
 START_TIMEOUT_S = 60.0
 #: how often the bridge learns the drivers' health, new faults and safety changes
 FEED_HZ = 10.0
+#: how long the bridge's process waits for the loop's answer before it tells the caller "no answer"
+REQUEST_TIMEOUT_S = 2.0
+#: the oldest ``rearm`` or ``reset_faults`` the loop still acts on. A loop that was frozen reads
+#: the requests queued meanwhile; one whose caller was told "no answer" must not move the robot
+#: now. Half the bridge's wait leaves the answer time to get back; estop and hold act at any age.
+ARMING_REQUEST_MAX_AGE_S = REQUEST_TIMEOUT_S / 2
 
 
 class ZenohBridge:
@@ -94,11 +100,20 @@ class ZenohBridge:
             ", ".join(section.commands) or "no command",
         )
 
-    def _act(self, name: str) -> tuple[bool, str]:
-        """A safety request relayed by the bridge, on the loop's thread between ticks."""
+    def _act(self, name: str, age_s: float) -> tuple[bool, str]:
+        """A safety request relayed by the bridge ``age_s`` ago, on the loop's thread between
+        ticks."""
         port = self.port
         cause = "requested over ROS 2 (zenoh)"
         log.warning("robot %s: %s requested over zenoh", port.robot.name, name)
+        if name in ("rearm", "reset_faults") and age_s > ARMING_REQUEST_MAX_AGE_S:
+            self.counters["requests_expired"] += 1
+            message = (
+                f"{name} refused: relayed {age_s:.1f} s ago (the loop was not running), longer than "
+                f"{ARMING_REQUEST_MAX_AGE_S:g} s; its caller was told there was no answer: ask again"
+            )
+            log.warning("robot %s: %s", port.robot.name, message)
+            return False, message
         try:
             if name == "estop":
                 port.estop(cause, source="zenoh")

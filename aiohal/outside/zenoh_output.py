@@ -34,6 +34,7 @@ from ..safety import SafetyLevel
 from . import rmw_zenoh as rmw
 from . import ros2_mapping as ros
 from . import tick_ring as R
+from .zenoh import REQUEST_TIMEOUT_S
 from .zenoh_session import session_config
 
 if TYPE_CHECKING:
@@ -41,8 +42,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-#: how long a service waits for the loop to act on a request before it answers "no answer"
-REQUEST_TIMEOUT_S = 2.0
 #: rmw_zenoh's heartbeat for a reliable transient-local publisher (late sample recovery)
 HEARTBEAT_S = 0.5
 
@@ -316,7 +315,7 @@ class ZenohOutput:
         rid = next(self._ids)
         future: concurrent.futures.Future = concurrent.futures.Future()
         self._answers[rid] = future
-        self.channel.answer("request", (rid, name))
+        self.channel.answer("request", (rid, name, time.monotonic()))
         try:
             return future.result(timeout=REQUEST_TIMEOUT_S)
         except concurrent.futures.TimeoutError:
