@@ -318,9 +318,10 @@ class RobotClient:
         ``command=True``; :class:`RequestRefused` carries the loop's reason when it cannot."""
         self._require_command("reset faults")
         self._check_rearm("reset faults")
-        self._refused_raises(
-            "reset_faults", self._request(shm_segment.R_RESET, shm_segment.R_RESET_DONE, shm_segment.A_RESET, wait_s)
+        answer = self._request(
+            shm_segment.R_RESET, shm_segment.R_RESET_DONE, shm_segment.A_RESET, wait_s, shm_segment.D_RESET_BY
         )
+        self._refused_raises("reset_faults", answer)
 
     def rearm(self, wait_s: float = 1.0) -> None:
         """Ask the loop to return to ``run`` from hold or disabled (the controller restarts
@@ -328,9 +329,10 @@ class RobotClient:
         carries the loop's reason when it cannot (a fault not reset, hold still braking)."""
         self._require_command("re-arm")
         self._check_rearm("re-arm")
-        self._refused_raises(
-            "rearm", self._request(shm_segment.R_REARM, shm_segment.R_REARM_DONE, shm_segment.A_REARM, wait_s)
+        answer = self._request(
+            shm_segment.R_REARM, shm_segment.R_REARM_DONE, shm_segment.A_REARM, wait_s, shm_segment.D_REARM_BY
         )
+        self._refused_raises("rearm", answer)
 
     def _require_command(self, what: str) -> None:
         if self._lock_fd is None:
@@ -348,16 +350,24 @@ class RobotClient:
         if refused:
             raise RequestRefused(self.robot, request, reason or "no reason given")
 
-    def _request(self, ask: int, done: int, kind: int, wait_s: float) -> tuple[bool, str]:
+    def _request(self, ask: int, done: int, kind: int, wait_s: float, act_by: int | None = None) -> tuple[bool, str]:
         """Increment the request's counter, wait for the loop to act and return its answer
-        (refused, reason); :class:`RequestTimeout` when it does not act within ``wait_s``."""
+        (refused, reason); :class:`RequestTimeout` when it does not act within ``wait_s``.
+        ``act_by``: the word where a request that sets the robot moving says until when the
+        loop may act on it, a margin before this call stops waiting (never acted on later)."""
         self._check_open()
         seg = self._seg  # no view of it in a local: an error's traceback would keep it mapped
-        # several clients may ask at once: the loop acts on any change of the counter
+        now_ns = time.monotonic_ns()
+        if act_by is not None:  # stored before the counter: the loop reads it after seeing the counter move
+            seg.act_by[act_by] = now_ns + int(wait_s * 1e9) - _act_margin_ns(wait_s)
+        # several clients may ask at once: the loop acts on any change of the counter (and the
+        # latest act-by, which a merged request shares)
         target = int(seg.requests[ask]) + 1
         seg.requests[ask] = target
-        deadline = time.monotonic() + wait_s
+        deadline = now_ns / 1e9 + wait_s
         while int(seg.requests[done]) < target:
+            if time.monotonic() > deadline and int(seg.requests[done]) >= target:
+                break  # acted on as the wait ended: the answer counts
             self._wait_a_little(deadline, wait_s)
         answer = self._read_answer(kind, target, deadline, wait_s)
         # the tick acted after it published: the next tick's snapshot shows the new level
@@ -435,6 +445,13 @@ class RobotClient:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+def _act_margin_ns(wait_s: float) -> int:
+    """How long before a client stops waiting the loop must have acted on its reset or rearm:
+    the loop writes its answer right after it acts, so a tenth of a second (less for short
+    waits) leaves room for a client thread the host is slow to wake."""
+    return int(min(0.1, wait_s / 4) * 1e9)
 
 
 def _lock(name: str, robot: str) -> int:

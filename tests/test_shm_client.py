@@ -421,6 +421,36 @@ async def test_a_request_the_loop_does_not_answer_times_out():
             assert isinstance(timed_out.value, TimeoutError) and not isinstance(timed_out.value, RequestRefused)
 
 
+@pytest.mark.asyncio
+async def test_a_reset_or_rearm_read_after_its_client_gave_up_is_refused():
+    """A loop that does not run while a client asks it to reset or re-arm (frozen, stopped)
+    must not act on that request when it runs again: its client was told it went unanswered."""
+    name = unique()
+    loop = virtual_loop(stream_raw(name, dry=1.0))
+    async with loop:
+        door = loop.doors.shm
+        with RobotClient(name, command=True) as client:
+            await loop.run(ticks=1)
+            await ticking(loop, client.estop, 10.0)
+            # the virtual clock does not tick unless the test runs it: the loop is frozen
+            with pytest.raises(RequestTimeout):
+                client.reset_faults(wait_s=0.2)
+            await loop.run(ticks=3)
+            assert loop.level == SafetyLevel.ESTOP and door.requests_expired == 1
+            await ticking(loop, client.reset_faults, 10.0)  # asked again while the loop runs: done
+            assert loop.level == SafetyLevel.DISABLED
+            with pytest.raises(RequestTimeout):
+                client.rearm(wait_s=0.2)
+            await loop.run(ticks=3)
+            assert loop.level == SafetyLevel.DISABLED and door.requests_expired == 2
+            answer = client._seg.answer_text[shm_segment.A_REARM].tobytes().decode(errors="replace")
+            assert "after its client's wait ended" in answer
+            await ticking(loop, client.rearm, 10.0)
+            assert loop.level == SafetyLevel.RUN
+        events = [t["event"] for t in loop.report()["safety"]]
+        assert events.count("reset_faults") == 1 and events.count("rearm") == 1, events
+
+
 # ---------------------------------------------------------------- the end of a stream
 
 

@@ -5,6 +5,7 @@ requests a client leaves there, and hands the setpoint ring to the ``stream`` co
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,8 @@ from .shm_segment import (
     A_REFUSED,
     A_RESET,
     ANSWER_TEXT,
+    D_REARM_BY,
+    D_RESET_BY,
     H_STATUS,
     R_ESTOP,
     R_ESTOP_DONE,
@@ -72,6 +75,7 @@ class ShmDoor:
             can_rearm=True,
         )
         self.requests_acted = 0
+        self.requests_expired = 0  # resets and rearms read after their client stopped waiting
         self.publish = self._make_publisher()
         _DOORS[robot.name] = self
 
@@ -135,12 +139,12 @@ class ShmDoor:
         new level. The most protective request goes first."""
         port, cause = self.port, "requested by a shared-memory client"
         actions = (
-            (A_ESTOP, R_ESTOP, R_ESTOP_DONE, "estop", lambda: port.estop(cause, source="client")),
-            (A_HOLD, R_HOLD, R_HOLD_DONE, "hold", lambda: port.hold(cause)),
-            (A_RESET, R_RESET, R_RESET_DONE, "reset_faults", lambda: port.reset_faults(source="client")),
-            (A_REARM, R_REARM, R_REARM_DONE, "rearm", lambda: port.rearm(source="client")),
+            (A_ESTOP, R_ESTOP, R_ESTOP_DONE, "estop", lambda: port.estop(cause, source="client"), None),
+            (A_HOLD, R_HOLD, R_HOLD_DONE, "hold", lambda: port.hold(cause), None),
+            (A_RESET, R_RESET, R_RESET_DONE, "reset_faults", lambda: port.reset_faults(source="client"), D_RESET_BY),
+            (A_REARM, R_REARM, R_REARM_DONE, "rearm", lambda: port.rearm(source="client"), D_REARM_BY),
         )
-        for kind, ask, done, what, action in actions:
+        for kind, ask, done, what, action, act_by in actions:
             count = req[ask]
             if count == seen[kind]:
                 continue
@@ -150,6 +154,8 @@ class ShmDoor:
             )
             refused, reason = False, ""
             try:
+                if act_by is not None:
+                    self._check_awaited(what, int(self.segment.act_by[act_by]))
                 action()
             except SafetyRequestRefused as exc:
                 refused, reason = True, str(exc)
@@ -161,6 +167,16 @@ class ShmDoor:
             self._answer(kind, count, refused, reason)
             req[done] = count
         self.requests_acted += 1
+
+    def _check_awaited(self, what: str, act_by_ns: int) -> None:
+        """Refuse a reset or rearm read after the moment its client gave (the loop was frozen
+        or stopped): the client was told it went unanswered, and may have walked up to the robot."""
+        late_s = (time.monotonic_ns() - act_by_ns) / 1e9
+        if late_s > 0:
+            self.requests_expired += 1
+            raise SafetyRequestRefused(
+                f"{what}() read {late_s:.3f} s after its client's wait ended (the loop was not running): ask again"
+            )
 
     def _answer(self, kind: int, count: int, refused: bool, reason: str) -> None:
         """Write one answer under its count: 0 while writing, so a reader never keeps a torn one."""

@@ -14,7 +14,10 @@ One ``multiprocessing.shared_memory`` segment per robot, named ``aiohal.<robot>`
   ``tail``. Neither takes a lock;
 - **safety requests** (hold, estop, reset faults, rearm): counters a client increments; the
   tick compares them with the last values it acted on (one read of each per tick), acts, and
-  leaves an **answer** per kind (granted or refused, and the loop's reason) for the client.
+  leaves an **answer** per kind (granted or refused, and the loop's reason) for the client. A
+  reset or rearm carries the last moment the loop may act on it (the client's wait, on the
+  host's monotonic clock): a loop that was frozen longer refuses it rather than move a robot
+  whose client was told the request went unanswered.
 
 The ordering the seqlock and the ring rely on (stores seen in program order by another core)
 is the x86-64 memory model's; docs/client.md gives the byte layout and this caveat.
@@ -39,7 +42,7 @@ from ..robot import JOINT_COMMAND_FIELDS, JOINT_STATE_FIELDS
 log = logging.getLogger(__name__)
 
 MAGIC = 0x314C4148_4F494100  # b"\x00AIOHAL1" read as a little-endian int64
-VERSION = 2
+VERSION = 3
 LINE = 64  # bytes: each side's counters on a cache line of their own
 
 # header line 0: identity and shape (written once, before STATUS becomes ACTIVE)
@@ -51,6 +54,9 @@ STATUS_STARTING, STATUS_ACTIVE, STATUS_CLOSED = 0, 1, 2
 S_SEQ, S_TICK, S_NOW_NS, S_LEVEL = range(4)
 # the request line: counters clients increment, and the counts the loop has acted on
 R_HOLD, R_ESTOP, R_REARM, R_HOLD_DONE, R_ESTOP_DONE, R_REARM_DONE, R_RESET, R_RESET_DONE = range(8)
+# the line after it: per request that can set the robot moving, the last CLOCK_MONOTONIC ns at
+# which the loop may act on it (its client stops waiting a little after)
+D_REARM_BY, D_RESET_BY = range(2)
 # one answer block per request kind: the count it answers (0 while the loop writes it),
 # refused (0 or 1), the reason's length in bytes, then the reason (UTF-8, cut to fit)
 A_HOLD, A_ESTOP, A_REARM, A_RESET = range(4)
@@ -127,6 +133,8 @@ class Layout:
         at += LINE
         self.requests = at
         at += LINE
+        self.act_by = at
+        at += LINE
         self.producer = at
         at += LINE
         self.consumer = at
@@ -169,6 +177,7 @@ class Segment:
         self.header = words(L.header, HEADER_WORDS)
         self.seqlock = words(L.seqlock, 8)
         self.requests = words(L.requests, 8)
+        self.act_by = words(L.act_by, 8)
         self.producer = words(L.producer, 8)
         self.consumer = words(L.consumer, 8)
         answers = np.frombuffer(buf, np.uint8, 4 * ANSWER_SIZE, L.answers).reshape(4, ANSWER_SIZE)
@@ -206,6 +215,7 @@ class Segment:
             "header",
             "seqlock",
             "requests",
+            "act_by",
             "producer",
             "consumer",
             "answer_words",
