@@ -277,8 +277,10 @@ def test_a_ros2_peer_sees_two_robots_and_only_the_operator_commands(tmp_path):
             r = seen["robots"][f"/{name}"]
             assert r["names"] == names and r["seq_gaps"] == 0, r
             # 100 Hz: never faster; slower only when the host starves the processes, which a shared
-            # CI machine can do for whole seconds (a tenth of the rate still shows it publishing)
-            assert r["span_s"] >= 9.9 and r["messages"] >= 100, r
+            # CI machine can do for whole seconds (a tenth of the rate still shows it publishing,
+            # and a last message in the window's last 3 s that it published to the end: beside two
+            # CPU hogs the last one came 9.8 s in, after a 590 ms gap)
+            assert r["span_s"] >= 7.0 and r["messages"] >= 100, r
             assert 10.0 <= r["rate_hz"] <= 105.0, r
             assert abs(r["stamp_ns"] - time.time_ns()) < 60e9  # ROS time: the wall clock
         assert seen["publishers"]["/diagnostics"]["type"] == "diagnostic_msgs::msg::dds_::DiagnosticArray_"
