@@ -60,7 +60,8 @@ async def test_sensor_frames_fill_the_imu_and_ft_records():
         assert np.allclose(imu.linear_acceleration, (0, 0, 9.81), atol=0.01)
         assert np.allclose(ft.force, (1.0, -2.0, 15.0), atol=0.05)
         assert np.allclose(ft.torque, (0.1, -0.05, 0.02), atol=0.001)
-        assert imu.fault == 0 and ft.fault == 0 and imu.updated_tick > 90
+        # updated into the run's second half: a loaded host lags the gateway's thread by tens of ms
+        assert imu.fault == 0 and ft.fault == 0 and imu.updated_tick > 50
     sensors = report["drivers"]["can"]["sensors"]
     assert sensors["imu"]["frames"] > 0 and sensors["malformed"] == 0 and report["faults"] == []
 
@@ -144,7 +145,7 @@ async def test_an_imu_without_orientation_reads_a_quaternion_of_nan_and_its_othe
         imu = loop.robot.imu["imu"]
         assert np.all(np.isnan(imu.quaternion))  # not measured
         assert np.allclose(imu.linear_acceleration, (0, 0, 9.81), atol=0.01)
-        assert np.allclose(imu.angular_velocity, 0.0) and imu.fault == 0 and imu.updated_tick > 90
+        assert np.allclose(imu.angular_velocity, 0.0) and imu.fault == 0 and imu.updated_tick > 50  # as above
     assert report["faults"] == [] and report["drivers"]["can"]["sensors"]["imu"]["frames"] > 0
 
 
