@@ -7,8 +7,8 @@ Needs only eclipse-zenoh and rosbags (no aiohal, no ROS 2). It reads the graph f
 liveliness tokens (``@ros2_lv/<domain>/...``), takes every publisher of a ``.../joint_states``
 topic of type ``sensor_msgs/msg/JointState`` whose type hash is the one rosbags computes for
 Jazzy, subscribes to its key expression and decodes the CDR messages; ``/diagnostics`` alike.
-For ``--seconds`` from each robot's first message it counts messages per robot, the rate, the
-longest gap, the attachments' sequence numbers, and prints one JSON line: per robot (its
+For ``--seconds`` from each robot's first message it counts messages per robot, the rate (as
+they arrived, and by their header stamps: the publisher's own), the longest gap, the attachments' sequence numbers, and prints one JSON line: per robot (its
 namespace) those figures, the joint names and the last diagnostics, and the nodes seen.
 """
 
@@ -72,6 +72,7 @@ def monitor(args: argparse.Namespace) -> dict:
                 r["seq_gaps"] += 1
             r.update(last=now, seq=seq, names=list(msg.name), position=[float(x) for x in msg.position])
             r["stamp_ns"] = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            r.setdefault("first_stamp_ns", r["stamp_ns"])
             r["count"] += 1
 
     def on_diagnostics(sample) -> None:
@@ -127,8 +128,10 @@ def monitor(args: argparse.Namespace) -> dict:
                  "robots": {}}
     for robot, r in sorted(robots.items()):
         span = r["last"] - r["first"]
+        stamped_s = (r["stamp_ns"] - r["first_stamp_ns"]) / 1e9  # the publisher's clock: no delivery delays
         out["robots"][robot] = {
             "messages": r["count"], "rate_hz": round((r["count"] - 1) / span, 2) if span > 0 else None,
+            "stamped_rate_hz": round((r["count"] - 1) / stamped_s, 2) if stamped_s > 0 else None,
             "span_s": round(span, 3), "max_gap_ms": round(r["max_gap_ms"], 2), "seq_gaps": r["seq_gaps"],
             "names": r["names"], "position": r["position"], "stamp_ns": r["stamp_ns"],
             "diagnostics": diagnostics.get(robot.strip("/"))}

@@ -281,7 +281,9 @@ def test_a_ros2_peer_sees_two_robots_and_only_the_operator_commands(tmp_path):
             # and a last message in the window's last 3 s that it published to the end: beside two
             # CPU hogs the last one came 9.8 s in, after a 590 ms gap)
             assert r["span_s"] >= 7.0 and r["messages"] >= 100, r
-            assert 10.0 <= r["rate_hz"] <= 105.0, r
+            # never faster by the stamps; as they arrive, a starved monitor gets a backlog in a burst
+            # (beside two CPU hogs: 130 Hz after a 1 s gap), so the arrival rate only shows it publishing
+            assert r["stamped_rate_hz"] <= 101.0 and r["rate_hz"] >= 10.0, r
             assert abs(r["stamp_ns"] - time.time_ns()) < 60e9  # ROS time: the wall clock
         assert seen["publishers"]["/diagnostics"]["type"] == "diagnostic_msgs::msg::dds_::DiagnosticArray_"
         status = seen["robots"][f"/{b_name}"]["diagnostics"]
