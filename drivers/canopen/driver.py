@@ -10,10 +10,17 @@ own log lines are held back meanwhile: what fails is one exception that names th
 
 Each tick, ``write`` sends every RPDO and then SYNC: a drive applies a synchronous RPDO on
 that SYNC, an event-driven one (254, 255) on receipt; the drives answer with their TPDOs,
-which canopen's notifier thread copies into one input buffer (a slice per TPDO, a frame of
-the wrong length is counted and dropped), and the next ``read`` decodes. Nothing in the tick
+which are copied into one input buffer (a slice per TPDO, a frame of the wrong length is
+counted and dropped) as they arrive, and the next ``read`` decodes. Nothing in the tick
 waits: frames are sent without blocking and a TPDO that has not arrived leaves the joints
 unrefreshed (the loop's stale-feedback check then holds the robot).
+
+Who takes the received frames: canopen's notifier thread during bring-up and close; once the
+drives are up, on a bus with a file descriptor (socketcan, udp_multicast, ...), the event
+loop's thread between ticks (:meth:`CanopenDriver._receive_on_the_loop`), so that no other
+thread of the process runs Python beside the tick: such a thread takes the GIL whenever the
+tick releases it, and one the host preempts while holding it stalls the tick for a whole
+time slice. python-can's ``virtual`` bus has no descriptor and keeps the thread.
 
 Heartbeat consumer: a node silent for ``heartbeat_timeout_ms`` fails the driver (the loop
 sends the robot to its safe state). EMCY frames are decoded by canopen; each is reported
@@ -91,6 +98,11 @@ SPARE = 8  # zero bytes past each buffer's data, where unmapped variables point
 SYNC_COB_ID = 0x80
 NMT_COB_ID, NMT_STOP = 0x000, 0x02
 CAN_ERR_BUSOFF = 0x40  # error class of a socketcan error frame (linux/can/error.h)
+#: frames taken per wake-up of the loop's reader: a whole cycle's TPDOs and sensor frames
+#: several times over, and a bound a flooded bus cannot push the tick past
+FRAMES_PER_WAKE = 64
+#: receptions failing in a row before the driver gives the bus up (a fault: the safe state)
+RX_FAILURES_LIMIT = 100
 
 
 class CanopenError(AiohalError, RuntimeError):
@@ -213,7 +225,7 @@ def estop_can_frame(spec: str | None) -> bytes:
 
 
 class _ErrorFrames(can.Listener):
-    """Counts error frames and notes bus-off (the notifier's thread)."""
+    """Counts error frames and notes bus-off (where the frames are received)."""
 
     def __init__(self, driver: CanopenDriver) -> None:
         self.driver = driver
@@ -412,6 +424,10 @@ class CanopenDriver(Cia402Driver):
     def __init__(self, name, view, options) -> None:
         super().__init__(name, view, options)
         self._init_drive_state()  # the drives, the lock on the bus's cycles and their state, no estop
+        self._reader: tuple[asyncio.AbstractEventLoop, int] | None = None  # the loop watching the bus
+        self._rx_failures = 0  # receptions in a row that raised (the loop's reader)
+        self._rx_error: BaseException | None = None  # why the loop's reader gave up
+        self.rx_errors = 0
         self.sim: SimBus | None = None  # simulate: the simulated nodes
         self.bus: can.BusABC | None = None
         self.network: canopen.Network | None = None
@@ -428,7 +444,7 @@ class CanopenDriver(Cia402Driver):
         self._next_heartbeat_check = 0.0
         self._last_read_s = 0.0  # monotonic time of the last read() (a gap in them is a stall)
         self._heartbeat_check_s = options.heartbeat_timeout_ms * 1e-4
-        self._emcy: deque[tuple[int, int, int]] = deque()  # (node index, code, register) from the notifier thread
+        self._emcy: deque[tuple[int, int, int]] = deque()  # (node index, code, register) as received
         self._last_emcy = [0] * len(options.nodes)  # each node's last EMCY error code (0: none or reset)
         self._warn = RateLimitedLogger(log)
         self._active = False
@@ -451,6 +467,51 @@ class CanopenDriver(Cia402Driver):
 
     async def open(self) -> None:
         await asyncio.to_thread(self._quiet_bring_up)
+        self._receive_on_the_loop()
+
+    def _receive_on_the_loop(self) -> None:
+        """Hand reception from canopen's notifier thread to this event loop (the tick's
+        thread), where the bus has a file descriptor: its frames are then taken between ticks."""
+        network, bus = self.network, self.bus
+        if network is None or bus is None or network.notifier is None:
+            return
+        try:
+            fd = bus.fileno()
+        except NotImplementedError:  # python-can's virtual bus: the thread stays
+            return
+        if fd < 0:
+            return
+        network.notifier.stop(2 * network.NOTIFIER_CYCLE + 1.0)  # its thread ends within a receive timeout
+        network.notifier = None
+        loop = asyncio.get_running_loop()
+        loop.add_reader(fd, self._on_readable)
+        self._reader = (loop, fd)
+
+    def _on_readable(self) -> None:
+        """The frames waiting on the bus, on the loop's thread: at most ``FRAMES_PER_WAKE``,
+        so that a flood still leaves the tick its turn (the rest come on the next wake-up)."""
+        bus, listeners = self.bus, self.network.listeners  # type: ignore[union-attr]  # set while watched
+        try:
+            for _ in range(FRAMES_PER_WAKE):
+                msg = bus.recv(0.0)  # type: ignore[union-attr]
+                if msg is None:
+                    break
+                for listener in listeners:
+                    listener.on_message_received(msg)
+            self._rx_failures = 0
+        except Exception as exc:  # a receive that fails (interface down) or a callback's error
+            self.rx_errors += 1
+            self._rx_failures += 1
+            self._warn.warning("rx", "canopen %s: receiving failed: %s", self.name, exc)
+            if self._rx_failures >= RX_FAILURES_LIMIT:  # a bus that fails every time: no busy loop
+                self._rx_error = exc
+                self._stop_reader()
+
+    def _stop_reader(self) -> None:
+        if self._reader is not None:
+            loop, fd = self._reader
+            self._reader = None
+            loop.remove_reader(fd)
 
     def _quiet_bring_up(self) -> None:
         with canopen_quiet():
@@ -736,7 +797,7 @@ class CanopenDriver(Cia402Driver):
         self.drives = DriveGroup.on_buffers(self._inputs, self._outputs, offsets, specs, stuck_after=stuck)
         self.drives.bind_state(view.state)
 
-    # ------------------------------------------------------------ the notifier thread's callbacks
+    # ------------------------------------------------------------ callbacks of the received frames
 
     def _tpdo_callback(self, target: memoryview, size: int):
         def on_tpdo(can_id: int, data: bytearray, timestamp: float) -> None:
@@ -832,7 +893,7 @@ class CanopenDriver(Cia402Driver):
                 self._lost(now)
         if self._emcy:
             self._handle_emergencies()
-        if self.bus_off or self._failed_cycles >= self.options.tx_error_limit:
+        if self.bus_off or self._failed_cycles >= self.options.tx_error_limit or self._rx_error is not None:
             self._bus_failed()
         if self.gateway is not None:
             self.gateway.read(clock.tick, clock.now_ns, view)
@@ -868,6 +929,11 @@ class CanopenDriver(Cia402Driver):
 
     def _bus_failed(self) -> None:
         opts = self.options
+        if self._rx_error is not None:
+            raise CanopenError(
+                f"{opts.interface}:{opts.channel}: receiving failed {RX_FAILURES_LIMIT} times in a row: "
+                f"{self._rx_error}"
+            )
         if self.bus_off:
             raise CanopenError(
                 f"{opts.interface}:{opts.channel} is bus-off (an error frame said so): no frame reaches the drives"
@@ -966,6 +1032,10 @@ class CanopenDriver(Cia402Driver):
 
     async def close(self) -> None:
         self._remember_enabled()
+        if self._reader is not None:  # the shutdown's cycles run in a thread: reception back to one
+            self._stop_reader()
+            if self.network is not None and self.bus is not None:
+                self.network.notifier = can.Notifier(self.bus, self.network.listeners, self.network.NOTIFIER_CYCLE)
         await asyncio.to_thread(self._shutdown)
 
     def _shutdown(self, budget_s: float = 0.5) -> None:
@@ -997,6 +1067,8 @@ class CanopenDriver(Cia402Driver):
             "malformed": self.malformed,
             "late_cycles": self.late_cycles,
             "error_frames": self.error_frames,
+            "rx_errors": self.rx_errors,
+            "reception": "loop" if self._reader is not None else "thread",
             "emergencies": self.emergencies,
         }
         if self._frame_sizes:

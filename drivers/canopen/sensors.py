@@ -1,11 +1,12 @@
 """CAN sensors whose frames a DBC file describes (LOLA's sensor gateway), decoded with cantools.
 
 Each sensor fills one IMU or force/torque record from named signals ("Message.Signal"), in
-the order of the record's fields. canopen's notifier thread decodes each frame as it
-arrives into the sensor's buffer (a frame of the wrong length, or one cantools cannot
+the order of the record's fields. Each frame is decoded into the sensor's buffer as it
+arrives (where the driver receives it: the loop's thread between ticks, or canopen's notifier
+thread on a bus without a file descriptor); a frame of the wrong length, or one cantools cannot
 decode, is counted and dropped; a status signal that says the values are not valid, as the
 sensor's ``status_valid`` and ``status_bits`` read it, marks them invalid and they are not
-taken); an IMU without orientation signals reads a quaternion of NaN (not measured). The tick copies a sensor's buffer into its record when a
+taken. An IMU without orientation signals reads a quaternion of NaN (not measured). The tick copies a sensor's buffer into its record when a
 frame came since the last tick, and marks it STALE when none came for ``stale_periods`` of its
 period while the driver was reading, until frames come again.
 """
@@ -116,7 +117,7 @@ def sensor_issues(where: str, sensor: SensorOptions, kind: str | None, db) -> li
 
 
 class DbcSensor:
-    """One sensor: its signals → columns of its record's row, a buffer the notifier fills."""
+    """One sensor: its signals → columns of its record's row, a buffer filled as frames arrive."""
 
     def __init__(self, options: SensorOptions, record: DeviceRecord, kind: str, db) -> None:
         self.options = options
@@ -148,7 +149,7 @@ class DbcSensor:
         self.stale_events = 0
 
     def take(self, frame_id: int, values: dict) -> None:
-        """A decoded frame (the notifier's thread)."""
+        """A decoded frame (as it arrives)."""
         status = self.status
         if (
             status is not None
