@@ -7,7 +7,7 @@ RUN_STAMP := $(VENV)/.installed-run
 CONFIG ?= configs/kuka_lwr_sim.toml
 ARGS ?= --duration 10
 # the extras `make test` installs (.ci/run installs the same in its other Pythons' venvs)
-EXTRAS := dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh,docs
+EXTRAS := dev,sim,modbus,ethercat,can,record,plot,foxglove,zenoh,docs,bench
 RUN_EXTRAS := sim,record
 
 .PHONY: run lint test suite check docs figures bench bench-quick clean

@@ -17,8 +17,13 @@ blocks of each block's p99) and missed deadlines of each side.
 With ``--plain`` the writer serializes every message with rosbags, one at a time, instead of
 filling a batch (the recorder's plain path, for comparison).
 
+With ``--neighbour`` no output runs: the blocks toggle a plain busy loop (``while True: pass``,
+nice 5, on the CPUs the outputs would use) between stopped and running. It measures what any
+work beside the tick costs it on this machine (shared caches, memory, the hypervisor's
+scheduling of the vCPUs), to compare with what the outputs cost.
+
     python -m benchmarks.record [--config configs/walkman_sim.toml] [--seconds 10] [--block 0.5]
-        [--out /tmp/walkman.mcap] [--all] [--plain] [--json PATH]
+        [--out /tmp/walkman.mcap] [--all] [--plain] [--neighbour] [--json PATH]
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ import asyncio
 import dataclasses
 import itertools
 import json
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -59,8 +66,17 @@ def side_figures(stats, mask: np.ndarray, blocks: list[tuple[int, int]]) -> dict
     }
 
 
+def start_neighbour(avoid_cpus: list[int] | None) -> subprocess.Popen:
+    """A stopped busy loop where the output processes would run (off the tick's CPUs, nice 5)."""
+    others = sorted(set(os.sched_getaffinity(0)) - set(avoid_cpus or [])) or sorted(os.sched_getaffinity(0))
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                           preexec_fn=lambda: (os.sched_setaffinity(0, others), os.nice(5)))
+    hog.send_signal(signal.SIGSTOP)
+    return hog
+
+
 async def measure(config_path: Path, seconds: float, block_s: float, out: Path, plain: bool = False,
-                  every: bool = False, cpus: list[int] | None = None) -> dict:
+                  every: bool = False, cpus: list[int] | None = None, neighbour: bool = False) -> dict:
     config = load_config(config_path)
     if cpus:  # the tick on these CPUs, the output processes on the others
         config = dataclasses.replace(config, realtime=config.realtime.model_copy(update={"cpus": cpus}))
@@ -75,8 +91,10 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
     control = ControlLoop(config)
     await control.activate()
     port = control.port
-    recorder = Recorder(port, out, config.record, plain=plain)
-    recorder.attach()
+    hog = start_neighbour(config.realtime.cpus) if neighbour else None
+    recorder = None if neighbour else Recorder(port, out, config.record, plain=plain)
+    if recorder is not None:
+        recorder.attach()
     live = status = client = monitor = None
     if every:
         live = Recorder(port, None, config.record, live_port=0)
@@ -89,11 +107,12 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
                                     "--connect", f"tcp/127.0.0.1:{zport}", "--listen", f"tcp/127.0.0.1:{free_port()}",
                                     "--seconds", str(2 * seconds), "--wait", "30"], cwd=ROOT,
                                    stdout=subprocess.PIPE, text=True)
-    publish = port.tick_door.publish  # the tick's whole share of every output
     bridge = control.doors.zenoh if control.doors is not None else None
-    feed = port.event_feed  # one for every output process: health sampled on the event loop
-    feed.stop()
-    control.remove_publisher(publish)  # the run starts with the outputs off
+    if hog is None:
+        publish = port.tick_door.publish  # the tick's whole share of every output
+        feed = port.event_feed  # one for every output process: health sampled on the event loop
+        feed.stop()
+        control.remove_publisher(publish)  # the run starts with the outputs off
     rate = 1e9 / control.period_ns
     blocks_per_side = round(seconds / block_s)
     ticks_per_block = round(block_s * rate)
@@ -101,6 +120,9 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
     missed = {"off": 0, "on": 0}  # deadlines missed in each side's blocks
 
     def switch(on: bool) -> None:
+        if hog is not None:
+            hog.send_signal(signal.SIGCONT if on else signal.SIGSTOP)
+            return
         if on:
             control.add_publisher(publish)
         else:
@@ -124,10 +146,15 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
         control.request_stop("benchmark done")
 
     toggler = asyncio.get_running_loop().create_task(toggle())
-    report = await control.run(2 * seconds + 30)
-    await toggler
+    try:
+        report = await control.run(2 * seconds + 30)
+        await toggler
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
     await control.deactivate()
-    summary = recorder.close()
+    summary = recorder.close() if recorder is not None else {"dropped_ticks": 0, "bytes": 0}
     extra: dict = {}
     if every:
         extra["live"] = live.close()
@@ -157,15 +184,16 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
     blocks = list(itertools.pairwise(edges))
     side = {name: {**side_figures(stats, mask, blocks), "missed": missed[name]}
             for name, mask in (("off", off_mask), ("on", on_mask))}
-    rec = load(out)
+    rec = load(out) if recorder is not None else None
+    outputs = "recording, Foxglove + client, panel, Zenoh bridge + subscriber" if every else "recording"
     return {
         "config": str(config_path.relative_to(ROOT) if config_path.is_relative_to(ROOT) else config_path),
-        "outputs": "recording, Foxglove + client, panel, Zenoh bridge + subscriber" if every else "recording",
+        "outputs": "none; a busy loop beside the tick" if hog is not None else outputs,
         "rate_hz": rate, "cpus": cpus, "block_s": block_s, "seconds_per_side": seconds, "plain": plain,
         "sides": side,
         "work_p50_added_us": round(side["on"]["work_p50_us"] - side["off"]["work_p50_us"], 2),
         "missed_ticks_run": report["missed_ticks"],
-        "recorded_ticks_per_channel": {t: len(s) for t, s in rec.series.items() if len(s) > 10},
+        "recorded_ticks_per_channel": {t: len(s) for t, s in rec.series.items() if len(s) > 10} if rec else {},
         "dropped_ticks": summary["dropped_ticks"],
         "file_bytes": summary["bytes"],
         **extra,
@@ -216,6 +244,8 @@ def main() -> None:
     p.add_argument("--cpus", type=lambda v: [int(c) for c in v.split(",") if c], default=[1],
                    help="pin the tick to these CPUs ([realtime] cpus; the outputs keep off them); '' for none")
     p.add_argument("--plain", action="store_true", help="serialize each message with rosbags (the plain path)")
+    p.add_argument("--neighbour", action="store_true",
+                   help="no outputs: toggle a busy loop on the outputs' CPUs instead (what any neighbour costs)")
     p.add_argument("--foxglove-client", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--json", default=None)
     args = p.parse_args()
@@ -224,7 +254,7 @@ def main() -> None:
         return
     t = time.monotonic()
     result = asyncio.run(measure(args.config.resolve(), args.seconds, args.block, args.out, args.plain, args.all,
-                                 args.cpus))
+                                 args.cpus, args.neighbour))
     rows = [{"side": k, **v} for k, v in result["sides"].items()]
     print(f"outputs: {result['outputs']}")
     print(table(rows, [("side", "outputs"), ("ticks", "ticks"), ("work_p50_us", "work p50 µs"),
@@ -232,7 +262,8 @@ def main() -> None:
                        ("publish_p50_us", "publish p50 µs"), ("lateness_p99_us", "lateness p99 µs"),
                        ("block_lateness_p99_median_us", "lateness p99 µs (block median)"),
                        ("missed", "missed deadlines")]))
-    print(f"work p50 added by the outputs: {result['work_p50_added_us']} µs; missed deadlines in the run: "
+    cause = "the busy neighbour" if args.neighbour else "the outputs"
+    print(f"work p50 added by {cause}: {result['work_p50_added_us']} µs; missed deadlines in the run: "
           f"{result['missed_ticks_run']}; recorder dropped: {result['dropped_ticks']}")
     print("ticks per channel in the file:", result["recorded_ticks_per_channel"])
     for key in ("live", "status_panel", "foxglove_client", "zenoh_monitor", "zenoh_bridge"):

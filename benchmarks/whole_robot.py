@@ -4,11 +4,17 @@ bare timerfd loop measured in the same run.
 The config has every kind of part at once: 15 CiA 402 drives (WALK-MAN's legs and waist) on
 one EtherCAT line (real SOEM against ``python -m aiohal.drivers.ethercat.sim`` behind a veth
 pair in a network namespace of its own, made here and gone with the simulator), an IMU and a
-force/torque sensor on CAN (the CANopen simulator's sensor gateway on a python-can ``virtual``
-bus the driver makes in its process: the simulated gateway's threads share the robot's GIL,
-which real sensors would not), the hand behind the NRT pipe (a subprocess), recording
-to MCAP and the Zenoh bridge (peer on loopback). The bus runs at 2 kHz, the controller at
-1 kHz with extrapolated targets in between.
+force/torque sensor on CAN, the hand behind the NRT pipe (a subprocess), recording to MCAP and
+the Zenoh bridge (peer on loopback). The bus runs at 2 kHz, the controller at 1 kHz with
+extrapolated targets in between.
+
+The CAN sensor gateway is simulated in a process of its own (``--can-sim process``, the
+default), as a real gateway is another device: the robot runs in a second network namespace
+made here (the master's veth end moved in, loopback up with a multicast route) and the
+gateway (``python -m aiohal.drivers.canopen.sim --sensors``) talks to the CANopen driver over
+python-can's ``udp_multicast`` on that loopback only (needs ``msgpack``, the ``bench`` extra).
+``--can-sim thread`` keeps the shipped config's simulated gateway on a ``virtual`` bus in the
+robot's process, whose threads then take the tick's GIL whenever a pysoem call releases it.
 
 Each round runs, for ``--seconds`` each: the bare loop (timerfd at 2 kHz, no work, in its own
 process) and then the robot, both with the loop's thread at SCHED_FIFO 80 on CPU 0 with memory
@@ -27,6 +33,7 @@ dropped counts and what every part produced (cycles, sensor frames, hand states,
 ``--without can hand record bridge`` leaves parts out, to see what each costs.
 
     sudo python -m benchmarks.whole_robot [--seconds 60] [--rounds 1] [--ratio 1.2] [--json PATH]
+        [--without can hand record bridge] [--can-sim process|thread]
 """
 
 from __future__ import annotations
@@ -34,6 +41,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import select
+import subprocess
 import sys
 import tempfile
 import time
@@ -48,6 +57,8 @@ SLAVES = "drive*15"
 LOOP_CPU, SIM_CPU = 0, 1
 PRIORITY = 80
 RATE_HZ = 2000.0
+CAN_PRIORITY = 60  # the CAN gateway answers as a device would, after the EtherCAT segment (70)
+CAN_GROUP = "239.74.163.2"  # python-can's IPv4 group, routed to the namespace's loopback only
 
 
 class HostMeter:
@@ -112,13 +123,17 @@ def toml_text(raw: dict) -> str:
     return "\n".join(tables("", raw, "")) + "\n"
 
 
-def config_raw(ifname: str, without: tuple[str, ...] = ()) -> dict:
-    """The shipped config with the veth pair's master end, the loop's thread on LOOP_CPU, and
-    without the parts named (to see what each costs)."""
+def config_raw(ifname: str, without: tuple[str, ...] = (), can_process: bool = False) -> dict:
+    """The shipped config with the veth pair's master end, the loop's thread on LOOP_CPU, the
+    CAN gateway in its own process (``can_process``) and without the parts named (to see what
+    each costs)."""
     raw = tomllib.loads(CONFIG.read_text())
     (legs,) = [d for d in raw["driver"] if d["type"] == "ethercat"]
     legs["options"]["interface"] = ifname
     raw["realtime"]["cpus"] = [LOOP_CPU]
+    if can_process and "can" not in without:
+        (can,) = [d for d in raw["driver"] if d["type"] == "canopen"]
+        can["options"].update(interface="udp_multicast", channel=CAN_GROUP, simulate=False)
     drop = {"can": "canopen", "hand": "nrt_hand"}
     for part in without:
         if part in drop:
@@ -136,6 +151,69 @@ def config_raw(ifname: str, without: tuple[str, ...] = ()) -> dict:
     return raw
 
 
+def pin(pid: int, cpu: int, priority: int) -> None:
+    """Every thread of ``pid`` on ``cpu`` at SCHED_FIFO ``priority`` (a process's threads do not
+    follow a change made to its first one)."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        os.sched_setaffinity(int(tid), {cpu})
+        os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+
+
+def _ip(*args: str) -> None:
+    subprocess.run(["ip", *args], check=True, capture_output=True, text=True, timeout=10)
+
+
+class RobotNamespace:
+    """A network namespace of this benchmark's own for the robot's process: the master's veth
+    end moved in, loopback up with a multicast route, and the CAN sensor gateway simulated in
+    a process of its own on python-can's ``udp_multicast`` there. Gone at exit (the veth pair
+    with it)."""
+
+    def __init__(self, ifname: str, with_can: bool) -> None:
+        self.name = f"aiohal-whole-{os.getpid()}"
+        self.ifname = ifname
+        self.with_can = with_can
+        self.can_sim: subprocess.Popen | None = None
+        self.prefix = ("ip", "netns", "exec", self.name)
+
+    def __enter__(self) -> RobotNamespace:
+        _ip("netns", "add", self.name)
+        try:
+            _ip("link", "set", self.ifname, "netns", self.name)
+            _ip("-n", self.name, "link", "set", "lo", "up")
+            _ip("-n", self.name, "link", "set", self.ifname, "up")
+            _ip("-n", self.name, "route", "add", "224.0.0.0/4", "dev", "lo")
+            if self.with_can:
+                self._start_can_sim()
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def _start_can_sim(self) -> None:
+        cmd = [*self.prefix, sys.executable, "-m", "aiohal.drivers.canopen.sim", "--interface", "udp_multicast",
+               "--channel", CAN_GROUP, "--sensors", "--sensor-period-ms", "4"]
+        self.can_sim = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        ready, _, _ = select.select([self.can_sim.stdout], [], [], 30.0)
+        line = self.can_sim.stdout.readline() if ready else ""
+        if not line.startswith("simulating"):
+            raise RuntimeError(f"the CAN gateway simulator did not start: {line!r} {self.can_sim.stderr.read()[-500:]}")
+        # `ip netns exec` runs the simulator as its child: pin the process that has the threads
+        (sim_pid,) = [int(p) for p in subprocess.run(["pgrep", "-P", str(self.can_sim.pid)], capture_output=True,
+                                                     text=True, timeout=10).stdout.split()] or [self.can_sim.pid]
+        pin(sim_pid, SIM_CPU, CAN_PRIORITY)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.can_sim is not None:
+            self.can_sim.terminate()
+            try:
+                self.can_sim.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.can_sim.kill()
+                self.can_sim.communicate()
+        subprocess.run(["ip", "netns", "del", self.name], capture_output=True, timeout=10, check=False)
+
+
 def run_bare(seconds: float, loop: str) -> dict:
     """A timerfd loop at the robot's rate with no work, the same [realtime] settings, its own process."""
     host = HostMeter()
@@ -148,7 +226,8 @@ def _p(d: dict | None, key: str = "p50") -> float | None:
     return None if not d else d.get(key)
 
 
-def run_whole(seconds: float, loop: str, without: tuple[str, ...] = (), sim_priority: int = 0) -> dict:
+def run_whole(seconds: float, loop: str, without: tuple[str, ...] = (), sim_priority: int = 0,
+              can_process: bool = True) -> dict:
     """The shipped config through the CLI against a fresh simulated segment; the figures of one run."""
     from aiohal.drivers.ethercat.sim.fixture import SimulatedSegment
 
@@ -157,11 +236,13 @@ def run_whole(seconds: float, loop: str, without: tuple[str, ...] = (), sim_prio
         if sim_priority:  # the slaves answer as hardware would: before the helpers of the robot's process
             os.sched_setscheduler(sim.pid, os.SCHED_FIFO, os.sched_param(sim_priority))
         config = Path(tmp) / CONFIG.name
-        config.write_text(toml_text(config_raw(sim.ifname, without)))
+        config.write_text(toml_text(config_raw(sim.ifname, without, can_process)))
         record = () if "record" in without else ("--record", str(Path(tmp) / "whole.mcap"))
-        host = HostMeter()
-        report = run_cli(config, "--duration", str(seconds), "--loop", loop, *record, timeout=seconds + 180)
-        calm = host.result()
+        with RobotNamespace(sim.ifname, with_can=can_process and "can" not in without) as netns:
+            host = HostMeter()
+            report = run_cli(config, "--duration", str(seconds), "--loop", loop, *record, prefix=netns.prefix,
+                             timeout=seconds + 180)
+            calm = host.result()
     drivers = report["drivers"]
     legs, can, hand = drivers.get("legs", {}), drivers.get("can_sensors", {}), drivers.get("hand", {})
     record = report.get("record") or {}
@@ -197,11 +278,20 @@ def main(argv: list[str] | None = None) -> int:
                    help="leave these parts out of the robot (what each costs)")
     p.add_argument("--sim-priority", type=int, default=70,
                    help="SCHED_FIFO priority of the simulator on its CPU (default 70; 0: normal scheduling)")
+    p.add_argument("--can-sim", choices=("process", "thread"), default="process",
+                   help="the CAN gateway simulated in its own process (default) or in the robot's")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     if os.geteuid() != 0:
         print("benchmarks.whole_robot needs root (veth pair, network namespace, raw socket)", file=sys.stderr)
         return 2
+    if args.can_sim == "process" and "can" not in args.without:
+        try:
+            import msgpack  # noqa: F401  python-can's udp_multicast needs it
+        except ImportError:
+            print("--can-sim process needs python-can's udp_multicast: pip install -e '.[bench]' "
+                  "(or --can-sim thread)", file=sys.stderr)
+            return 2
     if (os.cpu_count() or 1) < 2:
         print("benchmarks.whole_robot needs 2 CPUs (the loop on one, the simulator on the other)", file=sys.stderr)
         return 2
@@ -210,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in range(1, args.rounds + 1):
         bare = run_bare(args.seconds, args.loop)
         print(json.dumps({"round": r, "bare": bare}), flush=True)
-        whole = run_whole(args.seconds, args.loop, tuple(args.without), args.sim_priority)
+        whole = run_whole(args.seconds, args.loop, tuple(args.without), args.sim_priority, args.can_sim == "process")
         ratio = None  # a robot that did not run (a failed bring-up: its faults say why) has none
         if whole["lateness_p99_us"] is not None and bare["lateness_p99_us"]:
             ratio = round(whole["lateness_p99_us"] / bare["lateness_p99_us"], 3)
@@ -250,7 +340,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{name} read {d.get('read_us_mean')} write {d.get('write_us_mean')}" for name, d in last["drivers_us"].items()))
     elapsed = round(time.monotonic() - started, 1)
     write_json(args.json, {"benchmark": "whole_robot", "config": str(CONFIG.relative_to(ROOT)), "rate_hz": RATE_HZ,
-                           "seconds": args.seconds, "loop": args.loop, "ratio_floor": args.ratio, "elapsed_s": elapsed,
+                           "seconds": args.seconds, "loop": args.loop, "can_sim": args.can_sim,
+                           "ratio_floor": args.ratio, "elapsed_s": elapsed,
                            "rounds": rounds, "floor_met_rounds": sum(r["floor_met"] for r in rounds)})
     return 0
 
