@@ -210,9 +210,12 @@ def test_the_watchdog_acts_again_after_a_rearm(tmp_path, board):
     finally:
         robot.kill()
     assert all(n >= 1 for n in acted), f"e-stop datagrams during each freeze: {acted}"
-    # one fault of the watchdog per freeze (and per host stall beyond 20 ms, if any), none made up
+    # one fault of the watchdog per freeze (and per host stall beyond 20 ms, if any), none made up;
+    # the loop judges a gap between two ticks, the watchdog from activation on: a host stall
+    # before the second tick (beside two CPU hogs: at tick 1) is the watchdog's fault alone
     stalls = [f["tick"] for f in report["faults"] if f["phase"] == "stall"]
     watchdog_faults = [f["tick"] for f in report["faults"] if f["source"] == "watchdog"]
-    assert len(watchdog_faults) >= 2 and set(watchdog_faults) <= set(stalls), report["faults"]
+    after_start = [t for t in watchdog_faults if t > 1]
+    assert len(after_start) >= 2 and set(after_start) <= set(stalls), report["faults"]
     events = [t["event"] for t in report["safety"]]
     assert events.count("watchdog") == len(watchdog_faults) and events[-3:] == ["reset_faults", "rearm", "deactivate"]
