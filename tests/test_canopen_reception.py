@@ -20,7 +20,7 @@ from aiohal.drivers.canopen import driver as canopen_driver
 
 _channels = itertools.count()
 JOINTS = ("j0", "j1")
-IMU = {"device": "imu", "period_ms": 4.0, "stale_periods": 50, "status": "IMU_Gyro.Status", "signals": {
+IMU = {"device": "imu", "period_ms": 4.0, "stale_periods": 250, "status": "IMU_Gyro.Status", "signals": {
     "quaternion": ["IMU_Orientation.W", "IMU_Orientation.X", "IMU_Orientation.Y", "IMU_Orientation.Z"],
     "angular_velocity": ["IMU_Gyro.X", "IMU_Gyro.Y", "IMU_Gyro.Z"],
     "linear_acceleration": ["IMU_Accel.X", "IMU_Accel.Y", "IMU_Accel.Z"]}}
