@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 
 import pytest
+from conftest import NOT_HUNG_S
 from helpers import arm_raw, virtual_loop
 
 from aiohal.outside.event_feed import EventFeed
@@ -97,3 +98,53 @@ async def test_the_terminal_status_shows_the_run_through_the_port():
     assert figures["safety_level"] == "run" and figures["fault_count"] == 0
     assert figures["drivers"]["arm"]["status"] == "open" and figures["controller"]["type"] == "hold"
     assert render(figures) is not None
+
+
+class _Sink:
+    """What an output process's socket would get, kept here."""
+
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def send_bytes(self, data: bytes) -> bool:
+        self.sent.append(data)
+        return True
+
+
+@pytest.mark.asyncio
+async def test_the_feed_samples_the_health_right_after_a_tick_or_a_period_without_one():
+    """The health (hundreds of µs with many drives) is sampled when a tick has just ended, in
+    that tick's idle time; between runs, where no tick comes, a period later anyway."""
+    import asyncio
+    import pickle
+
+    loop = virtual_loop(arm_raw())
+    async with loop:
+        port = loop.port
+        hooks: list = []
+        real_at_tick_end = port.at_tick_end
+        port.at_tick_end = lambda fn: (hooks.append(fn), real_at_tick_end(fn))  # type: ignore[method-assign]
+        feed = EventFeed(port, 0.5)  # a sample every 2 s: far longer than this test's steps
+        sink = _Sink()
+        feed.sinks.append(sink)
+        feed.start()
+        try:
+            for _ in range(int(NOT_HUNG_S / 0.01)):  # the period passes; then the feed waits for a tick's end
+                if hooks:
+                    break
+                await asyncio.sleep(0.01)
+            assert hooks and sink.sent == []  # not sampled before a tick ended
+            await loop.run(ticks=1)  # a tick: its end wakes the feed, which samples at once
+            for _ in range(10):
+                await asyncio.sleep(0)
+            topics = [pickle.loads(data)[1] for data in sink.sent]
+            assert "/diagnostics" in topics and hooks[0] not in loop._publishers  # the hook taken out
+            sink.sent.clear()
+            feed.period_s = 0.1
+            for _ in range(int(NOT_HUNG_S / 0.01)):  # no tick now: a period after the wait began
+                if sink.sent:
+                    break
+                await asyncio.sleep(0.01)
+            assert "/diagnostics" in [pickle.loads(data)[1] for data in sink.sent]
+        finally:
+            feed.stop()
