@@ -87,7 +87,12 @@ def test_a_frozen_robot_process_holds_where_it_stands_and_rearms_without_a_step(
     since = stall[0]["tick"] - gap_ms * 1e6 / config.period_ns - 1
     after = [(t["event"], t["after"]) for t in report["safety"]
              if t["tick"] >= stall[0]["tick"] or (t["tick"] >= since and t["source"] == "watchdog")]
-    assert after[0] == (("fault", "hold") if level == "hold" else ("watchdog", "estop")), report["safety"]
+    if level == "hold":
+        assert after[0] == ("fault", "hold"), report["safety"]
+    else:  # the watchdog's e-stop, noticed on the resume: first, or right after the stall's hold
+        # (both come on the resume; once, on Python 3.13, the hold was recorded first)
+        first = after[1] if after[0] == ("fault", "hold") else after[0]
+        assert first == ("watchdog", "estop"), report["safety"]
     assert after[-2:] == [("rearm", "run"), ("deactivate", "off")], report["safety"]
     robot_model = config.build_robot()
     held, moved = check_resume(report, load(robot.record), config.period_ns / 1e9, robot_model.velocity_limit,
