@@ -93,5 +93,6 @@ async def test_a_bus_whose_reception_keeps_failing_fails_the_driver():
         loop.add_publisher(lambda lp: lp.request_stop("failed") if lp.faults else None)
         await loop.run(ticks=2000)
         assert driver.rx_errors >= canopen_driver.RX_FAILURES_LIMIT
+        assert driver.health()["reception"] == "given up"  # not "thread": no thread took over
     assert [f.source for f in loop.faults][:1] == ["driver:bus"]
     assert "receiving failed" in loop.faults[0].error

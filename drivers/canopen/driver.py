@@ -1068,7 +1068,7 @@ class CanopenDriver(Cia402Driver):
             "late_cycles": self.late_cycles,
             "error_frames": self.error_frames,
             "rx_errors": self.rx_errors,
-            "reception": "loop" if self._reader is not None else "thread",
+            "reception": "loop" if self._reader is not None else "given up" if self._rx_error is not None else "thread",
             "emergencies": self.emergencies,
         }
         if self._frame_sizes:
