@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 
 import pytest
 from conftest import NOT_HUNG_S
@@ -12,7 +13,7 @@ from aiohal.outside.event_feed import EventFeed
 from aiohal.outside.terminal_status import StatusFigures, render
 from aiohal.outside.tick_door import make_ring
 from aiohal.outside.tick_ring import TickReader
-from aiohal.safety import SafetyLevel, SafetyRequestRefused
+from aiohal.safety import SafetyLevel, SafetyRequestExpired, SafetyRequestRefused
 
 
 @pytest.mark.asyncio
@@ -66,10 +67,18 @@ async def test_requests_act_or_are_refused_with_the_loops_reasons():
         port.estop("a test", source="test")
         assert port.level == SafetyLevel.ESTOP
         with pytest.raises(SafetyRequestRefused, match="reset_faults\\(\\) first"):
-            port.rearm(source="test")
-        port.reset_faults(source="test")
+            port.rearm(source="test", act_by_ns=None)
+        # a request whose caller stopped waiting a moment ago is not acted on, whatever the level
+        gone = time.monotonic_ns() - 1_000_000
+        with pytest.raises(SafetyRequestExpired, match="after its caller stopped waiting"):
+            port.reset_faults(source="test", act_by_ns=gone)
+        assert port.level == SafetyLevel.ESTOP  # a reset would have released the stop
+        port.reset_faults(source="test", act_by_ns=time.monotonic_ns() + 1_000_000_000)
         assert port.level == SafetyLevel.DISABLED
-        port.rearm(source="test")
+        with pytest.raises(SafetyRequestExpired):
+            port.rearm(source="test", act_by_ns=gone)
+        assert port.level == SafetyLevel.DISABLED
+        port.rearm(source="test", act_by_ns=None)
         assert port.level == SafetyLevel.RUN
         fault = port.record_fault("test:door", "open", "refused by a test")
         assert port.faults[-1] is fault and loop.report()["faults"][-1]["source"] == "test:door"

@@ -122,10 +122,10 @@ class OutputProcess:
 
     def serve(self, loop: asyncio.AbstractEventLoop, act: Callable[[str, float], tuple[bool, str]]) -> None:
         """Answer the child's requests on ``loop`` (the loop's thread, between ticks): each
-        ``("request", (id, name, sent))`` is acted on by ``act(name, age_s) -> (success, message)``
+        ``("request", (id, name, sent))`` is acted on by ``act(name, sent) -> (success, message)``
         and answered ``("answer", id, success, message)``. ``sent`` is the child's
-        ``time.monotonic()`` (one clock for every process of the host): the age lets ``act``
-        refuse a request its caller has stopped waiting for (a loop that was frozen)."""
+        ``time.monotonic()`` (one clock for every process of the host): from it ``act`` knows
+        when the caller stops waiting, and refuses a request read later (a loop that was frozen)."""
         self._loop = loop
 
         def readable() -> None:
@@ -143,7 +143,7 @@ class OutputProcess:
                 what, body = pickle.loads(data)
                 if what == "request":
                     rid, name, sent = body
-                    success, message = act(name, time.monotonic() - sent)
+                    success, message = act(name, sent)
                     self.send(("answer", rid, success, message))
 
         loop.add_reader(self._sock.fileno(), readable)

@@ -10,11 +10,13 @@ one tick's values, and the only code of theirs that runs in the tick.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from ..core.lifecycle import LoopState
+from ..safety import SafetyRequestExpired
 
 if TYPE_CHECKING:
     from ..config import Config
@@ -197,14 +199,30 @@ class LoopPort:
         """Replace the controller by ``hold`` (braking to rest); only from ``run``."""
         self._supervisor.hold(cause)
 
-    def reset_faults(self, source: str) -> list[str]:
-        """Clear the latched faults (and release an emergency stop); what was cleared."""
+    def reset_faults(self, source: str, *, act_by_ns: int | None) -> list[str]:
+        """Clear the latched faults (and release an emergency stop); what was cleared.
+
+        ``act_by_ns`` (CLOCK_MONOTONIC) is the moment the request's caller stops waiting for
+        the answer, or None for a caller that waits as long as it takes; read later, the
+        request is refused with :class:`~aiohal.safety.SafetyRequestExpired`. Every door
+        passes it: one whose caller gives up must not have the loop act behind its back."""
+        _check_awaited("reset_faults", act_by_ns)
         return self._supervisor.reset_faults(source)
 
-    def rearm(self, source: str) -> None:
-        """Return to ``run`` without a jump; refused while a fault is active."""
+    def rearm(self, source: str, *, act_by_ns: int | None) -> None:
+        """Return to ``run`` without a jump; refused while a fault is active, and after
+        ``act_by_ns`` as :meth:`reset_faults` is."""
+        _check_awaited("rearm", act_by_ns)
         self._supervisor.rearm(source)
 
     def record_fault(self, source: str, phase: str, exc: BaseException | str) -> FaultRecord:
         """Record a fault of a door or an output (it appears in the report; the CLI exits 1)."""
         return self._supervisor.record_fault(source, phase, exc)
+
+
+def _check_awaited(what: str, act_by_ns: int | None) -> None:
+    late_s = 0.0 if act_by_ns is None else (time.monotonic_ns() - act_by_ns) / 1e9
+    if late_s > 0:
+        raise SafetyRequestExpired(
+            f"{what} read {late_s:.3f} s after its caller stopped waiting (the loop was not running): ask again"
+        )

@@ -14,7 +14,7 @@ import logging
 import os
 from typing import Any
 
-from ..safety import SafetyRequestRefused
+from ..safety import SafetyRequestExpired, SafetyRequestRefused
 from .event_feed import EventFeed, join_feed, leave_feed
 from .options import ZenohBridgeSection
 from .output_process import OutputProcess
@@ -100,32 +100,30 @@ class ZenohBridge:
             ", ".join(section.commands) or "no command",
         )
 
-    def _act(self, name: str, age_s: float) -> tuple[bool, str]:
-        """A safety request relayed by the bridge ``age_s`` ago, on the loop's thread between
-        ticks."""
+    def _act(self, name: str, sent_s: float) -> tuple[bool, str]:
+        """A safety request the bridge relayed at ``sent_s`` (``time.monotonic()``), on the
+        loop's thread between ticks."""
         port = self.port
         cause = "requested over ROS 2 (zenoh)"
         log.warning("robot %s: %s requested over zenoh", port.robot.name, name)
-        if name in ("rearm", "reset_faults") and age_s > ARMING_REQUEST_MAX_AGE_S:
-            self.counters["requests_expired"] += 1
-            message = (
-                f"{name} refused: relayed {age_s:.1f} s ago (the loop was not running), longer than "
-                f"{ARMING_REQUEST_MAX_AGE_S:g} s; its caller was told there was no answer: ask again"
-            )
-            log.warning("robot %s: %s", port.robot.name, message)
-            return False, message
+        act_by_ns = int((sent_s + ARMING_REQUEST_MAX_AGE_S) * 1e9)
         try:
             if name == "estop":
                 port.estop(cause, source="zenoh")
             elif name == "hold":
                 port.hold(cause)
             elif name == "reset_faults":
-                return True, f"cleared {len(port.reset_faults(source='zenoh'))} fault(s)"
+                cleared = port.reset_faults(source="zenoh", act_by_ns=act_by_ns)
             elif name == "rearm":
-                port.rearm(source="zenoh")
+                port.rearm(source="zenoh", act_by_ns=act_by_ns)
             else:
                 return False, f"unknown request {name!r}"
             success, message = True, f"{name} done: safety level {port.level.name.lower()}"
+            if name == "reset_faults":
+                message = f"cleared {len(cleared)} fault(s)"
+        except SafetyRequestExpired as exc:
+            self.counters["requests_expired"] += 1
+            success, message = False, f"{exc}; its caller was told there was no answer"
         except SafetyRequestRefused as exc:
             success, message = False, str(exc)
         except Exception as exc:

@@ -86,6 +86,12 @@ class SafetyRequestRefused(RuntimeError):
     """A user's safety request (hold, reset_faults, rearm) cannot be granted now; says why."""
 
 
+class SafetyRequestExpired(SafetyRequestRefused):
+    """A reset or rearm reached the loop after its caller had stopped waiting for the answer
+    (the loop was frozen or stopped meanwhile): the caller was told it went unanswered and may
+    have walked up to the robot, so it is not acted on."""
+
+
 @dataclass(frozen=True)
 class Transition:
     """One change of level (or a request granted at the same level), and why."""
