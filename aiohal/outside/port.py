@@ -202,10 +202,11 @@ class LoopPort:
     def reset_faults(self, source: str, *, act_by_ns: int | None) -> list[str]:
         """Clear the latched faults (and release an emergency stop); what was cleared.
 
-        ``act_by_ns`` (CLOCK_MONOTONIC) is the moment the request's caller stops waiting for
-        the answer, or None for a caller that waits as long as it takes; read later, the
-        request is refused with :class:`~aiohal.safety.SafetyRequestExpired`. Every door
-        passes it: one whose caller gives up must not have the loop act behind its back."""
+        ``act_by_ns`` (CLOCK_MONOTONIC) is the last moment the loop may act on the request:
+        its caller's wait for the answer, less the time the answer needs to get back (None
+        for a caller that waits as long as it takes); read later, the request is refused with
+        :class:`~aiohal.safety.SafetyRequestExpired`. Every door passes it: one whose caller
+        gives up must not have the loop act behind its back."""
         _check_awaited("reset_faults", act_by_ns)
         return self._supervisor.reset_faults(source)
 
