@@ -444,7 +444,7 @@ async def test_a_reset_or_rearm_read_after_its_client_gave_up_is_refused():
             await loop.run(ticks=3)
             assert loop.level == SafetyLevel.DISABLED and door.requests_expired == 2
             answer = client._seg.answer_text[shm_segment.A_REARM].tobytes().decode(errors="replace")
-            assert "after its caller stopped waiting" in answer
+            assert "too late to answer its caller" in answer
             await ticking(loop, client.rearm, 10.0)
             assert loop.level == SafetyLevel.RUN
         events = [t["event"] for t in loop.report()["safety"]]

@@ -225,5 +225,5 @@ def _check_awaited(what: str, act_by_ns: int | None) -> None:
     late_s = 0.0 if act_by_ns is None else (time.monotonic_ns() - act_by_ns) / 1e9
     if late_s > 0:
         raise SafetyRequestExpired(
-            f"{what} read {late_s:.3f} s after its caller stopped waiting (the loop was not running): ask again"
+            f"{what} read {late_s:.3f} s too late to answer its caller in time (the loop was not running): ask again"
         )

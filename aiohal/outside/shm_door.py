@@ -74,7 +74,7 @@ class ShmDoor:
             can_rearm=True,
         )
         self.requests_acted = 0
-        self.requests_expired = 0  # resets and rearms read after their client stopped waiting
+        self.requests_expired = 0  # resets and rearms read too late to answer their client
         self.publish = self._make_publisher()
         _DOORS[robot.name] = self
 

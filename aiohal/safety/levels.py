@@ -87,9 +87,9 @@ class SafetyRequestRefused(RuntimeError):
 
 
 class SafetyRequestExpired(SafetyRequestRefused):
-    """A reset or rearm reached the loop after its caller had stopped waiting for the answer
-    (the loop was frozen or stopped meanwhile): the caller was told it went unanswered and may
-    have walked up to the robot, so it is not acted on."""
+    """A reset or rearm reached the loop too late to answer its caller within its wait (the
+    loop was frozen or stopped meanwhile): the caller is told, or was told, that it went
+    unanswered and may have walked up to the robot, so it is not acted on."""
 
 
 @dataclass(frozen=True)
