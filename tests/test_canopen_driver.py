@@ -29,6 +29,10 @@ def channel() -> str:
 
 
 def raw_config(ch: str, controller: dict | None = None, nodes: list[dict] | None = None, **options) -> dict:
+    # the simulated nodes' thread shares a loaded host with the loop (beside two CPU hogs it
+    # was once silent for over 200 ms, the default): a node is lost after 2 s here, and the
+    # heartbeat tests set their own timeout
+    options = {"heartbeat_timeout_ms": 2000.0, **options}
     return {
         "robot": {"name": "can_arm"},
         "loop": {"rate_hz": 250, "max_feedback_age": 50},

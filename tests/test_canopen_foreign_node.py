@@ -75,7 +75,7 @@ async def test_a_foreign_node_with_another_pdo_layout_is_brought_up_enabled_and_
             "loop": {"rate_hz": 250, "max_feedback_age": 50},
             "joints": {"j0": {"position": [-3.0, 3.0], "velocity": 4.0, "acceleration": 40.0}},
             "driver": [{"type": "canopen", "name": "bus", "joints": ["j0"], "options": {
-                "interface": "virtual", "channel": channel,
+                "interface": "virtual", "channel": channel, "heartbeat_timeout_ms": 2000.0,  # a loaded host
                 "nodes": [{"node_id": NODE_ID, "joint": "j0", "eds": str(EDS), "vendor_id": 0x00C0FFEE,
                            "product_code": 0x1234, "counts_per_rev": 4096}]}}],
             "controller": {"type": "sine", "params": {"amplitude": 0.5, "frequency": 1.0}},

@@ -41,6 +41,7 @@ def raw_config(interface: str = "pair") -> dict:
         "devices": {"imu": {"type": "imu"}},
         "driver": [{"type": "canopen", "name": "bus", "joints": list(JOINTS), "devices": ["imu"], "options": {
             "interface": interface, "channel": f"aiohal-pair-{os.getpid()}-{next(_channels)}", "simulate": True,
+            "heartbeat_timeout_ms": 2000.0,  # the simulated nodes share a loaded host (default 200 ms)
             "nodes": [{"node_id": i + 1, "joint": j} for i, j in enumerate(JOINTS)], "sensors": [IMU]}}],
         "controller": {"type": "sine", "params": {"amplitude": 0.3, "frequency": 0.5}},
     }

@@ -44,6 +44,7 @@ name = "scanned"
 rate_hz = 1000
 max_feedback_age = 5000
 stall_timeout_ms = 5000
+close_timeout_ms = 20000  # the bus's close beside two CPU hogs once took over the default 2 s
 [safety]
 max_tick_gap_ms = 5000  # a stall of a loaded host (tens of ms) is not what is tested
 [joint_defaults]
