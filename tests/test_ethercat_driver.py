@@ -590,6 +590,35 @@ async def test_a_driver_never_opened_stops_closes_and_reports_without_touching_a
         await driver.sdo_read(0, 0x1000)
 
 
+def test_health_takes_its_percentiles_from_a_spread_sample_of_the_ring(monkeypatch):
+    """Health is sampled on the event loop between ticks: the percentiles of a full ring of
+    cycle timings (65 536 each) took milliseconds there, several deadlines at 2 kHz."""
+    from aiohal.drivers.ethercat import driver as module
+
+    loop = ControlLoop(parse_config(raw_config("ahnosuchif0")))
+    loop.configure()
+    driver = driver_of(loop)
+    driver._executor = object()  # as if opened: health reports the cycles
+    rng = np.random.default_rng(7)
+    driver._rtt_ns[:] = rng.gamma(4.0, 20_000.0, module.RING)  # a long tail, as round trips have
+    driver._cpu_ns[:] = rng.gamma(4.0, 5_000.0, module.RING)
+    driver.cycles = 3 * module.RING + 5
+    sizes = []
+    spread = module._p50_p99_us
+
+    def counted(samples):
+        sizes.append(len(samples))
+        return spread(samples)
+
+    monkeypatch.setattr(module, "_p50_p99_us", counted)
+    health = driver.health()
+    assert sizes and max(sizes) <= module.HEALTH_SAMPLES
+    for key, ring in (("receive_wait_us", driver._rtt_ns), ("cpu_us", driver._cpu_ns)):
+        whole = spread(ring)
+        assert health[key]["p50"] == pytest.approx(whole["p50"], rel=0.05), key
+        assert health[key]["p99"] == pytest.approx(whole["p99"], rel=0.1), key
+
+
 def test_the_shipped_config_runs_from_the_command_line(segment, tmp_path):
     """`python -m aiohal configs/ethercat_sim.toml` with the segment's interface: the run, its report."""
     text = CONFIG.read_text().replace('interface = "ecm0"', f'interface = "{segment.ifname}"')

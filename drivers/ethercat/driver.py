@@ -67,6 +67,10 @@ from .sm_watchdog import Setting
 log = logging.getLogger(__name__)
 
 RING = 1 << 16  # per-cycle timings kept for the report (the last 65 s at 1 kHz)
+#: cycles the health's percentiles are taken over, evenly spread over the ring: health is
+#: sampled on the event loop between ticks, where the percentiles of the whole ring (three
+#: partitions of 65 536 values, milliseconds) would make the next ticks late
+HEALTH_SAMPLES = 4096
 
 
 def _has_variable(image: ProcessImage, slave: str, name: str) -> bool:
@@ -786,8 +790,8 @@ class EthercatDriver(Cia402Driver):
             out["process_data_bytes"] = len(self.image.outputs) + len(self.image.inputs)
         if n:
             key = "rtt_us" if self.options.exchange == "immediate" else "receive_wait_us"
-            rtt = self._rtt_ns[:n] if self.cycles < RING else self._rtt_ns
-            cpu = self._cpu_ns[:n] if self.cycles < RING else self._cpu_ns
+            step = max(1, n // HEALTH_SAMPLES)
+            rtt, cpu = self._rtt_ns[:n:step], self._cpu_ns[:n:step]
             out[key] = _p50_p99_us(rtt)
             out["cpu_us"] = _p50_p99_us(cpu[cpu > 0]) if (cpu > 0).any() else {}
         if self.dc_lock is not None and self.dc_lock.count:
