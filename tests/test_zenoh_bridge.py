@@ -230,13 +230,15 @@ def test_a_ros2_peer_sees_two_robots_and_only_the_operator_commands(tmp_path):
     config_file = acl_config(tmp_path, [a_name, b_name])
     (tmp_path / "a.toml").write_text(robot_toml(a_name, pa, [], commands=COMMANDS, config_file=config_file))
     (tmp_path / "b.toml").write_text(robot_toml(b_name, pb, [], config_file=config_file))  # publishes only
-    robots = [subprocess.Popen([sys.executable, "-m", "aiohal", str(tmp_path / f"{x}.toml"), "--duration", "30",
+    # both robots run until stopped below; the monitor counts 10 s from each robot's first message
+    # and gives a robot 60 s to appear (beside two CPU hogs one was first heard 31 s in)
+    robots = [subprocess.Popen([sys.executable, "-m", "aiohal", str(tmp_path / f"{x}.toml"), "--duration", "90",
                                 "--report-json", str(tmp_path / f"{x}.json"), "--quiet"], cwd=ROOT,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for x in ("a", "b")]
     # the monitor: its own process, zenoh and rosbags only (test_the_monitor_needs_no_aiohal)
     monitor = subprocess.Popen([sys.executable, str(MONITOR), "--connect", ep(pa), "--connect", ep(pb), "--listen",
                                 ep(pm), "--user", "viewer", "--password", "view-secret", "--robots", "2",
-                                "--seconds", "10", "--wait", "25"], cwd=ROOT, stdout=subprocess.PIPE,
+                                "--seconds", "10", "--wait", "60"], cwd=ROOT, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     operator = viewer = None
     try:
@@ -266,7 +268,7 @@ def test_a_ros2_peer_sees_two_robots_and_only_the_operator_commands(tmp_path):
         assert ok and "estop" in message
         assert seq == operator.sequence and gid == operator.gid  # rmw_zenoh's client matches the reply so
 
-        out, err = monitor.communicate(timeout=60)
+        out, err = monitor.communicate(timeout=90)
         assert monitor.returncode == 0, err
         seen = json.loads(out)
         assert {f"/{a_name}/aiohal", f"/{b_name}/aiohal"} <= set(seen["nodes"])
