@@ -215,12 +215,14 @@ def test_the_watchdog_acts_again_after_a_rearm(tmp_path, board):
     finally:
         robot.kill()
     assert all(n >= 1 for n in acted), f"e-stop datagrams during each freeze: {acted}"
-    # one fault of the watchdog per freeze (and per host stall beyond 20 ms, if any), none made up;
-    # the loop judges a gap between two ticks, the watchdog from activation on: a host stall
-    # before the second tick (beside two CPU hogs: at tick 1) is the watchdog's fault alone
+    # a fault of the watchdog per freeze, and one again after the rearm: at a stall the loop saw
+    # too. The watchdog process can also see a stall of its own (beside two CPU hogs: before the
+    # second tick, or at tick 300 while the loop saw none, that fault then covering the first
+    # freeze), so the faults are judged from its first one on: a later one at a loop stall.
     stalls = [f["tick"] for f in report["faults"] if f["phase"] == "stall"]
     watchdog_faults = [f["tick"] for f in report["faults"] if f["source"] == "watchdog"]
     after_start = [t for t in watchdog_faults if t > 1]
-    assert len(after_start) >= 2 and set(after_start) <= set(stalls), report["faults"]
+    assert len(after_start) >= 2, report["faults"]
+    assert any(t in after_start for t in stalls if t > after_start[0]), report["faults"]
     events = [t["event"] for t in report["safety"]]
     assert events.count("watchdog") == len(watchdog_faults) and events[-3:] == ["reset_faults", "rearm", "deactivate"]
