@@ -68,7 +68,7 @@ log = logging.getLogger(__name__)
 
 RING = 1 << 16  # per-cycle timings kept for the report (the last 65 s at 1 kHz)
 #: cycles the health's percentiles are taken over, evenly spread over the ring: health is
-#: sampled on the event loop between ticks, where the percentiles of the whole ring (three
+#: sampled on the event loop between ticks, where the percentiles of the whole ring (two
 #: partitions of 65 536 values, milliseconds) would make the next ticks late
 HEALTH_SAMPLES = 4096
 
