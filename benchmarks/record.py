@@ -17,13 +17,17 @@ blocks of each block's p99) and missed deadlines of each side.
 With ``--plain`` the writer serializes every message with rosbags, one at a time, instead of
 filling a batch (the recorder's plain path, for comparison).
 
+With ``--toggle ring`` (or ``feed``) the blocks switch only the ring's publisher (or only the
+event feed) and the other stays off for the whole run: what each costs the tick on its own.
+Each side's work is also given per phase of the tick (p50, p99).
+
 With ``--neighbour`` no output runs: the blocks toggle a plain busy loop (``while True: pass``,
 nice 5, on the CPUs the outputs would use) between stopped and running. It measures what any
 work beside the tick costs it on this machine (shared caches, memory, the hypervisor's
 scheduling of the vCPUs), to compare with what the outputs cost.
 
     python -m benchmarks.record [--config configs/walkman_sim.toml] [--seconds 10] [--block 0.5]
-        [--out /tmp/walkman.mcap] [--all] [--plain] [--neighbour] [--json PATH]
+        [--out /tmp/walkman.mcap] [--all] [--plain] [--neighbour] [--toggle both|ring|feed] [--json PATH]
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from aiohal import ControlLoop, load_config
+from aiohal.core.tick_timing import PHASES
 from aiohal.outside.recorder import Recorder
 from aiohal.outside.terminal_status import StatusPanel
 from aiohal.record import load
@@ -53,6 +58,7 @@ from .common import ROOT, table, write_json
 def side_figures(stats, mask: np.ndarray, blocks: list[tuple[int, int]]) -> dict:
     n = len(mask)
     work, lateness = stats.work[:n] / 1e3, stats.lateness[:n] / 1e3
+    phases = {name: stats.phases[i, :n][mask] / 1e3 for i, name in enumerate(PHASES)}
     block_p99 = [float(np.percentile(lateness[a:b][mask[a:b]], 99)) for a, b in blocks if mask[a:b].any()]
     block_work = [float(np.percentile(work[a:b][mask[a:b]], 99)) for a, b in blocks if mask[a:b].any()]
     return {
@@ -62,7 +68,9 @@ def side_figures(stats, mask: np.ndarray, blocks: list[tuple[int, int]]) -> dict
         "lateness_p99_us": round(float(np.percentile(lateness[mask], 99)), 2),
         "block_lateness_p99_median_us": round(float(np.median(block_p99)), 2),
         "block_work_p99_median_us": round(float(np.median(block_work)), 2),
-        "publish_p50_us": round(float(np.median(stats.phases[5, :n][mask])) / 1e3, 2),
+        "publish_p50_us": round(float(np.median(phases["publish"])), 2),
+        "phase_p50_us": {name: round(float(np.median(v)), 2) for name, v in phases.items()},
+        "phase_p99_us": {name: round(float(np.percentile(v, 99)), 2) for name, v in phases.items()},
     }
 
 
@@ -76,7 +84,8 @@ def start_neighbour(avoid_cpus: list[int] | None) -> subprocess.Popen:
 
 
 async def measure(config_path: Path, seconds: float, block_s: float, out: Path, plain: bool = False,
-                  every: bool = False, cpus: list[int] | None = None, neighbour: bool = False) -> dict:
+                  every: bool = False, cpus: list[int] | None = None, neighbour: bool = False,
+                  switched: str = "both") -> dict:
     config = load_config(config_path)
     if cpus:  # the tick on these CPUs, the output processes on the others
         config = dataclasses.replace(config, realtime=config.realtime.model_copy(update={"cpus": cpus}))
@@ -123,11 +132,10 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
         if hog is not None:
             hog.send_signal(signal.SIGCONT if on else signal.SIGSTOP)
             return
-        if on:
-            control.add_publisher(publish)
-        else:
-            control.remove_publisher(publish)
-        feed.start() if on else feed.stop()
+        if switched != "feed":
+            control.add_publisher(publish) if on else control.remove_publisher(publish)
+        if switched != "ring":
+            feed.start() if on else feed.stop()
 
     async def toggle() -> None:
         on = False
@@ -153,6 +161,7 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
         if hog is not None:
             hog.kill()
             hog.wait()
+    publish = None  # its views of the ring go before the ring's segment closes
     await control.deactivate()
     summary = recorder.close() if recorder is not None else {"dropped_ticks": 0, "bytes": 0}
     extra: dict = {}
@@ -190,6 +199,8 @@ async def measure(config_path: Path, seconds: float, block_s: float, out: Path, 
         "config": str(config_path.relative_to(ROOT) if config_path.is_relative_to(ROOT) else config_path),
         "outputs": "none; a busy loop beside the tick" if hog is not None else outputs,
         "rate_hz": rate, "cpus": cpus, "block_s": block_s, "seconds_per_side": seconds, "plain": plain,
+        "toggled": "a busy loop" if hog is not None else {"both": "ring and feed", "ring": "ring only (feed off)",
+                                                          "feed": "feed only (ring off)"}[switched],
         "sides": side,
         "work_p50_added_us": round(side["on"]["work_p50_us"] - side["off"]["work_p50_us"], 2),
         "missed_ticks_run": report["missed_ticks"],
@@ -246,6 +257,9 @@ def main() -> None:
     p.add_argument("--plain", action="store_true", help="serialize each message with rosbags (the plain path)")
     p.add_argument("--neighbour", action="store_true",
                    help="no outputs: toggle a busy loop on the outputs' CPUs instead (what any neighbour costs)")
+    p.add_argument("--toggle", choices=("both", "ring", "feed"), default="both",
+                   help="what the blocks switch: the tick ring's publisher and the event feed (both), or one of "
+                        "them with the other off for the whole run (what each costs)")
     p.add_argument("--foxglove-client", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--json", default=None)
     args = p.parse_args()
@@ -254,14 +268,17 @@ def main() -> None:
         return
     t = time.monotonic()
     result = asyncio.run(measure(args.config.resolve(), args.seconds, args.block, args.out, args.plain, args.all,
-                                 args.cpus, args.neighbour))
+                                 args.cpus, args.neighbour, args.toggle))
     rows = [{"side": k, **v} for k, v in result["sides"].items()]
-    print(f"outputs: {result['outputs']}")
+    print(f"outputs: {result['outputs']}; toggled: {result['toggled']}")
     print(table(rows, [("side", "outputs"), ("ticks", "ticks"), ("work_p50_us", "work p50 µs"),
                        ("work_p99_us", "work p99 µs"), ("block_work_p99_median_us", "work p99 µs (block median)"),
                        ("publish_p50_us", "publish p50 µs"), ("lateness_p99_us", "lateness p99 µs"),
                        ("block_lateness_p99_median_us", "lateness p99 µs (block median)"),
                        ("missed", "missed deadlines")]))
+    print(table([{"side": k, **{f"{name}": f"{v['phase_p50_us'][name]:.1f} / {v['phase_p99_us'][name]:.1f}"
+                                for name in PHASES}} for k, v in result["sides"].items()],
+                [("side", "outputs")] + [(name, f"{name} p50 / p99 µs") for name in PHASES]))
     cause = "the busy neighbour" if args.neighbour else "the outputs"
     print(f"work p50 added by {cause}: {result['work_p50_added_us']} µs; missed deadlines in the run: "
           f"{result['missed_ticks_run']}; recorder dropped: {result['dropped_ticks']}")
