@@ -259,9 +259,10 @@ class KrcSimulator:
         self.model.step(self.options.cycle_s if self.packets else 0.0)
         self._fill_msr(now)
         self.answered = False
-        self.sent_at = now
+        data = self.msr.tobytes()
+        self.sent_at = time.monotonic()  # the latency is the remote's: from the send, not from this cycle's start
         try:
-            self.sock.sendto(self.msr.tobytes(), self.remote)
+            self.sock.sendto(data, self.remote)
             self.counters["sent"] += 1
         except OSError:
             pass
