@@ -253,19 +253,30 @@ class FriDriver(Driver):
         # answer only the newest. The event loop delivers a backlog one datagram per call
         # (asyncio: one per iteration, uvloop: up to 32), so the socket is drained here.
         if self._readable.poll(0):
-            self._drain()
+            self.counters["stale"] += self._drain()  # each one taken makes the one before it stale
         self._answer(cast(int, self._last_seq))
         self._answer_ns[self.counters["received"] & (len(self._answer_ns) - 1)] = time.perf_counter_ns() - t0
 
-    def _drain(self) -> None:
+    def _drain(self) -> int:
+        """Take every datagram waiting in the socket; how many were taken as measurements."""
         sock, rx = cast(socket.socket, self.sock), self._rx
+        taken = 0
         while True:
             try:
                 size, addr = sock.recvfrom_into(rx)
             except OSError:  # BlockingIOError: nothing more
-                return
-            if self._take(memoryview(rx)[:size], addr):
-                self.counters["stale"] += 1  # the one taken before it is not answered
+                return taken
+            taken += self._take(memoryview(rx)[:size], addr)
+
+    def _catch_up(self) -> None:
+        """Measurements that wait in the socket because this process did not run (a stall longer
+        than ``silent_ms``; the tick came before their callbacks) are not a silent KRC: take them
+        and answer the newest, as the callback does."""
+        if self.sock is not None and self._readable.poll(0):
+            taken = self._drain()
+            if taken:
+                self.counters["stale"] += taken - 1
+                self._answer(cast(int, self._last_seq))
 
     def _take(self, data, addr) -> bool:
         """Check one datagram and take it as the newest measurement; False: counted, dropped."""
@@ -481,12 +492,14 @@ class FriDriver(Driver):
 
     async def read(self) -> None:
         view = self.view
+        if not self._new and time.monotonic_ns() - self._last_msr_ns > self._silent_ns:
+            self._catch_up()
+            if not self._new:
+                view.state.fault |= np.uint32(Fault.HARDWARE)
+                raise FriDriverError(f"no measurement from the KRC for {self._silent_ns / 1e6:g} ms")
         if self._new:
             self._take_measurement()
             view.mark_fresh()
-        elif time.monotonic_ns() - self._last_msr_ns > self._silent_ns:
-            view.state.fault |= np.uint32(Fault.HARDWARE)
-            raise FriDriverError(f"no measurement from the KRC for {self._silent_ns / 1e6:g} ms")
         if self.running:
             msr = self.msr
             if msr["state"] != State.CMD or msr["power"] == 0 or msr["error"] != 0 or msr["quality"] < self.min_quality:
