@@ -74,6 +74,9 @@ def test_recording_serving_live_and_bridging_start_no_thread_in_the_loops_proces
     config = dataclasses.replace(config, bridge=BridgeSection(
         zenoh=ZenohBridgeSection(listen=[f"tcp/127.0.0.1:{zport}"], connect=[])))
 
+    # threads an earlier test of this worker left behind are not the loop's
+    earlier = {t.name for t in threading.enumerate()} - {"MainThread"}
+
     async def main():
         control = ControlLoop(config, tick_source=VirtualTickSource())
         before = tasks()
@@ -97,7 +100,9 @@ def test_recording_serving_live_and_bridging_start_no_thread_in_the_loops_proces
     # besides the tick's thread, only the loop's own stall watchdog (which runs without outputs
     # too) runs Python; no native thread comes and goes with the ticks (a library's native pool,
     # started once at import or first call, depends on the Python and the worker: not counted)
-    assert len(seen) == 4 and all(s[1] == ["MainThread", "aiohal-watchdog"] for s in seen), (before, seen)
+    ours = [sorted(set(s[1]) - earlier) for s in seen]
+    assert len(seen) == 4 and all(o in (["MainThread", "aiohal-watchdog"], ["MainThread"]) for o in ours), (before, seen)
+    assert any("aiohal-watchdog" in s[1] for s in seen)
     assert len({s[0] for s in seen}) == 1, (before, seen)
 
 
