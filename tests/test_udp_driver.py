@@ -282,6 +282,21 @@ async def test_a_board_that_dies_sends_the_robot_to_its_safe_state():
 
 
 @pytest.mark.asyncio
+async def test_boards_that_answer_only_late_are_named_apart_from_silent_ones():
+    """Every reply 5 ms late (2.5 ticks at 500 Hz) answers a command older than the last one
+    sent: none is taken, so the driver fails, and its error says the boards answered late."""
+    loop = ControlLoop(parse_config(_config(3, silent_ticks=25, simulation={"delay_ms": 5.0, "priority": None})))
+    async with loop:
+        report = await loop.run(duration=2.0)
+    health = loop.report()["drivers"]["boards"]
+    error = next(f["error"] for f in report["faults"] if f["source"] == "driver:boards")
+    assert "board(s) [1, 2, 3] answered only late" in error and "silent" not in error, error
+    assert health["late"] > 25 and health["status"] == "failed"
+    # no reply taken on the tick: no round trip (open's RESET answers have no send time)
+    assert health["round_trip_us_max"] is None, health
+
+
+@pytest.mark.asyncio
 async def test_a_stall_of_this_process_is_not_a_silent_board():
     """The boards answer commands: while this process did not run (here blocked for 0.3 s,
     150 ticks at 500 Hz, between a read and the write, when no reply is due) none were sent,

@@ -218,6 +218,7 @@ class UdpDriver(Driver):
         self._rx_bufs = [self._rx_view]
         self.joint_board = np.repeat(np.arange(nb), [r.stop - r.start for r in self.board_rows])
         self.board_tick = np.full(nb, -1, dtype=np.int64)  # the tick each board last answered
+        self.board_late_tick = np.full(nb, -1, dtype=np.int64)  # ... or last answered an older command
         self.board_stamp = np.zeros(nb, dtype=np.int64)
         self._board_seq = [0] * nb  # the last state seq taken from each board
         self._board_seen = [False] * nb
@@ -410,6 +411,7 @@ class UdpDriver(Driver):
                 continue
             if answers < 0 and not accept_any_ack:
                 counters["late"] += 1
+                self.board_late_tick[b] = tick
                 self._board_seq[b] = head.seq
                 self._board_seen[b] = True
                 continue
@@ -420,7 +422,7 @@ class UdpDriver(Driver):
             self.board_tick[b] = tick
             self.board_stamp[b] = now_ns
             counters["received"] += 1
-            if anc:
+            if anc and not accept_any_ack:  # open's RESET datagrams have no send time
                 sec, nsec = TIMESPEC.unpack_from(anc[0][2])
                 self._rtt_ns[self._rtt_count & (RTT_RING - 1)] = (
                     sec * 1_000_000_000 + nsec - self._tx_ns[head.ack & (SEND_RING - 1)]
@@ -485,11 +487,24 @@ class UdpDriver(Driver):
         self._fault_latched = bool(bad.any())
 
     def _board_silent(self, tick: int) -> None:
+        """Fail the driver: the boards that did not answer within ``silent_ticks``, those that
+        answered only after the next command named apart (a board or host too slow for the
+        rate is not a dead board)."""
         silent = np.flatnonzero(tick - self.board_tick > self.options.silent_ticks)
         self.silent_boards = [self.board_ids[i] for i in silent]
         for i in silent:
             self.view.state.fault[self.board_rows[i]] |= np.uint32(Fault.HARDWARE)
-        raise UdpError(f"board(s) {self.silent_boards} silent for more than {self.options.silent_ticks} ticks")
+        late = [self.board_ids[i] for i in silent if self.board_late_tick[i] > self.board_tick[i]]
+        quiet = [board for board in self.silent_boards if board not in late]
+        reasons = []
+        if quiet:
+            reasons.append(f"board(s) {quiet} silent for more than {self.options.silent_ticks} ticks")
+        if late:
+            reasons.append(
+                f"board(s) {late} answered only late (after the next command) for more than "
+                f"{self.options.silent_ticks} ticks: the boards, the network or this host cannot keep the rate"
+            )
+        raise UdpError("; ".join(reasons))
 
     async def write(self) -> None:
         command, tx = self.view.command, self._tx
