@@ -338,7 +338,7 @@ async def test_can_emcy_drive_fault_holds_the_robot_on_the_next_tick():
 @pytest.mark.asyncio
 async def test_udp_board_silence_fails_the_driver_after_silent_ticks():
     silent = 25
-    raw = udp_config(3, silent_ticks=silent, simulation={"die_board": 2, "die_after_s": 0.1, "priority": None})
+    raw = udp_config(3, silent_ticks=silent, simulation={"die_board": 2, "die_after_s": 0.1})
     loop = ControlLoop(parse_config(raw))
     ran: list[int] = []
     loop.add_publisher(lambda lp: ran.append(lp.robot.clock.tick))

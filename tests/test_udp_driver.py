@@ -248,6 +248,8 @@ def test_boards_must_cover_the_joints_in_order():
 
 
 def _config(n: int, seconds_rate: int = 500, **options) -> dict:
+    """``n`` simulated boards of one joint; their process at its SCHED_FIFO priority where
+    allowed (the default): they stand for hardware, which answers on time on a loaded host."""
     return {
         "robot": {"name": "udp_loop"},
         "loop": {"rate_hz": seconds_rate, "max_feedback_age": 400},
@@ -271,7 +273,7 @@ async def test_a_loop_runs_on_simulated_boards_it_started_itself():
 
 @pytest.mark.asyncio
 async def test_a_board_that_dies_sends_the_robot_to_its_safe_state():
-    loop = ControlLoop(parse_config(_config(3, silent_ticks=25, simulation={"die_board": 2, "die_after_s": 0.1, "priority": None})))
+    loop = ControlLoop(parse_config(_config(3, silent_ticks=25, simulation={"die_board": 2, "die_after_s": 0.1})))
     async with loop:
         report = await loop.run(duration=1.0)
     health = loop.report()["drivers"]["boards"]
@@ -285,7 +287,7 @@ async def test_a_board_that_dies_sends_the_robot_to_its_safe_state():
 async def test_boards_that_answer_only_late_are_named_apart_from_silent_ones():
     """Every reply 5 ms late (2.5 ticks at 500 Hz) answers a command older than the last one
     sent: none is taken, so the driver fails, and its error says the boards answered late."""
-    loop = ControlLoop(parse_config(_config(3, silent_ticks=25, simulation={"delay_ms": 5.0, "priority": None})))
+    loop = ControlLoop(parse_config(_config(3, silent_ticks=25, simulation={"delay_ms": 5.0})))
     async with loop:
         report = await loop.run(duration=2.0)
     health = loop.report()["drivers"]["boards"]
@@ -309,7 +311,7 @@ async def test_a_stall_of_this_process_is_not_a_silent_board():
                 time.sleep(0.3)
             super().update(t, dt)
 
-    loop = ControlLoop(parse_config(_config(3, silent_ticks=25, simulation={"priority": None})),
+    loop = ControlLoop(parse_config(_config(3, silent_ticks=25)),
                        controller=StallsOnce())
     async with loop:
         report = await loop.run(ticks=300)
@@ -372,7 +374,7 @@ async def test_after_an_emergency_stop_the_boards_are_reset_and_the_robot_re_arm
     restarts the sine from the measured position."""
     from helpers import assert_rearmed_from_disabled, record
 
-    loop = ControlLoop(parse_config(_config(3, silent_ticks=100, simulation={"priority": None})))
+    loop = ControlLoop(parse_config(_config(3, silent_ticks=100)))
     async with loop:
         sent, measured, own = record(loop)
         await loop.run(duration=0.6)  # the sine moving
