@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import require_module
+from conftest import host_stalls_tolerated, require_module
 from helpers import arm_raw
 
 from aiohal.config import parse_config
@@ -388,15 +388,14 @@ def test_shipped_arm_and_hand_config_moves_grasps_and_moves_again(tmp_path):
     require_module("mujoco")
     report_path = tmp_path / "report.json"
     # as shipped, but for the hand's stale/dead ages: this shared host stalls the hand's
-    # process for longer than 300 ms at times (the ages are tested with the pipe)
+    # process for longer than 300 ms at times (the ages are tested with the pipe); and the
+    # robot's process, for 26 ms once, beside the parallel tests on a quiet host
     text = (CONFIGS / "kuka_lwr_hand_sim.toml").read_text()
     config = tmp_path / "kuka_lwr_hand_sim.toml"
-    config.write_text(text.replace("stale_after_ms = 100", "stale_after_ms = 500")
-                      .replace("dead_after_ms = 300", "dead_after_ms = 2000")
-                      .replace("[loop]\n", "[loop]\nstall_timeout_ms = 5000\n", 1)  # (a VM stall: see hand_raw)
-                      .replace('model = "models/', f'model = "{CONFIGS}/models/'))
+    config.write_text(host_stalls_tolerated(text.replace("stale_after_ms = 100", "stale_after_ms = 500")
+                                            .replace("dead_after_ms = 300", "dead_after_ms = 2000")
+                                            .replace('model = "models/', f'model = "{CONFIGS}/models/')))
     assert "dead_after_ms = 2000" in config.read_text() and str(CONFIGS) in config.read_text()
-    assert "stall_timeout_ms = 5000" in config.read_text()
     proc = subprocess.run(
         [sys.executable, "-m", "aiohal", str(config), "--duration", "9",
          "--quiet", "--report-json", str(report_path)],
