@@ -1,4 +1,5 @@
-"""Shared test set-up: every async test runs on asyncio and on uvloop; root-only tests."""
+"""Shared test set-up: every async test runs on asyncio and on uvloop (unless its module is
+marked ``asyncio_only``, or ``AIOHAL_TEST_LOOPS`` names fewer loops); root-only tests."""
 
 from __future__ import annotations
 
@@ -174,8 +175,29 @@ def _loop_factories() -> dict:
     return factories
 
 
+def _wanted_loops() -> list[str] | None:
+    wanted = os.environ.get("AIOHAL_TEST_LOOPS")
+    return [name.strip() for name in wanted.split(",") if name.strip()] if wanted else None
+
+
+def pytest_configure(config) -> None:
+    unknown = sorted(set(_wanted_loops() or ()) - set(_loop_factories()))
+    if unknown:
+        raise pytest.UsageError(f"AIOHAL_TEST_LOOPS names unknown loops {unknown}: choose from {sorted(_loop_factories())}")
+
+
 def pytest_asyncio_loop_factories(config, item):
-    return _loop_factories()
+    """Both loops, except where a test is marked ``asyncio_only(why)`` (its code reaches the
+    event loop only through calls whose uvloop path other tests cover: run twice, it would
+    test the same thing twice) or ``AIOHAL_TEST_LOOPS`` (comma separated) narrows the run
+    (.ci/run: the other Pythons, whose asyncio internals the ticker reads, on asyncio only)."""
+    factories = _loop_factories()
+    wanted = _wanted_loops()
+    if wanted:
+        factories = {name: factories[name] for name in wanted}
+    if item.get_closest_marker("asyncio_only") is not None and "asyncio" in factories:
+        factories = {"asyncio": factories["asyncio"]}
+    return factories
 
 
 def require_module(name: str):

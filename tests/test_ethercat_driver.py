@@ -26,7 +26,10 @@ from aiohal.drivers.ethercat.bus import EthercatError
 from aiohal.errors import ConfigError, DriverError
 from aiohal.robot import Fault
 
-pytestmark = pytest.mark.root
+pytestmark = [
+    pytest.mark.root,
+    pytest.mark.asyncio_only("the driver reaches the event loop only through run_in_executor and the ticker"),
+]
 
 CONFIG = CONFIGS / "ethercat_sim.toml"
 LINE = "drive*7,imu,ft"

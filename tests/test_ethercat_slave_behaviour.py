@@ -34,7 +34,7 @@ from aiohal.config import parse_config
 from aiohal.core.loop import ControlLoop
 from aiohal.errors import DriverError
 
-pytestmark = pytest.mark.root
+pytestmark = [pytest.mark.root, pytest.mark.asyncio_only("these test the simulated slaves, not the event loop")]
 
 
 @pytest.mark.asyncio

@@ -25,8 +25,13 @@ from aiohal.drivers.fri.protocol import MAX_STEP
 from aiohal.drivers.fri.sim import STEP_ROUNDING
 from aiohal.safety import SafetyLevel, SafetyRequestRefused
 
-# the KRC grades how soon it is answered: answered as a robot's loop answers (conftest)
-pytestmark = pytest.mark.usefixtures("answers_at_fifo")
+pytestmark = [
+    # the KRC grades how soon it is answered (within a fifth of a 1 ms cycle for command
+    # mode): answered as a robot's loop answers (conftest), alone, as test_fri's KRC is
+    pytest.mark.usefixtures("answers_at_fifo"),
+    pytest.mark.realtime,
+    pytest.mark.asyncio_only("the datagram transport's uvloop path is test_fri's; these test the KRC's states"),
+]
 
 START = 0.3  # rad, every joint of the simulated arm at the start
 
