@@ -1,7 +1,10 @@
-"""``python -m aiohal`` as a user runs it: a subprocess, exit codes, stdout/stderr."""
+"""``python -m aiohal`` as a user runs it: a subprocess, exit codes, stdout/stderr (the tables of
+bad input through the same ``main`` in this process)."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import re
@@ -14,6 +17,8 @@ from pathlib import Path
 
 import pytest
 from bad_configs import CASES, MANY, matches
+
+from aiohal.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 TIMEOUT = 30  # seconds, for every subprocess
@@ -28,6 +33,20 @@ def run_cli(*args: str | Path, timeout: float = TIMEOUT, env: dict | None = None
         timeout=timeout,
         env=env,
     )
+
+
+def cli_in_process(*args: str | Path) -> subprocess.CompletedProcess:
+    """``aiohal.cli.main`` in this process, its output captured: for the tables of bad input,
+    whose subject is the message and the status, not the process around them (a subprocess
+    test keeps each path through the process). Each saves an interpreter's start (1-2 s)."""
+    argv = [str(arg) for arg in args]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.chdir(ROOT), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            status = main(argv)
+        except SystemExit as exc:  # argparse's refusal
+            status = exc.code if isinstance(exc.code, int) else 1
+    return subprocess.CompletedProcess([sys.executable, "-m", "aiohal", *argv], status, out.getvalue(), err.getvalue())
 
 
 def assert_no_traceback(proc: subprocess.CompletedProcess) -> None:
@@ -51,7 +70,7 @@ def write(tmp_path: Path, text: str, name: str = "robot.toml") -> Path:
 
 def test_check_reports_every_error_with_its_path(tmp_path):
     path = write(tmp_path, MANY.toml)
-    proc = run_cli("check", path)
+    proc = cli_in_process("check", path)
     assert proc.returncode == 2
     assert_no_traceback(proc)
     assert proc.stdout == ""
@@ -74,7 +93,7 @@ def test_check_reports_every_error_with_its_path(tmp_path):
 )
 def test_check_malformed_config_exits_2(tmp_path, case):
     path = write(tmp_path, case.toml)
-    proc = run_cli("check", path)
+    proc = cli_in_process("check", path)
     assert proc.returncode == 2, proc
     assert_no_traceback(proc)
     assert proc.stderr.splitlines()[0] == f"{path}: invalid configuration ({len(case.expected)} error(s)):"
@@ -85,7 +104,7 @@ def test_check_malformed_config_exits_2(tmp_path, case):
 
 
 def test_check_good_configs_exit_0():
-    proc = run_cli("check", "configs/mock_arm.toml", "configs/mock_humanoid.toml")
+    proc = cli_in_process("check", "configs/mock_arm.toml", "configs/mock_humanoid.toml")
     assert proc.returncode == 0, proc.stderr
     assert_no_traceback(proc)
     out = proc.stdout.splitlines()
@@ -96,7 +115,7 @@ def test_check_good_configs_exit_0():
 
 def test_check_continues_after_a_bad_config(tmp_path):
     bad = write(tmp_path, MANY.toml)
-    proc = run_cli("check", bad, "configs/mock_arm.toml")
+    proc = cli_in_process("check", bad, "configs/mock_arm.toml")
     assert proc.returncode == 2
     assert "configs/mock_arm.toml: ok:" in proc.stdout
     assert f"{bad}: invalid configuration" in proc.stderr
@@ -143,7 +162,7 @@ def test_run_with_bad_config_exits_2_before_starting(tmp_path):
 )
 def test_bad_run_option_exits_2_naming_the_option(tmp_path, args, message):
     report = tmp_path / "report.json"
-    proc = run_cli("configs/mock_arm.toml", *args, "--report-json", report)
+    proc = cli_in_process("configs/mock_arm.toml", *args, "--report-json", report)
     assert proc.returncode == 2
     assert_no_traceback(proc)
     assert message in proc.stderr.splitlines()[-1], proc.stderr
@@ -159,7 +178,7 @@ def test_bad_run_option_exits_2_naming_the_option(tmp_path, args, message):
     ],
 )
 def test_run_option_out_of_the_config_range_exits_2_naming_the_option(args, message):
-    proc = run_cli("configs/mock_arm.toml", *args, "--duration", "0.1")
+    proc = cli_in_process("configs/mock_arm.toml", *args, "--duration", "0.1")
     assert proc.returncode == 2
     assert_no_traceback(proc)
     assert proc.stderr.splitlines()[0] == "configs/mock_arm.toml: invalid configuration (1 error(s)):"
@@ -167,7 +186,7 @@ def test_run_option_out_of_the_config_range_exits_2_naming_the_option(args, mess
 
 
 def test_schema_prints_valid_json():
-    proc = run_cli("schema")
+    proc = cli_in_process("schema")
     assert proc.returncode == 0, proc.stderr
     assert_no_traceback(proc)
     schema = json.loads(proc.stdout, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
@@ -527,6 +546,6 @@ def test_the_report_json_is_written_when_bring_up_fails(tmp_path):
 
 def test_every_shipped_config_checks():
     configs = sorted((ROOT / "configs").glob("*.toml"))
-    proc = run_cli("check", *configs)
+    proc = cli_in_process("check", *configs)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.count(": ok: robot ") == len(configs)
