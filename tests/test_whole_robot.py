@@ -29,8 +29,9 @@ def test_the_whole_robot_config_passes_check():
 
 def whole_robot_text(ifname: str, record: str) -> str:
     """The shipped config on the segment's interface, recording to ``record``; the loop's stall
-    and stale-feedback guards and the slaves' SM watchdog widened (tested elsewhere): a stall
-    of this shared host is not what is tested here."""
+    and stale-feedback guards, the CAN sensors' staleness (40 ms: 4 s) and the slaves' SM
+    watchdog widened (tested elsewhere): a stall of this shared host is not what is tested
+    here (beside two CPU hogs the sensors once went 40 ms without a frame)."""
     text = CONFIG.read_text()
     changes = [
         ('interface = "ecm0"', f'interface = "{ifname}"'),
@@ -41,6 +42,8 @@ def whole_robot_text(ifname: str, record: str) -> str:
     for old, new in changes:
         assert text.count(old) == 1, old
         text = text.replace(old, new)
+    assert text.count("stale_periods = 10") == 2
+    text = text.replace("stale_periods = 10", "stale_periods = 1000")
     return text + "\n[safety]\nmax_tick_gap_ms = 5000\n"
 
 
