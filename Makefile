@@ -40,7 +40,8 @@ test: lint
 # The suite in an installed venv (.ci/run: `make suite PY=.venv312/bin/python`). The tests that
 # need no real time run in parallel, one worker more than cores (pytest-xdist; a file's tests on
 # one worker, so that its module fixtures start once): they wait on subprocesses and sleeping
-# loops a third of the time, and on 2 cores 3 workers took 348 s where 2 took 390 s (4: 352 s).
+# loops, so on 2 cores 3 workers took 348 s where 2 took 390 s and 4 took 352 s (the parallel
+# part of `make suite WORKERS=n`).
 # Then the realtime-marked ones, alone. Each part names its 20 slowest tests: one over 20 s
 # says why in a comment.
 WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))

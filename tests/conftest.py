@@ -1,5 +1,5 @@
-"""Shared test set-up: every async test runs on asyncio and on uvloop (unless its module is
-marked ``asyncio_only``, or ``AIOHAL_TEST_LOOPS`` names fewer loops); root-only tests."""
+"""Shared test set-up: every async test runs on asyncio and on uvloop (unless it is marked
+``asyncio_only``, or ``AIOHAL_TEST_LOOPS`` names fewer loops); root-only tests."""
 
 from __future__ import annotations
 
