@@ -212,6 +212,50 @@ def test_an_al_state_check_without_every_answer_is_not_judged():
     assert (driver.al_checks, driver.al_checks_unanswered) == (4, 2)
 
 
+def _driver_reading(reads):
+    """A driver whose bus answers state reads from ``reads`` in turn (no bus opened)."""
+    import logging
+
+    from aiohal.drivers.ethercat.driver import EthercatDriver
+    from aiohal.logutil import RateLimitedLogger
+
+    driver = object.__new__(EthercatDriver)
+    driver.name, driver.lost, driver._states_generation = "bus", set(), 3
+    driver.al_checks = driver.al_checks_unanswered = driver.states_unconfirmed = driver.diagnoses = 0
+    driver._al_found, driver._warn, driver._bad_run = None, RateLimitedLogger(logging.getLogger("test")), 10
+    replies = iter(reads)
+    driver.bus = type("Bus", (), {"states": staticmethod(lambda: list(next(replies)))})()
+    return driver
+
+
+@pytest.mark.parametrize(
+    ("reads", "judged"),
+    [
+        ([[8, 8, 8]], [8, 8, 8]),  # every slave in OP: one read
+        ([[8, 0x14, 8], [8, 0x14, 8]], [8, 0x14, 8]),  # out of OP twice: judged
+        ([[2, 0x1F, 0x13], [8, 8, 8]], None),  # bytes of another frame, then OP: not judged
+        ([[2, 0x1F, 0x13], [4, 0x1D, 1]], None),  # garbage twice, not the same: not judged
+    ],
+)
+def test_a_slave_out_of_op_is_judged_only_when_a_second_read_confirms_it(reads, judged):
+    """SOEM takes a reply that came back late to an earlier frame (a stalled host, a second
+    master's frames on the wire) for the read that reuses its index: a state read showing a
+    slave out of OP is believed when the next read shows the same, in the tick's diagnosis
+    and in the AL check off the tick."""
+    diagnosed = []
+    driver = _driver_reading(reads)
+    driver._expected = 25
+    driver._judge = lambda states, why: diagnosed.append(states)
+    driver._diagnose(-1)
+    assert diagnosed == ([] if judged is None else [judged])
+    assert driver.states_unconfirmed == (judged is None)
+
+    driver = _driver_reading(reads)
+    driver._check_al_states()
+    assert driver._al_found == (None if judged is None or all(st == 8 for st in judged) else (3, judged))
+    assert driver.states_unconfirmed == (judged is None)
+
+
 
 @pytest.mark.asyncio
 async def test_slaves_left_in_op_are_refused_unless_the_config_takes_the_bus_over():

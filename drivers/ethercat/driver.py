@@ -15,7 +15,9 @@ inputs are as fresh as they can be; the tick pays the round trip, which is measu
 The working counter is checked every cycle against the driver's own sum (2 per slave with
 outputs, 1 per slave with inputs, leaving out slaves known to be lost). A bad cycle keeps the
 last inputs and does not refresh the joints. ``wkc_error_limit`` bad cycles in a row read
-every slave's state: a drive that left OP fails the driver (the loop sends every driver its
+every slave's state, twice when one is out of OP (a reply that came back late to an earlier
+frame can stand in for a read; reads that disagree are judged later): a drive that left OP
+fails the driver (the loop sends every driver its
 emergency stop and the robot to its safe state); a lost sensor faults its device, the run goes
 on without it, and it is brought back to OP step by step every ``recover_interval_s``.
 
@@ -159,6 +161,7 @@ class EthercatDriver(Cia402Driver):
         self._states_generation = 0  # the tick's own state reads: a check read before one of them is stale
         self.al_checks = 0
         self.al_checks_unanswered = 0  # of which some slave did not answer in time (a busy host): not judged
+        self.states_unconfirmed = 0  # state reads a second read did not confirm (another frame's reply): not judged
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
         self.infos: list[SlaveInfo] = []
         self.dc_lock: DcLock | None = None  # options.dc_lock, from the bring-up on
@@ -603,7 +606,9 @@ class EthercatDriver(Cia402Driver):
         self.diagnoses += 1
         self._bad_run = 0
         expected = self._expected  # the failing cycle's, before the states change it
-        states = self.bus.states()  # holds the GIL for a frame or two
+        states = self._settled_states()  # holds the GIL for a frame or two (four when a slave is out)
+        if states is None:  # judged after the next bad run, if there is one
+            return
         if wkc != expected and all(st == OP for st in states):
             self._warn.warning(
                 "wkc", "ethercat %s: working counter %d instead of %d, every slave in OP", self.name, wkc, expected
@@ -613,20 +618,45 @@ class EthercatDriver(Cia402Driver):
     def _check_al_states(self) -> None:
         """Off the tick (the keep-alive thread): every slave's AL state. A slave that dropped to
         SAFEOP (+ERROR) keeps its SyncManagers, so the working counter does not show it; the
-        loop's next read() judges what this finds. ``read_state`` holds the GIL for one frame
-        (two when states differ), so it runs right after write(), while the loop waits."""
+        loop's next read() judges what this finds, once a second read confirmed it. ``read_state``
+        holds the GIL for one frame (two when states differ), so it runs right after write(),
+        while the loop waits."""
         generation = self._states_generation
         try:
             states = self.bus.states()
+            self.al_checks += 1
+            # no answer in time (SOEM then reads NONE): a slave really gone shows in the working counter
+            if 0 in states:
+                self.al_checks_unanswered += 1
+                return
+            found = self._confirmed(states) if any(st != OP for st in states) else states
         except Exception as exc:  # a frame lost: the next check reads again
             self._warn.warning("alcheck", "ethercat %s: reading the AL states failed: %s", self.name, exc)
             return
-        self.al_checks += 1
-        if 0 in states:  # no answer in time (SOEM then reads NONE): a slave really gone shows in the working counter
-            self.al_checks_unanswered += 1
-            return
-        if any(st != OP for st in states) or self.lost:
-            self._al_found = (generation, states)
+        if found is not None and (any(st != OP for st in found) or self.lost):
+            self._al_found = (generation, found)
+
+    def _settled_states(self) -> list[int] | None:
+        """Every slave's AL state; None when a slave out of OP is not confirmed (see _confirmed)."""
+        states = self.bus.states()
+        return states if all(st == OP for st in states) else self._confirmed(states)
+
+    def _confirmed(self, states: list[int]) -> list[int] | None:
+        """``states`` if a second read finds the same, else None. SOEM takes the first reply
+        carrying the index of the frame it waits for, and indices are reused: a reply that came
+        back late to an earlier frame (a stalled host, another master's frames on the wire) can
+        stand in for a state read, whose states are then bytes of another frame. A slave really
+        out of OP stays there for the next read; garbage does not repeat."""
+        again = self.bus.states()
+        if again == states:
+            return states
+        self.states_unconfirmed += 1
+        self._warn.warning(
+            "unconfirmed",
+            "ethercat %s: two AL state reads disagree (another frame's reply taken for one); judged on a later read",
+            self.name,
+        )
+        return None
 
     def _judge(self, states: list[int], why: str) -> None:
         """States read: a drive out of OP fails the driver, another slave is lost (reported
@@ -801,6 +831,8 @@ class EthercatDriver(Cia402Driver):
         out["al_checks"] = self.al_checks
         if self.al_checks_unanswered:
             out["al_checks_unanswered"] = self.al_checks_unanswered
+        if self.states_unconfirmed:
+            out["states_unconfirmed"] = self.states_unconfirmed
         out.update(self._drives_health())
         if self.emergencies:
             out["emergencies"] = self.emergencies
