@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import require_module
 
 require_module("mcap")
@@ -40,28 +41,35 @@ def changed_config(tmp_path: Path, old: str, new: str) -> Path:
     return path
 
 
-def test_replay_of_a_lockstep_circle_gives_the_recorded_commands_bit_for_bit(tmp_path):
-    record(CONFIG, tmp_path / "run.mcap")
-    proc = aiohal("replay", str(tmp_path / "run.mcap"), "--config", str(CONFIG), "--json")
+@pytest.fixture(scope="module")
+def shipped_run(tmp_path_factory) -> Path:
+    """One recording of the shipped config, read by every test here (each recording is a
+    robot process: seconds of start-up)."""
+    path = tmp_path_factory.mktemp("replay") / "run.mcap"
+    record(CONFIG, path)
+    return path
+
+
+def test_replay_of_a_lockstep_circle_gives_the_recorded_commands_bit_for_bit(shipped_run):
+    proc = aiohal("replay", str(shipped_run), "--config", str(CONFIG), "--json")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     result = json.loads(proc.stdout)
     assert result["ticks"] == 1001 and result["differing_ticks"] == 0 and result["first_differing_tick"] is None
     # and the text says so
-    proc = aiohal("replay", str(tmp_path / "run.mcap"), "--config", str(CONFIG))
+    proc = aiohal("replay", str(shipped_run), "--config", str(CONFIG))
     assert proc.returncode == 0 and "0 ticks differ" in proc.stdout
 
 
-def test_replay_with_a_changed_parameter_reports_the_first_tick_that_differs(tmp_path):
+def test_replay_with_a_changed_parameter_reports_the_first_tick_that_differs(tmp_path, shipped_run):
     changed = changed_config(tmp_path, "radius = 0.1\n", "radius = 0.1001\n")
-    record(CONFIG, tmp_path / "a.mcap")
     record(changed, tmp_path / "b.mcap")
     # the reference: where the two runs' recorded commands first part (before it both runs saw
     # the same states, so the replay on run a's states must part there too)
-    a, b = load(tmp_path / "a.mcap")["/joint_commands"], load(tmp_path / "b.mcap")["/joint_commands"]
+    a, b = load(shipped_run)["/joint_commands"], load(tmp_path / "b.mcap")["/joint_commands"]
     assert np.array_equal(a.tick, b.tick)
     parted = np.flatnonzero((a.position != b.position).any(axis=1) | (a.velocity != b.velocity).any(axis=1))
     assert len(parted)
-    proc = aiohal("replay", str(tmp_path / "a.mcap"), "--config", str(changed), "--json")
+    proc = aiohal("replay", str(shipped_run), "--config", str(changed), "--json")
     assert proc.returncode == 1, proc.stdout + proc.stderr
     result = json.loads(proc.stdout)
     assert result["first_differing_tick"] == int(a.tick[parted[0]])
@@ -70,10 +78,9 @@ def test_replay_with_a_changed_parameter_reports_the_first_tick_that_differs(tmp
     assert first["field"] in ("position", "velocity") and first["recorded"] != first["replayed"]
 
 
-def test_replay_refuses_another_rate_and_a_missing_file(tmp_path):
-    record(CONFIG, tmp_path / "run.mcap")
+def test_replay_refuses_another_rate_and_a_missing_file(tmp_path, shipped_run):
     other = changed_config(tmp_path, "rate_hz = 1000\n", "rate_hz = 500\n")
-    proc = aiohal("replay", str(tmp_path / "run.mcap"), "--config", str(other))
+    proc = aiohal("replay", str(shipped_run), "--config", str(other))
     assert proc.returncode == 2 and "loop.rate_hz" in proc.stderr and "1000" in proc.stderr
     proc = aiohal("replay", str(tmp_path / "nothing.mcap"), "--config", str(CONFIG))
     assert proc.returncode == 2 and "nothing.mcap" in proc.stderr
