@@ -47,6 +47,8 @@ def whole_robot_text(ifname: str, record: str) -> str:
     return text + "\n[safety]\nmax_tick_gap_ms = 5000\n"
 
 
+# about 20 s: the segment's simulator starts, then the robot process and its hand, recorder and
+# bridge processes, which run for 3 s; the recording is read back
 @pytest.mark.root
 def test_the_whole_robot_runs_with_every_part_producing_data(tmp_path):
     """A few seconds through the CLI: no working-counter error the driver could have avoided,

@@ -224,6 +224,7 @@ def test_the_monitor_needs_no_aiohal():
     assert "aiohal" not in imported and {"zenoh", "rosbags"} <= imported
 
 
+# about 20 s: three processes start (two robots, the monitor) and the monitor listens for 10 s
 def test_a_ros2_peer_sees_two_robots_and_only_the_operator_commands(tmp_path):
     a_name, b_name = f"zen_a_{uuid.uuid4().hex[:6]}", f"zen_b_{uuid.uuid4().hex[:6]}"
     pa, pb, pm, po, pv = free_ports(5)
