@@ -193,68 +193,63 @@ async def test_a_configuration_error_is_not_retried_and_its_message_stays(segmen
     assert segment.status()["counters"]["frames"] > 0 and not driver_of(loop).bus.is_open
 
 
-def test_an_al_state_check_without_every_answer_is_not_judged():
-    """SOEM reads a slave that did not answer in time as NONE (a busy host delays the frame):
-    only a check every slave answered is judged; a slave really gone shows in the working counter."""
-    import logging
-
-    from aiohal.drivers.ethercat.driver import EthercatDriver
-    from aiohal.logutil import RateLimitedLogger
-
-    driver = object.__new__(EthercatDriver)  # the check's own state only, no bus opened
-    driver.name, driver.lost, driver._states_generation = "bus", set(), 3
-    driver.al_checks = driver.al_checks_unanswered = 0
-    driver._al_found, driver._warn = None, RateLimitedLogger(logging.getLogger("test"))
-    for states, found in (([8, 8, 8], None), ([0, 0, 0], None), ([8, 0, 8], None), ([8, 0x14, 8], (3, [8, 0x14, 8]))):
-        driver.bus = type("Bus", (), {"states": staticmethod(lambda states=states: list(states))})()
-        driver._check_al_states()
-        assert driver._al_found == found, states
-    assert (driver.al_checks, driver.al_checks_unanswered) == (4, 2)
-
-
-def _driver_reading(reads):
-    """A driver whose bus answers state reads from ``reads`` in turn (no bus opened)."""
+def _driver_reading(one_frame, checked):
+    """A driver (no bus opened) whose bus reads ``one_frame`` by SOEM's one-frame state read
+    and ``checked`` slave by slave, each (AL state, AL status code), or None: nobody answered."""
     import logging
 
     from aiohal.drivers.ethercat.driver import EthercatDriver
     from aiohal.logutil import RateLimitedLogger
 
     driver = object.__new__(EthercatDriver)
-    driver.name, driver.lost, driver._states_generation = "bus", set(), 3
-    driver.al_checks = driver.al_checks_unanswered = driver.states_unconfirmed = driver.diagnoses = 0
+    driver.name, driver.lost, driver._states_generation, driver._expected = "bus", set(), 3, 25
+    driver.al_checks = driver.al_checks_unanswered = driver.states_unanswered = driver.diagnoses = 0
     driver._al_found, driver._warn, driver._bad_run = None, RateLimitedLogger(logging.getLogger("test")), 10
-    replies = iter(reads)
-    driver.bus = type("Bus", (), {"states": staticmethod(lambda: list(next(replies)))})()
+    driver.bus = type("Bus", (), {"states": staticmethod(lambda: list(one_frame)),
+                                  "checked_states": staticmethod(lambda: checked)})()
     return driver
 
 
+OP_ALL = [(8, 0)] * 3
+OUT = [(8, 0), (0x14, 0x001A), (8, 0)]  # slave 1 in SAFEOP+ERROR, "synchronization error"
+
+
 @pytest.mark.parametrize(
-    ("reads", "judged"),
+    ("one_frame", "checked", "judged"),
     [
-        ([[8, 8, 8]], [8, 8, 8]),  # every slave in OP: one read
-        ([[8, 0x14, 8], [8, 0x14, 8]], [8, 0x14, 8]),  # out of OP twice: judged
-        ([[2, 0x1F, 0x13], [8, 8, 8]], None),  # bytes of another frame, then OP: not judged
-        ([[2, 0x1F, 0x13], [4, 0x1D, 1]], None),  # garbage twice, not the same: not judged
+        ([8, 8, 8], None, OP_ALL),  # every slave in OP: the one-frame read, nothing more
+        ([8, 0x14, 8], OUT, OUT),  # one out of OP: read slave by slave, judged on that
+        ([2, 0x1F, 0x13], OP_ALL, OP_ALL),  # another frame's bytes: each slave says OP
+        ([2, 0x1F, 0x13], None, None),  # and no slave answered its own frame: not judged
+        ([0, 0, 0], None, None),  # no answer in time (a busy host): not judged
     ],
 )
-def test_a_slave_out_of_op_is_judged_only_when_a_second_read_confirms_it(reads, judged):
-    """SOEM takes a reply that came back late to an earlier frame (a stalled host, a second
-    master's frames on the wire) for the read that reuses its index: a state read showing a
-    slave out of OP is believed when the next read shows the same, in the tick's diagnosis
-    and in the AL check off the tick."""
+def test_a_slave_out_of_op_is_judged_on_frames_of_its_own(one_frame, checked, judged):
+    """SOEM's one-frame state read fills the states from its buffer whether or not its frame
+    came back, and takes a reply that came back late to an earlier frame (a stalled host, a
+    second master's frames on the wire) for the read that reuses its index: the bytes of
+    another frame, the same read after read. A read showing a slave out of OP is judged on
+    each slave's own checked frame, in the tick's diagnosis and in the AL check off the tick;
+    a read nobody answered is not judged."""
     diagnosed = []
-    driver = _driver_reading(reads)
-    driver._expected = 25
-    driver._judge = lambda states, why: diagnosed.append(states)
+    driver = _driver_reading(one_frame, checked)
+    driver._judge = lambda read, why: diagnosed.append(read)
     driver._diagnose(-1)
     assert diagnosed == ([] if judged is None else [judged])
-    assert driver.states_unconfirmed == (judged is None)
+    assert driver.states_unanswered == (judged is None and any(st != 8 for st in one_frame))
 
-    driver = _driver_reading(reads)
+    driver = _driver_reading(one_frame, checked)
     driver._check_al_states()
-    assert driver._al_found == (None if judged is None or all(st == 8 for st in judged) else (3, judged))
-    assert driver.states_unconfirmed == (judged is None)
+    assert driver._al_found == (None if judged in (None, OP_ALL) else (3, judged))
+    assert (driver.al_checks, driver.al_checks_unanswered) == (1, judged is None)
 
+
+def test_a_slave_that_does_not_answer_is_not_judged_off_the_tick():
+    """The AL check off the tick judges only a read every slave answered: a slave really gone
+    shows in the working counter, which the tick's diagnosis reads."""
+    driver = _driver_reading([8, 0, 8], [(8, 0), (0, 0), (8, 0)])
+    driver._check_al_states()
+    assert driver._al_found is None and driver.al_checks_unanswered == 1
 
 
 @pytest.mark.asyncio

@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 INIT, PREOP, BOOT, SAFEOP, OP = 0x01, 0x02, 0x03, 0x04, 0x08
 STATE_ERROR, STATE_ACK = 0x10, 0x10
 IDENTITY_READS = 3  # bus scans at most, while a slave's vendor id or product code reads as zero
+AL_STATUS_REGISTER = 0x0130  # AL status (state, error bit), then 0x0134: the AL status code
+STATE_READ_TIMEOUT_US = 2000  # one slave's checked state read
 _STATE_NAMES = {0: "NONE", INIT: "INIT", PREOP: "PREOP", BOOT: "BOOT", SAFEOP: "SAFEOP", OP: "OP"}
 #: where the lock files that keep a second master off an interface live (one per interface)
 LOCK_DIR = Path(os.environ.get("AIOHAL_LOCK_DIR", "/run/lock"))
@@ -554,12 +556,36 @@ class Bus:
             self.master.read_state()
             return [s.state for s in self.slaves]
 
-    def recover_steps(self, positions: Sequence[int]) -> list[int]:
+    def checked_states(self) -> list[tuple[int, int]] | None:
+        """Every slave's AL state and AL status code, each slave read by a frame of its own
+        whose working counter is checked. ``states()`` (SOEM's read_state) reads the slaves in
+        one frame and, when no reply comes or another frame's reply stands in for it (SOEM
+        matches a reply by its index, and indices are reused: a reply late from a stalled host,
+        a second master's frames), fills the states from whatever its buffer held: the bytes
+        of another frame, the same ones read after read. A slave that does not answer reads
+        (0, 0), NONE; None when no slave answered (the frames were lost, not the slaves)."""
+        read = []
+        with self._states_lock:
+            for slave in self.slaves:
+                try:
+                    raw = bytes(slave._fprd(AL_STATUS_REGISTER, 6, timeout_us=STATE_READ_TIMEOUT_US))
+                except Exception:  # pysoem's WkcError: the frame came back unanswered, or not at all
+                    read.append((0, 0))
+                    continue
+                state, code = struct.unpack_from("<H2xH", raw)
+                read.append((state & 0x1F, code))
+        return read if any(state for state, _ in read) else None
+
+    def recover_steps(self, positions: Sequence[int]) -> list[int] | None:
         """One quick step toward OP for each slave that dropped out: acknowledge an error, or
-        SAFEOP → OP (one state read for all, then one frame per slave). A slave below SAFEOP
+        SAFEOP → OP (a checked state read, then one frame per slave). A slave below SAFEOP
         (gone, or back after losing power) would need SOEM's reconfig / recover, which wait
-        up to seconds holding the GIL: that is not done here. Returns every slave's state."""
-        states = self.states()
+        up to seconds holding the GIL: that is not done here. Returns every slave's state,
+        None when no slave answered the read (nothing was written)."""
+        checked = self.checked_states()
+        if checked is None:
+            return None
+        states = [state for state, _ in checked]
         with self._states_lock:
             for position in positions:
                 slave, state = self.slaves[position], states[position]

@@ -15,9 +15,9 @@ inputs are as fresh as they can be; the tick pays the round trip, which is measu
 The working counter is checked every cycle against the driver's own sum (2 per slave with
 outputs, 1 per slave with inputs, leaving out slaves known to be lost). A bad cycle keeps the
 last inputs and does not refresh the joints. ``wkc_error_limit`` bad cycles in a row read
-every slave's state, twice when one is out of OP (a reply that came back late to an earlier
-frame can stand in for a read; reads that disagree are judged later): a drive that left OP
-fails the driver (the loop sends every driver its
+every slave's state (when one is out of OP, each slave again by a checked frame of its own:
+a reply that came back late to an earlier frame can stand in for a one-frame read): a drive
+that left OP fails the driver (the loop sends every driver its
 emergency stop and the robot to its safe state); a lost sensor faults its device, the run goes
 on without it, and it is brought back to OP step by step every ``recover_interval_s``.
 
@@ -157,11 +157,11 @@ class EthercatDriver(Cia402Driver):
         self._al_every = max(1, round(self.options.al_check_interval_ms * 1e6 / period_ns))  # in bus cycles
         self._al_next = 0  # the bus cycle at which write() asks for the next AL state check
         self._al_due = False
-        self._al_found: tuple[int, list[int]] | None = None  # (generation, states) read off the tick, one not OP
+        self._al_found: tuple[int, list[tuple[int, int]]] | None = None  # (generation, read) off the tick, one not OP
         self._states_generation = 0  # the tick's own state reads: a check read before one of them is stale
         self.al_checks = 0
         self.al_checks_unanswered = 0  # of which some slave did not answer in time (a busy host): not judged
-        self.states_unconfirmed = 0  # state reads a second read did not confirm (another frame's reply): not judged
+        self.states_unanswered = 0  # checked state reads no slave answered (frames lost): not judged
         self._pending: list[tuple[int, DriveEvent]] = []  # drive events seen off the loop's thread
         self.infos: list[SlaveInfo] = []
         self.dc_lock: DcLock | None = None  # options.dc_lock, from the bring-up on
@@ -495,9 +495,9 @@ class EthercatDriver(Cia402Driver):
                 self._check_states = False
                 self._diagnose(wkc)
             if self._al_found is not None:
-                (generation, states), self._al_found = self._al_found, None
+                (generation, found), self._al_found = self._al_found, None
                 if generation == self._states_generation:
-                    self._judge(states, f"AL state check (working counter {wkc}/{self._expected})")
+                    self._judge(found, f"AL state check (working counter {wkc}/{self._expected})")
             if self.lost and time.monotonic() >= self._next_recover:
                 self._recover_lost()
         self._read_cpu = (perf() - t0) - (received - sent)
@@ -606,69 +606,60 @@ class EthercatDriver(Cia402Driver):
         self.diagnoses += 1
         self._bad_run = 0
         expected = self._expected  # the failing cycle's, before the states change it
-        states = self._settled_states()  # holds the GIL for a frame or two (four when a slave is out)
-        if states is None:  # judged after the next bad run, if there is one
+        read = self._read_states()  # holds the GIL for a frame (one more a slave when one is out of OP)
+        if read is None:  # judged after the next bad run, if there is one
             return
-        if wkc != expected and all(st == OP for st in states):
+        if wkc != expected and all(st == OP for st, _ in read):
             self._warn.warning(
                 "wkc", "ethercat %s: working counter %d instead of %d, every slave in OP", self.name, wkc, expected
             )
-        self._judge(states, f"working counter {wkc}/{expected}")
+        self._judge(read, f"working counter {wkc}/{expected}")
 
     def _check_al_states(self) -> None:
         """Off the tick (the keep-alive thread): every slave's AL state. A slave that dropped to
         SAFEOP (+ERROR) keeps its SyncManagers, so the working counter does not show it; the
-        loop's next read() judges what this finds, once a second read confirmed it. ``read_state``
-        holds the GIL for one frame (two when states differ), so it runs right after write(),
-        while the loop waits."""
+        loop's next read() judges what this finds. ``read_state`` holds the GIL for one frame
+        (two when states differ), so it runs right after write(), while the loop waits."""
         generation = self._states_generation
         try:
-            states = self.bus.states()
             self.al_checks += 1
-            # no answer in time (SOEM then reads NONE): a slave really gone shows in the working counter
-            if 0 in states:
-                self.al_checks_unanswered += 1
-                return
-            found = self._confirmed(states) if any(st != OP for st in states) else states
+            read = self._read_states()
         except Exception as exc:  # a frame lost: the next check reads again
             self._warn.warning("alcheck", "ethercat %s: reading the AL states failed: %s", self.name, exc)
             return
-        if found is not None and (any(st != OP for st in found) or self.lost):
-            self._al_found = (generation, found)
+        # no slave answered in time (a busy host): a slave really gone shows in the working counter
+        if read is None or any(st == 0 for st, _ in read):
+            self.al_checks_unanswered += 1
+            return
+        if any(st != OP for st, _ in read) or self.lost:
+            self._al_found = (generation, read)
 
-    def _settled_states(self) -> list[int] | None:
-        """Every slave's AL state; None when a slave out of OP is not confirmed (see _confirmed)."""
+    def _read_states(self) -> list[tuple[int, int]] | None:
+        """Every slave's (AL state, AL status code): SOEM's one-frame read when it finds every
+        slave in OP; else each slave read by a checked frame of its own (bus.checked_states: a
+        one-frame read may be another frame's bytes). None when no slave answered."""
         states = self.bus.states()
-        return states if all(st == OP for st in states) else self._confirmed(states)
+        if all(st == OP for st in states):
+            return [(OP, 0)] * len(states)
+        read = self.bus.checked_states()
+        if read is None:
+            self.states_unanswered += 1
+            self._warn.warning(
+                "unanswered", "ethercat %s: no slave answered the state read; judged on a later read", self.name
+            )
+        return read
 
-    def _confirmed(self, states: list[int]) -> list[int] | None:
-        """``states`` if a second read finds the same, else None. SOEM takes the first reply
-        carrying the index of the frame it waits for, and indices are reused: a reply that came
-        back late to an earlier frame (a stalled host, another master's frames on the wire) can
-        stand in for a state read, whose states are then bytes of another frame. A slave really
-        out of OP stays there for the next read; garbage does not repeat."""
-        again = self.bus.states()
-        if again == states:
-            return states
-        self.states_unconfirmed += 1
-        self._warn.warning(
-            "unconfirmed",
-            "ethercat %s: two AL state reads disagree (another frame's reply taken for one); judged on a later read",
-            self.name,
-        )
-        return None
-
-    def _judge(self, states: list[int], why: str) -> None:
-        """States read: a drive out of OP fails the driver, another slave is lost (reported
-        with its AL status code, recovered step by step)."""
+    def _judge(self, read: list[tuple[int, int]], why: str) -> None:
+        """States read, (AL state, AL status code) each: a drive out of OP fails the driver,
+        another slave is lost (reported with its AL status code, recovered step by step)."""
+        states = [st for st, _ in read]
         lost = {i for i, st in enumerate(states) if st != OP}
         self._update_lost(states, lost)
         if not lost:
             return
-        slaves = self.bus.slaves
         describe = {
             i: f"slave {i} ({self.infos[i].name}) in {state_name(states[i])}, AL status 0x"
-            f"{slaves[i].al_status:04X} ({pysoem.al_status_code_to_string(slaves[i].al_status)})"
+            f"{read[i][1]:04X} ({pysoem.al_status_code_to_string(read[i][1])})"
             for i in sorted(lost)
         }
         drives_lost = [i for i in sorted(lost) if self.options.slaves[i].kind == "cia402"]
@@ -702,6 +693,8 @@ class EthercatDriver(Cia402Driver):
         """One quick recovery step for the lost slaves (holds the GIL for a few frames)."""
         self._next_recover = time.monotonic() + self.options.recover_interval_s
         states = self.bus.recover_steps(sorted(self.lost))
+        if states is None:  # no slave answered: the next step reads again
+            return
         lost = {i for i in self.lost if states[i] != OP}
         for i in sorted(lost - self._unrecoverable):
             if states[i] & 0x0F < SAFEOP:
@@ -831,8 +824,8 @@ class EthercatDriver(Cia402Driver):
         out["al_checks"] = self.al_checks
         if self.al_checks_unanswered:
             out["al_checks_unanswered"] = self.al_checks_unanswered
-        if self.states_unconfirmed:
-            out["states_unconfirmed"] = self.states_unconfirmed
+        if self.states_unanswered:
+            out["states_unanswered"] = self.states_unanswered
         out.update(self._drives_health())
         if self.emergencies:
             out["emergencies"] = self.emergencies
