@@ -41,12 +41,12 @@ test: lint
 # need no real time run in parallel, one worker more than cores (pytest-xdist; a file's tests on
 # one worker, so that its module fixtures start once): they wait on subprocesses and sleeping
 # loops, so on 2 cores 3 workers took 348 s where 2 took 390 s and 4 took 352 s (the parallel
-# part of `make suite WORKERS=n`). The longest files go first (tests/conftest.py LONGEST_FILES).
+# part of `make suite WORKERS=n`).
 # Then the realtime-marked ones, alone. Each part names its 20 slowest tests: one over 20 s
 # says why in a comment.
 WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 suite:
-	$(PY) -m pytest -n $(WORKERS) --dist loadfile --no-loadscope-reorder -m "not realtime" --durations=20
+	$(PY) -m pytest -n $(WORKERS) --dist loadfile -m "not realtime" --durations=20
 	$(PY) -m pytest -m realtime --durations=20
 
 check: $(STAMP)

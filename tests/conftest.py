@@ -142,41 +142,6 @@ class HostReference:
         self.stop()
 
 
-#: The files that take longest in the parallel part, longest first (their tests' seconds summed
-#: from ``pytest -n 3 --dist loadfile -m "not realtime" --durations=0``). xdist hands each free
-#: worker the next file in collection order (Makefile: ``--no-loadscope-reorder``; by default it
-#: orders files by their number of tests, which puts long files of few tests last): these start
-#: first, so that no long file begun at the end keeps one worker busy while the others idle.
-LONGEST_FILES = (
-    "test_ethercat_driver.py",
-    "test_cli.py",
-    "test_zenoh_bridge.py",
-    "test_record.py",
-    "test_files.py",
-    "test_canopen_driver.py",
-    "test_hand.py",
-    "test_plugins.py",
-    "test_ethercat_disturbances.py",
-    "test_fault_matrix.py",
-    "test_replay.py",
-    "test_signals.py",
-    "test_limits.py",
-    "test_ethercat_slave_behaviour.py",
-    "test_shm_client.py",
-    "test_mujoco.py",
-    "test_whole_robot.py",
-    "test_output_processes.py",
-    "test_record_ros2.py",
-    "test_disturbance_matrix.py",
-    "test_ethercat_scan.py",
-)
-
-
-def pytest_collection_modifyitems(config, items) -> None:
-    rank = {name: i for i, name in enumerate(LONGEST_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order
-
-
 def pytest_terminal_summary(terminalreporter) -> None:
     unfit = [r for r in terminalreporter.stats.get("skipped", [])
              if isinstance(r.longrepr, tuple) and HOST_UNFIT in str(r.longrepr[-1])]
