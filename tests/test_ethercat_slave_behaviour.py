@@ -247,9 +247,30 @@ def test_a_slave_out_of_op_is_judged_on_frames_of_its_own(one_frame, checked, ju
 def test_a_slave_that_does_not_answer_is_not_judged_off_the_tick():
     """The AL check off the tick judges only a read every slave answered: a slave really gone
     shows in the working counter, which the tick's diagnosis reads."""
-    driver = _driver_reading([8, 0, 8], [(8, 0), (0, 0), (8, 0)])
+    driver = _driver_reading([8, 0x14, 8], [(8, 0), (0, 0), (8, 0)])
     driver._check_al_states()
     assert driver._al_found is None and driver.al_checks_unanswered == 1
+
+
+def test_slaves_already_lost_are_not_read_one_by_one_on_each_check():
+    """Off the tick, every 20 ms: a read whose slaves out of OP are all lost already finds
+    nothing new (their recovery reads them each second); one new slave out is read slave by
+    slave, and every slave back in OP is judged, so that the lost ones come back."""
+    driver = _driver_reading([8, 0x14, 8], None)
+    driver.lost = {1}
+    driver.bus.checked_states = lambda: pytest.fail("read slave by slave for a slave already lost")
+    driver._check_al_states()
+    assert driver._al_found is None and driver.al_checks_unanswered == 0
+
+    driver = _driver_reading([0x14, 0x14, 8], [(0x14, 0x1B), (0x14, 0x1A), (8, 0)])
+    driver.lost = {1}
+    driver._check_al_states()
+    assert driver._al_found == (3, [(0x14, 0x1B), (0x14, 0x1A), (8, 0)])
+
+    driver = _driver_reading([8, 8, 8], None)
+    driver.lost = {1}
+    driver._check_al_states()
+    assert driver._al_found == (3, OP_ALL)
 
 
 @pytest.mark.asyncio

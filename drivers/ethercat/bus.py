@@ -562,19 +562,31 @@ class Bus:
         one frame and, when no reply comes or another frame's reply stands in for it (SOEM
         matches a reply by its index, and indices are reused: a reply late from a stalled host,
         a second master's frames), fills the states from whatever its buffer held: the bytes
-        of another frame, the same ones read after read. A slave that does not answer reads
-        (0, 0), NONE; None when no slave answered (the frames were lost, not the slaves)."""
-        read = []
+        of another frame, the same ones read after read. A slave that does not answer is asked
+        once more after the others (a stall of the host loses a few frames, a slave gone loses
+        them all) and then reads (0, 0), NONE; after two silent slaves in a row the rest of the
+        pass is not asked (a line broken before them), so the GIL is held for at most four
+        timeouts. None when no slave answered (the frames were lost, not the slaves)."""
+        read: list[tuple[int, int] | None] = [None] * len(self.slaves)
         with self._states_lock:
-            for slave in self.slaves:
-                try:
-                    raw = bytes(slave._fprd(AL_STATUS_REGISTER, 6, timeout_us=STATE_READ_TIMEOUT_US))
-                except Exception:  # pysoem's WkcError: the frame came back unanswered, or not at all
-                    read.append((0, 0))
-                    continue
-                state, code = struct.unpack_from("<H2xH", raw)
-                read.append((state & 0x1F, code))
-        return read if any(state for state, _ in read) else None
+            for _ in range(2):
+                silent = 0
+                for position, slave in enumerate(self.slaves):
+                    if read[position] is not None:
+                        continue
+                    if silent == 2:
+                        break
+                    try:
+                        raw = bytes(slave._fprd(AL_STATUS_REGISTER, 6, timeout_us=STATE_READ_TIMEOUT_US))
+                    except Exception:  # pysoem's WkcError: the frame came back unanswered, or not at all
+                        silent += 1
+                        continue
+                    silent = 0
+                    state, code = struct.unpack_from("<H2xH", raw)
+                    read[position] = (state & 0x1F, code)
+        if all(entry is None for entry in read):
+            return None
+        return [entry or (0, 0) for entry in read]
 
     def recover_steps(self, positions: Sequence[int]) -> list[int] | None:
         """One quick step toward OP for each slave that dropped out: acknowledge an error, or

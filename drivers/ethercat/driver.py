@@ -623,12 +623,19 @@ class EthercatDriver(Cia402Driver):
         generation = self._states_generation
         try:
             self.al_checks += 1
-            read = self._read_states()
+            states = self.bus.states()
+            # no answer in time (SOEM then reads NONE): a slave really gone shows in the working counter
+            if 0 in states:
+                self.al_checks_unanswered += 1
+                return
+            out = {i for i, st in enumerate(states) if st != OP}
+            if out and out <= self.lost:  # only slaves already lost: the recovery reads them, each second
+                return
+            read = self._checked_states() if out else [(OP, 0)] * len(states)
         except Exception as exc:  # a frame lost: the next check reads again
             self._warn.warning("alcheck", "ethercat %s: reading the AL states failed: %s", self.name, exc)
             return
-        # no slave answered in time (a busy host): a slave really gone shows in the working counter
-        if read is None or any(st == 0 for st, _ in read):
+        if read is None or any(st == 0 for st, _ in read):  # as above, slave by slave
             self.al_checks_unanswered += 1
             return
         if any(st != OP for st, _ in read) or self.lost:
@@ -641,6 +648,9 @@ class EthercatDriver(Cia402Driver):
         states = self.bus.states()
         if all(st == OP for st in states):
             return [(OP, 0)] * len(states)
+        return self._checked_states()
+
+    def _checked_states(self) -> list[tuple[int, int]] | None:
         read = self.bus.checked_states()
         if read is None:
             self.states_unanswered += 1
