@@ -193,84 +193,134 @@ async def test_a_configuration_error_is_not_retried_and_its_message_stays(segmen
     assert segment.status()["counters"]["frames"] > 0 and not driver_of(loop).bus.is_open
 
 
-def _driver_reading(one_frame, checked):
-    """A driver (no bus opened) whose bus reads ``one_frame`` by SOEM's one-frame state read
-    and ``checked`` slave by slave, each (AL state, AL status code), or None: nobody answered."""
+def _driver_reading(one_frame, checked, lost=(), known=None):
+    """A driver (no bus opened) whose bus reads ``one_frame`` by SOEM's one-frame state read and
+    slave by slave from ``checked`` ({position: (AL state, AL status code), or None: silent})."""
     import logging
+    from types import SimpleNamespace
 
     from aiohal.drivers.ethercat.driver import EthercatDriver
     from aiohal.logutil import RateLimitedLogger
 
+    asked = []
+
+    def checked_states(positions, until_silent=False):
+        found = {}
+        for position in positions:
+            asked.append(position)
+            found[position] = checked[position]
+            if found[position] is None and until_silent:
+                break
+        return found
+
     driver = object.__new__(EthercatDriver)
-    driver.name, driver.lost, driver._states_generation, driver._expected = "bus", set(), 3, 25
+    driver.name, driver.lost, driver._states_generation, driver._expected = "bus", set(lost), 3, 9
+    driver._known = list(known or [8] * len(one_frame))
     driver.al_checks = driver.al_checks_unanswered = driver.states_unanswered = driver.diagnoses = 0
     driver._al_found, driver._warn, driver._bad_run = None, RateLimitedLogger(logging.getLogger("test")), 10
-    driver.bus = type("Bus", (), {"states": staticmethod(lambda: list(one_frame)),
-                                  "checked_states": staticmethod(lambda: checked)})()
+    driver.bus = SimpleNamespace(states=lambda: list(one_frame), checked_states=checked_states, asked=asked)
     return driver
 
 
 OP_ALL = [(8, 0)] * 3
 OUT = [(8, 0), (0x14, 0x001A), (8, 0)]  # slave 1 in SAFEOP+ERROR, "synchronization error"
+GARBAGE = [2, 0x1F, 0x13]  # what an unanswered one-frame read left (seen: 0xF+ERROR, BOOT, ...)
 
 
 @pytest.mark.parametrize(
-    ("one_frame", "checked", "judged"),
+    ("one_frame", "checked", "wkc", "judged"),
     [
-        ([8, 8, 8], None, OP_ALL),  # every slave in OP: the one-frame read, nothing more
-        ([8, 0x14, 8], OUT, OUT),  # one out of OP: read slave by slave, judged on that
-        ([2, 0x1F, 0x13], OP_ALL, OP_ALL),  # another frame's bytes: each slave says OP
-        ([2, 0x1F, 0x13], None, None),  # and no slave answered its own frame: not judged
-        ([0, 0, 0], None, None),  # no answer in time (a busy host): not judged
+        ([8, 8, 8], {}, 5, OP_ALL),  # every slave in OP: the one-frame read, nothing more
+        ([8, 0x14, 8], dict(enumerate(OUT)), 9, OUT),  # one out of OP: judged on each slave's own frame
+        (GARBAGE, dict(enumerate(OP_ALL)), -1, OP_ALL),  # another frame's bytes: each slave says OP
+        (GARBAGE, {0: None, 1: None, 2: None}, -1, None),  # nobody answered its own frame: not judged
+        (GARBAGE, {0: (8, 0), 1: None, 2: None}, 6, [(8, 0), (0, 0), (0, 0)]),  # frames back: gone
+        (GARBAGE, {0: (8, 0), 1: None, 2: None}, -1, OP_ALL),  # frames lost: what was known stays
     ],
 )
-def test_a_slave_out_of_op_is_judged_on_frames_of_its_own(one_frame, checked, judged):
+def test_the_diagnosis_judges_each_slave_on_a_frame_of_its_own(one_frame, checked, wkc, judged):
     """SOEM's one-frame state read fills the states from its buffer whether or not its frame
     came back, and takes a reply that came back late to an earlier frame (a stalled host, a
     second master's frames on the wire) for the read that reuses its index: the bytes of
     another frame, the same read after read. A read showing a slave out of OP is judged on
-    each slave's own checked frame, in the tick's diagnosis and in the AL check off the tick;
-    a read nobody answered is not judged."""
+    each slave's own checked frame; a slave silent on it is gone only when the cyclic frames
+    come back (working counter >= 0), and a read nobody answered is not judged."""
     diagnosed = []
     driver = _driver_reading(one_frame, checked)
     driver._judge = lambda read, why: diagnosed.append(read)
-    driver._diagnose(-1)
+    driver._diagnose(wkc)
     assert diagnosed == ([] if judged is None else [judged])
-    assert driver.states_unanswered == (judged is None and any(st != 8 for st in one_frame))
+    assert driver.states_unanswered == (judged is None)
+    assert driver.bus.asked == ([] if one_frame == [8, 8, 8] else [0, 1, 2])
 
-    driver = _driver_reading(one_frame, checked)
+
+@pytest.mark.parametrize(
+    ("one_frame", "checked", "lost", "found", "asked"),
+    [
+        ([8, 8, 8], {}, (), None, []),
+        ([8, 0x14, 8], {1: (0x14, 0x1A)}, (), (3, OUT), [1]),  # read again on its own frame
+        (GARBAGE, dict(enumerate(OP_ALL)), (), None, [0, 1, 2]),  # another frame's bytes
+        (GARBAGE, {0: (8, 0), 1: None, 2: (8, 0)}, (), None, [0, 1]),  # silent: ends the check, unanswered
+        ([8, 0, 8], {}, (), None, []),  # a one-frame read unanswered: not read slave by slave
+        ([8, 0x14, 8], {}, (1,), None, []),  # the lost one still out: its recovery's
+        ([8, 0, 0x14], {2: (0x14, 0x1B)}, (1,), (3, [(8, 0), (0, 0), (0x14, 0x1B)]), [2]),  # a lost one reads NONE
+        ([8, 8, 8], {}, (1,), (3, OP_ALL), []),  # every slave in OP again: the lost one comes back
+    ],
+)
+def test_the_al_check_reads_again_only_slaves_not_yet_lost(one_frame, checked, lost, found, asked):
+    """Off the tick, every 20 ms: a slave not yet lost that the one-frame read finds out of OP
+    is read again on a frame of its own (a silent one ends the check: not judged); slaves
+    already lost are their recovery's (one that reads NONE does not stop the check of the
+    others), until every slave reads OP again."""
+    driver = _driver_reading(one_frame, checked, lost, known=[8, 0, 8] if lost else None)
     driver._check_al_states()
-    assert driver._al_found == (None if judged in (None, OP_ALL) else (3, judged))
-    assert (driver.al_checks, driver.al_checks_unanswered) == (1, judged is None)
+    assert driver._al_found == found and driver.bus.asked == asked
+    unanswered = 0 in [st for i, st in enumerate(one_frame) if i not in lost] or None in checked.values()
+    assert driver.al_checks_unanswered == unanswered
 
 
-def test_a_slave_that_does_not_answer_is_not_judged_off_the_tick():
-    """The AL check off the tick judges only a read every slave answered: a slave really gone
-    shows in the working counter, which the tick's diagnosis reads."""
-    driver = _driver_reading([8, 0x14, 8], [(8, 0), (0, 0), (8, 0)])
-    driver._check_al_states()
-    assert driver._al_found is None and driver.al_checks_unanswered == 1
+def test_a_checked_read_takes_each_slave_s_own_frame_and_names_the_silent_ones():
+    """``Bus.checked_states``: FPRD of 0x0130..0x0135 per slave (AL status, then the AL
+    status code at 0x0134); pysoem's WkcError is a silent slave; ``until_silent`` stops there."""
+    import threading
+    from types import SimpleNamespace
+
+    from aiohal.drivers.ethercat.bus import Bus
+
+    def slave(raw):
+        def fprd(address, size, timeout_us):
+            assert (address, size) == (0x0130, 6)
+            if raw is None:
+                raise RuntimeError("WkcError")
+            return raw
+        return SimpleNamespace(_fprd=fprd)
+
+    bus = object.__new__(Bus)
+    bus._states_lock = threading.Lock()
+    bus.slaves = [slave(bytes([0x08, 0, 0, 0, 0, 0])), slave(None), slave(bytes([0x14, 0, 0xAA, 0xBB, 0x1B, 0]))]
+    assert bus.checked_states([0, 1, 2]) == {0: (0x08, 0), 1: None, 2: (0x14, 0x001B)}
+    assert bus.checked_states([2, 1, 0], until_silent=True) == {2: (0x14, 0x001B), 1: None}
 
 
-def test_slaves_already_lost_are_not_read_one_by_one_on_each_check():
-    """Off the tick, every 20 ms: a read whose slaves out of OP are all lost already finds
-    nothing new (their recovery reads them each second); one new slave out is read slave by
-    slave, and every slave back in OP is judged, so that the lost ones come back."""
-    driver = _driver_reading([8, 0x14, 8], None)
-    driver.lost = {1}
-    driver.bus.checked_states = lambda: pytest.fail("read slave by slave for a slave already lost")
-    driver._check_al_states()
-    assert driver._al_found is None and driver.al_checks_unanswered == 0
+def test_a_recovery_step_keeps_what_was_known_of_a_slave_silent_on_its_read():
+    """The lost slaves only are read (one frame each); a silent one stays as it was known, one
+    back in OP is recovered, one below SAFEOP is reported as needing a reconfiguration."""
+    from types import SimpleNamespace
 
-    driver = _driver_reading([0x14, 0x14, 8], [(0x14, 0x1B), (0x14, 0x1A), (8, 0)])
-    driver.lost = {1}
-    driver._check_al_states()
-    assert driver._al_found == (3, [(0x14, 0x1B), (0x14, 0x1A), (8, 0)])
-
-    driver = _driver_reading([8, 8, 8], None)
-    driver.lost = {1}
-    driver._check_al_states()
-    assert driver._al_found == (3, OP_ALL)
+    driver = _driver_reading([8, 8, 8], {}, lost=(1, 2), known=[8, 0x14, 0x14])
+    driver.infos = [SimpleNamespace(wkc=3, name=f"s{i}") for i in range(3)]
+    driver.sensors, driver._reported, driver._unrecoverable, driver.recovered = [], {1, 2}, set(), 0
+    driver.options = SimpleNamespace(recover_interval_s=1.0)
+    faults = []
+    driver.view = SimpleNamespace(fault=lambda message, hold: faults.append(message))
+    reads = iter([{1: None, 2: (8, 0)}, {1: (0x01, 0)}])
+    driver.bus.recover_steps = lambda positions: next(reads)
+    driver._recover_lost()
+    assert driver.lost == {1} and driver._known == [8, 0x14, 8] and driver.recovered == 1 and faults == []
+    assert driver._expected == 9  # slave 1 in SAFEOP still counts
+    driver._recover_lost()
+    assert driver.lost == {1} and driver._unrecoverable == {1} and "reconfiguration" in faults[0]
+    assert driver._expected == 6
 
 
 @pytest.mark.asyncio

@@ -556,58 +556,49 @@ class Bus:
             self.master.read_state()
             return [s.state for s in self.slaves]
 
-    def checked_states(self) -> list[tuple[int, int]] | None:
-        """Every slave's AL state and AL status code, each slave read by a frame of its own
-        whose working counter is checked. ``states()`` (SOEM's read_state) reads the slaves in
-        one frame and, when no reply comes or another frame's reply stands in for it (SOEM
-        matches a reply by its index, and indices are reused: a reply late from a stalled host,
-        a second master's frames), fills the states from whatever its buffer held: the bytes
-        of another frame, the same ones read after read. A slave that does not answer is asked
-        once more after the others (a stall of the host loses a few frames, a slave gone loses
-        them all) and then reads (0, 0), NONE; after two silent slaves in a row the rest of the
-        pass is not asked (a line broken before them), so the GIL is held for at most four
-        timeouts. None when no slave answered (the frames were lost, not the slaves)."""
-        read: list[tuple[int, int] | None] = [None] * len(self.slaves)
-        with self._states_lock:
-            for _ in range(2):
-                silent = 0
-                for position, slave in enumerate(self.slaves):
-                    if read[position] is not None:
-                        continue
-                    if silent == 2:
-                        break
-                    try:
-                        raw = bytes(slave._fprd(AL_STATUS_REGISTER, 6, timeout_us=STATE_READ_TIMEOUT_US))
-                    except Exception:  # pysoem's WkcError: the frame came back unanswered, or not at all
-                        silent += 1
-                        continue
-                    silent = 0
-                    state, code = struct.unpack_from("<H2xH", raw)
-                    read[position] = (state & 0x1F, code)
-        if all(entry is None for entry in read):
-            return None
-        return [entry or (0, 0) for entry in read]
-
-    def recover_steps(self, positions: Sequence[int]) -> list[int] | None:
-        """One quick step toward OP for each slave that dropped out: acknowledge an error, or
-        SAFEOP → OP (a checked state read, then one frame per slave). A slave below SAFEOP
-        (gone, or back after losing power) would need SOEM's reconfig / recover, which wait
-        up to seconds holding the GIL: that is not done here. Returns every slave's state,
-        None when no slave answered the read (nothing was written)."""
-        checked = self.checked_states()
-        if checked is None:
-            return None
-        states = [state for state, _ in checked]
+    def checked_states(self, positions: Sequence[int], until_silent: bool = False) -> dict[int, tuple[int, int] | None]:
+        """The AL state and AL status code of the slaves at ``positions``, each slave read by a
+        frame of its own whose working counter pysoem checks (WkcError otherwise); None for a
+        slave that did not answer in ``STATE_READ_TIMEOUT_US``. ``states()`` (SOEM's
+        read_state) reads the slaves in one frame and, when no reply comes or another frame's
+        reply stands in for it (SOEM matches a reply by its index, and indices are reused: a
+        reply late from a stalled host, a second master's frames), fills the states from
+        whatever its buffer held: the bytes of another frame, the same ones read after read.
+        Holds the GIL for a round trip a slave, and a timeout a silent one; ``until_silent``:
+        the first silent slave ends the reads (those after it are left out)."""
+        found: dict[int, tuple[int, int] | None] = {}
         with self._states_lock:
             for position in positions:
-                slave, state = self.slaves[position], states[position]
+                try:
+                    raw = bytes(self.slaves[position]._fprd(AL_STATUS_REGISTER, 6, timeout_us=STATE_READ_TIMEOUT_US))
+                except Exception:  # pysoem's WkcError: the frame came back unanswered, or not at all
+                    found[position] = None
+                    if until_silent:
+                        break
+                    continue
+                state, code = struct.unpack_from("<H2xH", raw)
+                found[position] = (state & 0x1F, code)
+        return found
+
+    def recover_steps(self, positions: Sequence[int]) -> dict[int, tuple[int, int] | None]:
+        """One quick step toward OP for each slave at ``positions`` (those that dropped out):
+        acknowledge an error, or SAFEOP → OP (a checked state read, then one frame a slave).
+        A slave below SAFEOP (gone, or back after losing power) would need SOEM's reconfig /
+        recover, which wait up to seconds holding the GIL: that is not done here. Returns
+        what the read found (``checked_states``), before the steps."""
+        found = self.checked_states(positions)
+        with self._states_lock:
+            for position, read in found.items():
+                if read is None:
+                    continue
+                slave, state = self.slaves[position], read[0]
                 if state == SAFEOP | STATE_ERROR:
                     slave.state = SAFEOP | STATE_ACK
                     slave.write_state()
                 elif state == SAFEOP:
                     slave.state = OP
                     slave.write_state()
-        return states
+        return found
 
     def watch_emergencies(self, on_emergency: Any) -> None:
         """Deliver the slaves' emergency messages (EMCY) to ``on_emergency(position, emcy)``;

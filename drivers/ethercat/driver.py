@@ -173,6 +173,7 @@ class EthercatDriver(Cia402Driver):
         self._unrecoverable: set[int] = set()  # lost below SAFEOP: reported, not recovered in the tick
         self._reported: set[int] = set()  # lost slaves already reported
         self._expected = 0
+        self._known: list[int] = []  # each slave's AL state as last read (OP until one is read otherwise)
         self._bad_run = 0
         self._check_states = False  # read every slave's state at the next read (a drive dropped out)
         self._next_recover = 0.0
@@ -226,6 +227,7 @@ class EthercatDriver(Cia402Driver):
             )
         # known from here on, so that a bring-up failing after the mapping reports it
         self._expected = expected_wkc(self.infos)
+        self._known = [OP] * len(self.infos)
         written = self._program_watchdogs()
         self.image = image = ProcessImage([(s.name, layout) for s, layout in zip(opts.slaves, layouts, strict=True)])
         for info in self.infos:
@@ -602,11 +604,12 @@ class EthercatDriver(Cia402Driver):
         )
 
     def _diagnose(self, wkc: int) -> None:
-        """``wkc_error_limit`` bad cycles in a row: which slaves are not in OP?"""
+        """``wkc_error_limit`` bad cycles in a row (or a drive that left Operation enabled):
+        which slaves are not in OP?"""
         self.diagnoses += 1
         self._bad_run = 0
         expected = self._expected  # the failing cycle's, before the states change it
-        read = self._read_states()  # holds the GIL for a frame (one more a slave when one is out of OP)
+        read = self._read_states(frames_back=wkc >= 0)
         if read is None:  # judged after the next bad run, if there is one
             return
         if wkc != expected and all(st == OP for st, _ in read):
@@ -615,49 +618,59 @@ class EthercatDriver(Cia402Driver):
             )
         self._judge(read, f"working counter {wkc}/{expected}")
 
-    def _check_al_states(self) -> None:
-        """Off the tick (the keep-alive thread): every slave's AL state. A slave that dropped to
-        SAFEOP (+ERROR) keeps its SyncManagers, so the working counter does not show it; the
-        loop's next read() judges what this finds. ``read_state`` holds the GIL for one frame
-        (two when states differ), so it runs right after write(), while the loop waits."""
-        generation = self._states_generation
-        try:
-            self.al_checks += 1
-            states = self.bus.states()
-            # no answer in time (SOEM then reads NONE): a slave really gone shows in the working counter
-            if 0 in states:
-                self.al_checks_unanswered += 1
-                return
-            out = {i for i, st in enumerate(states) if st != OP}
-            if out and out <= self.lost:  # only slaves already lost: the recovery reads them, each second
-                return
-            read = self._checked_states() if out else [(OP, 0)] * len(states)
-        except Exception as exc:  # a frame lost: the next check reads again
-            self._warn.warning("alcheck", "ethercat %s: reading the AL states failed: %s", self.name, exc)
-            return
-        if read is None or any(st == 0 for st, _ in read):  # as above, slave by slave
-            self.al_checks_unanswered += 1
-            return
-        if any(st != OP for st, _ in read) or self.lost:
-            self._al_found = (generation, read)
-
-    def _read_states(self) -> list[tuple[int, int]] | None:
-        """Every slave's (AL state, AL status code): SOEM's one-frame read when it finds every
-        slave in OP; else each slave read by a checked frame of its own (bus.checked_states: a
-        one-frame read may be another frame's bytes). None when no slave answered."""
+    def _read_states(self, frames_back: bool) -> list[tuple[int, int]] | None:
+        """Every slave's (AL state, AL status code), in the tick: SOEM's one-frame read when it
+        finds every slave in OP (one frame); else each slave by a checked frame of its own
+        (bus.checked_states: a one-frame read may be another frame's bytes). A slave silent
+        on its own frame is gone (NONE) when the cyclic frames come back (``frames_back``: the
+        silence is the slave's); when they are being lost, what was known of it stays. None
+        when no slave answered: nothing is judged."""
         states = self.bus.states()
         if all(st == OP for st in states):
             return [(OP, 0)] * len(states)
-        return self._checked_states()
-
-    def _checked_states(self) -> list[tuple[int, int]] | None:
-        read = self.bus.checked_states()
-        if read is None:
+        found = self.bus.checked_states(range(len(states)))
+        if all(entry is None for entry in found.values()):
             self.states_unanswered += 1
             self._warn.warning(
                 "unanswered", "ethercat %s: no slave answered the state read; judged on a later read", self.name
             )
-        return read
+            return None
+        silent = (0, 0) if frames_back else None
+        return [found[i] or silent or (self._known[i], 0) for i in range(len(states))]
+
+    def _check_al_states(self) -> None:
+        """Off the tick (the keep-alive thread): every slave's AL state. A slave that dropped to
+        SAFEOP (+ERROR) keeps its SyncManagers, so the working counter does not show it; the
+        loop's next read() judges what this finds. ``read_state`` holds the GIL for one frame
+        (two when states differ), so it runs right after write(), while the loop waits; a
+        slave not yet lost that it finds out of OP is read again by a checked frame of its own
+        (one more frame each; the first silent one ends the check). The lost slaves are their
+        recovery's, each second, until every slave reads OP again."""
+        generation = self._states_generation
+        lost = self.lost
+        try:
+            self.al_checks += 1
+            states = self.bus.states()
+            # no answer in time (SOEM then reads NONE): a slave really gone shows in the working counter
+            if any(st == 0 for i, st in enumerate(states) if i not in lost):
+                self.al_checks_unanswered += 1
+                return
+            out = [i for i, st in enumerate(states) if st != OP and i not in lost]
+            found = self.bus.checked_states(out, until_silent=True) if out else {}
+        except Exception as exc:  # a frame lost: the next check reads again
+            self._warn.warning("alcheck", "ethercat %s: reading the AL states failed: %s", self.name, exc)
+            return
+        answered = [entry for entry in found.values() if entry is not None]
+        if len(answered) < len(found):  # as above, on its own frame
+            self.al_checks_unanswered += 1
+            return
+        if any(state != OP for state, _ in answered):  # a slave out of OP, on its own frame
+            self._al_found = (
+                generation,
+                [found.get(i) or ((self._known[i], 0) if i in lost else (OP, 0)) for i in range(len(states))],
+            )
+        elif lost and all(st == OP for st in states):  # every slave in OP again, the lost ones too
+            self._al_found = (generation, [(OP, 0)] * len(states))
 
     def _judge(self, read: list[tuple[int, int]], why: str) -> None:
         """States read, (AL state, AL status code) each: a drive out of OP fails the driver,
@@ -694,17 +707,21 @@ class EthercatDriver(Cia402Driver):
         for i in sorted(self.lost - lost):
             self._recovered(i)
         self.lost = set(lost)
+        self._known = list(states)
         self._expected = sum(info.wkc for info, st in zip(self.infos, states, strict=True) if st & 0x0F in (SAFEOP, OP))
         for position, sensor in self.sensors:
             if position in lost:
                 sensor.record.set_fault(Fault.HARDWARE)
 
     def _recover_lost(self) -> None:
-        """One quick recovery step for the lost slaves (holds the GIL for a few frames)."""
+        """One quick recovery step for the lost slaves (in the tick: a checked read and at
+        most one frame each); one silent on its read stays as it was known."""
         self._next_recover = time.monotonic() + self.options.recover_interval_s
-        states = self.bus.recover_steps(sorted(self.lost))
-        if states is None:  # no slave answered: the next step reads again
-            return
+        found = self.bus.recover_steps(sorted(self.lost))
+        states = list(self._known)
+        for i, read in found.items():
+            if read is not None:
+                states[i] = read[0]
         lost = {i for i in self.lost if states[i] != OP}
         for i in sorted(lost - self._unrecoverable):
             if states[i] & 0x0F < SAFEOP:
