@@ -465,6 +465,7 @@ def test_a_frozen_process_gets_the_udp_boards_e_stopped_by_the_watchdog_process(
 
 
 @pytest.mark.realtime  # the KRC must reach command mode first: run apart, as tests/test_fri.py
+@pytest.mark.host_reference(1.0, 60)  # as tests/test_fri.py: the KRC grades every answer
 @pytest.mark.usefixtures("answers_at_fifo")
 @pytest.mark.asyncio
 async def test_fri_quality_drop_holds_the_robot_on_the_tick_it_is_measured():

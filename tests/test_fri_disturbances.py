@@ -30,6 +30,7 @@ pytestmark = [
     # mode): answered as a robot's loop answers (conftest), alone, as test_fri's KRC is
     pytest.mark.usefixtures("answers_at_fifo"),
     pytest.mark.realtime,
+    pytest.mark.host_reference(1.0, 60),  # a failure beside a reference a whole cycle late: the host's
     pytest.mark.asyncio_only("the datagram transport's uvloop path is test_fri's; these test the KRC's states"),
 ]
 
