@@ -517,7 +517,7 @@ def test_a_frozen_robot_process_leaves_the_simulated_drives_safe_within_the_watc
     from conftest import start_segment
 
     sim = start_segment("drive*7,imu,ft", watchdog_ms=1000)
-    proc = host = None
+    proc = host = start = None
     try:
         os.sched_setscheduler(sim.pid, os.SCHED_FIFO, os.sched_param(95))  # the hardware does not stall
         raw = tomllib.loads((CONFIGS / "ethercat_sim.toml").read_text())
@@ -526,6 +526,9 @@ def test_a_frozen_robot_process_leaves_the_simulated_drives_safe_within_the_watc
         raw["driver"][0]["options"].update(interface=sim.ifname, sm_watchdog_ms=WATCHDOG_MS,
                                            receive_timeout_us=2000, frame_timeout_us=50_000,
                                            keepalive_after_ms=5.0)
+        # the bring-up's keep-alive must cycle the bus within the drives' short SM watchdog
+        # time: a host that stalls the robot process longer trips them before the first tick
+        start = HostReference(WATCHDOG_MS, priority=95)
         proc = subprocess.Popen([sys.executable, "-c", ROBOT_SCRIPT, json.dumps(raw)], cwd=ROOT,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         import select
@@ -534,7 +537,10 @@ def test_a_frozen_robot_process_leaves_the_simulated_drives_safe_within_the_watc
         line = proc.stdout.readline().strip() if ready else ""
         if line != "ticking":
             proc.kill()
-            pytest.fail(f"the robot did not tick: {proc.communicate(timeout=10)[1][-3000:]}")
+            _, err = proc.communicate(timeout=10)
+            start.require_fit()
+            pytest.fail(f"the robot did not tick: {err[-3000:]}")
+        start.stop()
         slaves = sim.status()["slaves"]
         drives = [s for s in slaves if s["kind"] == "drive"]
         assert len(drives) == 7
@@ -563,8 +569,9 @@ def test_a_frozen_robot_process_leaves_the_simulated_drives_safe_within_the_watc
             assert device["state"] in ("switch_on_disabled", "quick_stop_active", "fault"), device["state"]
             assert d["state"] == "SAFEOP" and d["al_status_code"] == 0x001B
     finally:
-        if host is not None:
-            host.stop()
+        for reference in (start, host):
+            if reference is not None:
+                reference.stop()
         if proc is not None and proc.poll() is None:
             proc.kill()
             proc.wait(10)
