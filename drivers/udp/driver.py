@@ -488,13 +488,16 @@ class UdpDriver(Driver):
 
     def _board_silent(self, tick: int) -> None:
         """Fail the driver: the boards that did not answer within ``silent_ticks``, those that
-        answered only after the next command named apart (a board or host too slow for the
-        rate is not a dead board)."""
+        still answered, but only after the next command, named apart (a board or host too slow
+        for the rate is not a dead board)."""
         silent = np.flatnonzero(tick - self.board_tick > self.options.silent_ticks)
         self.silent_boards = [self.board_ids[i] for i in silent]
         for i in silent:
             self.view.state.fault[self.board_rows[i]] |= np.uint32(Fault.HARDWARE)
-        late = [self.board_ids[i] for i in silent if self.board_late_tick[i] > self.board_tick[i]]
+        # late: its late answers kept coming through the second half of the silence; a board
+        # whose last answer before dying came late (a stalled host) is silent, not slow
+        recent = tick - self.options.silent_ticks // 2
+        late = [self.board_ids[i] for i in silent if self.board_late_tick[i] > max(self.board_tick[i], recent)]
         quiet = [board for board in self.silent_boards if board not in late]
         reasons = []
         if quiet:
